@@ -1,0 +1,11 @@
+//! Pure geometry of egoslam: camera models, rigid and similarity transforms, trajectory
+//! alignment and accuracy. Nothing here reads files or talks to the bus, so every estimator
+//! is unit-tested on synthetic truth.
+
+pub mod alignment;
+pub mod camera;
+pub mod trajectory;
+
+pub use alignment::{umeyama, AlignmentError, Similarity};
+pub use camera::{CameraError, PinholeRadtan};
+pub use trajectory::{associate, absolute_trajectory_error, AteReport, StampedPose};
