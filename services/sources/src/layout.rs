@@ -1,0 +1,135 @@
+//! Recognising what kind of sequence a path holds.
+
+use crate::SourceError;
+use std::path::{Path, PathBuf};
+
+/// A supported input layout, with the folder or file that holds its frames.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Layout {
+    /// TUM RGB-D: a folder with `rgb.txt` ("timestamp path" lines).
+    Tum { dir: PathBuf },
+    /// KITTI odometry sequence: `image_0/NNNNNN.png` and `times.txt`.
+    Kitti { dir: PathBuf },
+    /// EuRoC MAV: `cam0/data.csv` and `cam0/data/*.png` under `mav0/`.
+    Euroc { cam_dir: PathBuf },
+    /// A video file readable by OpenCV's videoio (FFMPEG backend).
+    Video { file: PathBuf },
+    /// A folder of images, taken in file-name order at a fixed rate.
+    ImageFolder { dir: PathBuf },
+}
+
+const VIDEO_EXTENSIONS: &[&str] = &["mp4", "avi", "mkv", "mov", "webm", "m4v", "mpg", "mpeg"];
+pub(crate) const IMAGE_EXTENSIONS: &[&str] = &["png", "jpg", "jpeg", "bmp", "tif", "tiff", "pgm", "ppm"];
+
+fn has_extension(path: &Path, list: &[&str]) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| list.contains(&e.to_ascii_lowercase().as_str()))
+}
+
+pub(crate) fn is_image(path: &Path) -> bool {
+    has_extension(path, IMAGE_EXTENSIONS)
+}
+
+fn layout_here(dir: &Path) -> Option<Layout> {
+    if dir.join("rgb.txt").is_file() {
+        return Some(Layout::Tum { dir: dir.into() });
+    }
+    if dir.join("image_0").is_dir() && dir.join("times.txt").is_file() {
+        return Some(Layout::Kitti { dir: dir.into() });
+    }
+    for cam in [dir.join("mav0/cam0"), dir.join("cam0"), dir.to_path_buf()] {
+        if cam.join("data.csv").is_file() && cam.join("data").is_dir() {
+            return Some(Layout::Euroc { cam_dir: cam });
+        }
+    }
+    None
+}
+
+fn sorted_subdirs(dir: &Path) -> Vec<PathBuf> {
+    let mut subdirs: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect())
+        .unwrap_or_default();
+    subdirs.sort();
+    subdirs
+}
+
+/// Finds the layout of `path`: the path itself, or the one dataset folder below it (up to
+/// four levels, so the root of a downloaded dataset works as well as the sequence folder).
+pub fn detect_layout(path: &Path) -> Result<Layout, SourceError> {
+    let meta = std::fs::metadata(path).map_err(|e| SourceError::io(path, e))?;
+    if meta.is_file() {
+        return if has_extension(path, VIDEO_EXTENSIONS) {
+            Ok(Layout::Video { file: path.into() })
+        } else {
+            Err(SourceError::UnknownLayout { path: path.into() })
+        };
+    }
+    let mut level = vec![path.to_path_buf()];
+    for _ in 0..5 {
+        let mut found: Vec<Layout> = level.iter().filter_map(|d| layout_here(d)).collect();
+        if !found.is_empty() {
+            return Ok(found.swap_remove(0));
+        }
+        level = level.iter().flat_map(|d| sorted_subdirs(d)).collect();
+        if level.is_empty() {
+            break;
+        }
+    }
+    let has_images = std::fs::read_dir(path)
+        .map_err(|e| SourceError::io(path, e))?
+        .filter_map(|e| e.ok())
+        .any(|e| is_image(&e.path()));
+    if has_images {
+        Ok(Layout::ImageFolder { dir: path.into() })
+    } else {
+        Err(SourceError::UnknownLayout { path: path.into() })
+    }
+}
+
+impl Layout {
+    /// The folder that holds the sequence (where calibration is looked for first).
+    pub fn root(&self) -> &Path {
+        match self {
+            Layout::Tum { dir } | Layout::Kitti { dir } | Layout::ImageFolder { dir } => dir,
+            Layout::Euroc { cam_dir } => cam_dir,
+            Layout::Video { file } => file.parent().unwrap_or(Path::new(".")),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shared() -> Option<PathBuf> {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+        if p.is_dir() {
+            Some(p)
+        } else {
+            eprintln!("skipping: ../shared/data is absent");
+            None
+        }
+    }
+
+    #[test]
+    fn detects_each_shared_dataset_from_its_root() {
+        let Some(data) = shared() else { return };
+        assert!(matches!(detect_layout(&data.join("tum_fr1_rpy")), Ok(Layout::Tum { .. })));
+        assert!(matches!(detect_layout(&data.join("kitti_odometry_00")), Ok(Layout::Kitti { .. })));
+        assert!(matches!(detect_layout(&data.join("euroc_v1_01")), Ok(Layout::Euroc { .. })));
+    }
+
+    #[test]
+    fn unknown_and_missing_paths_are_clear_errors() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(dir.path().join("notes.txt"), "hello").expect("write");
+        let err = detect_layout(dir.path()).expect_err("no layout");
+        assert!(err.to_string().contains("unknown layout"), "{err}");
+        let err = detect_layout(&dir.path().join("nope")).expect_err("missing");
+        assert!(err.to_string().contains("nope"), "{err}");
+        let vid = dir.path().join("clip.mp4");
+        std::fs::write(&vid, b"x").expect("write");
+        assert_eq!(detect_layout(&vid).expect("video"), Layout::Video { file: vid });
+    }
+}

@@ -1,0 +1,335 @@
+//! Reading frames, one at a time, from any [`Layout`].
+
+use crate::error::{data_lines, parse_floats, read_text};
+use crate::layout::is_image;
+use crate::{detect_layout, Layout, SourceError};
+use opencv::core::{Mat, Vector};
+use opencv::prelude::*;
+use opencv::{imgcodecs, imgproc, videoio};
+use std::path::{Path, PathBuf};
+
+/// One decoded greyscale frame.
+pub struct Frame {
+    /// 0-based position in the stream.
+    pub index: u64,
+    /// Capture time in seconds (the dataset's own clock).
+    pub timestamp: f64,
+    /// 8-bit single-channel image.
+    pub image: Mat,
+    /// File (or `video#frame`) the frame came from, for error messages.
+    pub source: String,
+}
+
+/// A stream of frames. `next_frame` returns `None` at the end of the stream.
+pub trait FrameSource: Send {
+    /// Number of frames when known in advance (for progress), else `None`.
+    fn len_hint(&self) -> Option<usize>;
+    /// The next frame, or the error that stops the stream.
+    fn next_frame(&mut self) -> Option<Result<Frame, SourceError>>;
+    /// The layout this source reads.
+    fn layout(&self) -> &Layout;
+}
+
+/// A list of `(timestamp, image file)` read in order (TUM, KITTI, EuRoC, image folders).
+struct IndexedSource {
+    layout: Layout,
+    entries: Vec<(f64, PathBuf)>,
+    next: usize,
+}
+
+/// Decodes an image file to 8-bit grey, naming the file on any failure.
+pub fn decode_grey(path: &Path) -> Result<Mat, SourceError> {
+    let bytes = std::fs::read(path).map_err(|e| SourceError::io(path, e))?;
+    let buf = Vector::<u8>::from_slice(&bytes);
+    let img = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_GRAYSCALE).map_err(|e| SourceError::OpenCv {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    if img.empty() || img.cols() <= 0 || img.rows() <= 0 {
+        return Err(SourceError::BadImage { path: path.into() });
+    }
+    Ok(img)
+}
+
+impl FrameSource for IndexedSource {
+    fn len_hint(&self) -> Option<usize> {
+        Some(self.entries.len())
+    }
+
+    fn next_frame(&mut self) -> Option<Result<Frame, SourceError>> {
+        let (timestamp, path) = self.entries.get(self.next)?.clone();
+        let index = self.next as u64;
+        self.next += 1;
+        Some(decode_grey(&path).map(|image| Frame {
+            index,
+            timestamp,
+            image,
+            source: path.display().to_string(),
+        }))
+    }
+
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+}
+
+struct VideoSource {
+    layout: Layout,
+    file: PathBuf,
+    capture: videoio::VideoCapture,
+    fps: f64,
+    frames: Option<usize>,
+    next: u64,
+    grey: Mat,
+}
+
+impl FrameSource for VideoSource {
+    fn len_hint(&self) -> Option<usize> {
+        self.frames
+    }
+
+    fn next_frame(&mut self) -> Option<Result<Frame, SourceError>> {
+        let mut bgr = Mat::default();
+        match self.capture.read(&mut bgr) {
+            Ok(true) if !bgr.empty() => {}
+            Ok(_) => return None,
+            Err(e) => {
+                return Some(Err(SourceError::OpenCv {
+                    path: self.file.clone(),
+                    message: format!("frame {}: {e}", self.next),
+                }))
+            }
+        }
+        let conv = if bgr.channels() == 1 {
+            bgr.copy_to(&mut self.grey)
+        } else {
+            imgproc::cvt_color_def(&bgr, &mut self.grey, imgproc::COLOR_BGR2GRAY)
+        };
+        if let Err(e) = conv {
+            return Some(Err(SourceError::OpenCv {
+                path: self.file.clone(),
+                message: e.to_string(),
+            }));
+        }
+        let index = self.next;
+        self.next += 1;
+        Some(Ok(Frame {
+            index,
+            timestamp: index as f64 / self.fps,
+            image: std::mem::take(&mut self.grey),
+            source: format!("{}#{index}", self.file.display()),
+        }))
+    }
+
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+}
+
+fn tum_entries(dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
+    let index = dir.join("rgb.txt");
+    let text = read_text(&index)?;
+    data_lines(&text)
+        .map(|(n, line)| {
+            let mut parts = line.split_whitespace();
+            let (Some(t), Some(file)) = (parts.next(), parts.next()) else {
+                return Err(SourceError::parse(&index, n, "expected 'timestamp filename'"));
+            };
+            let t = t
+                .parse::<f64>()
+                .map_err(|_| SourceError::parse(&index, n, format!("bad timestamp {t:?}")))?;
+            Ok((t, dir.join(file)))
+        })
+        .collect()
+}
+
+fn kitti_entries(dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
+    let times = dir.join("times.txt");
+    let text = read_text(&times)?;
+    data_lines(&text)
+        .enumerate()
+        .map(|(i, (n, line))| {
+            let v = parse_floats(&times, n, line)?;
+            let t = *v.first().ok_or_else(|| SourceError::parse(&times, n, "empty line"))?;
+            Ok((t, dir.join("image_0").join(format!("{i:06}.png"))))
+        })
+        .collect()
+}
+
+fn euroc_entries(cam_dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
+    let csv = cam_dir.join("data.csv");
+    let text = read_text(&csv)?;
+    data_lines(&text)
+        .map(|(n, line)| {
+            let mut parts = line.split(',').map(str::trim);
+            let (Some(ns), Some(file)) = (parts.next(), parts.next()) else {
+                return Err(SourceError::parse(&csv, n, "expected 'timestamp_ns,filename'"));
+            };
+            let ns = ns
+                .parse::<u64>()
+                .map_err(|_| SourceError::parse(&csv, n, format!("bad timestamp {ns:?}")))?;
+            Ok((ns as f64 * 1e-9, cam_dir.join("data").join(file)))
+        })
+        .collect()
+}
+
+fn folder_entries(dir: &Path, fps: f64) -> Result<Vec<(f64, PathBuf)>, SourceError> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| SourceError::io(dir, e))?
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| p.is_file() && is_image(p))
+        .collect();
+    files.sort();
+    Ok(files.into_iter().enumerate().map(|(i, p)| (i as f64 / fps, p)).collect())
+}
+
+/// Opens the sequence at `path` (any supported layout). `fps` sets the timestamps of image
+/// folders (which carry none) and is the fallback for videos that report no rate.
+pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceError> {
+    let layout = detect_layout(path)?;
+    let entries = match &layout {
+        Layout::Tum { dir } => tum_entries(dir)?,
+        Layout::Kitti { dir } => kitti_entries(dir)?,
+        Layout::Euroc { cam_dir } => euroc_entries(cam_dir)?,
+        Layout::ImageFolder { dir } => folder_entries(dir, fps)?,
+        Layout::Video { file } => {
+            let capture = videoio::VideoCapture::from_file(file, videoio::CAP_ANY).map_err(|e| {
+                SourceError::OpenCv {
+                    path: file.clone(),
+                    message: e.to_string(),
+                }
+            })?;
+            if !capture.is_opened().unwrap_or(false) {
+                return Err(SourceError::OpenCv {
+                    path: file.clone(),
+                    message: "cannot open video (unknown codec or not a video)".into(),
+                });
+            }
+            let reported = capture.get(videoio::CAP_PROP_FPS).unwrap_or(0.0);
+            let count = capture.get(videoio::CAP_PROP_FRAME_COUNT).unwrap_or(0.0);
+            return Ok(Box::new(VideoSource {
+                file: file.clone(),
+                layout: layout.clone(),
+                capture,
+                fps: if reported > 0.0 && reported.is_finite() { reported } else { fps },
+                frames: (count >= 1.0).then_some(count as usize),
+                next: 0,
+                grey: Mat::default(),
+            }));
+        }
+    };
+    if entries.is_empty() {
+        return Err(SourceError::Empty {
+            path: layout.root().into(),
+        });
+    }
+    Ok(Box::new(IndexedSource {
+        layout,
+        entries,
+        next: 0,
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shared(sub: &str) -> Option<PathBuf> {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(sub);
+        p.exists().then_some(p).or_else(|| {
+            eprintln!("skipping: ../shared/data/{sub} is absent");
+            None
+        })
+    }
+
+    fn check(sub: &str, frames: usize, size: (i32, i32), first_t: f64) {
+        let Some(d) = shared(sub) else { return };
+        let mut src = open_source(&d, 30.0).expect("opens");
+        assert_eq!(src.len_hint(), Some(frames));
+        let f = src.next_frame().expect("one frame").expect("decodes");
+        assert_eq!((f.image.cols(), f.image.rows()), size);
+        assert_eq!(f.image.channels(), 1);
+        assert!((f.timestamp - first_t).abs() < 1e-6, "{}", f.timestamp);
+        let mut n = 1;
+        let mut last = f.timestamp;
+        while let Some(f) = src.next_frame() {
+            let f = f.expect("decodes");
+            assert!(f.timestamp > last);
+            last = f.timestamp;
+            n += 1;
+        }
+        assert_eq!(n, frames);
+    }
+
+    #[test]
+    fn reads_tum() {
+        check("tum_fr1_rpy", 120, (640, 480), 1305031229.528748);
+    }
+
+    #[test]
+    fn reads_kitti() {
+        check("kitti_odometry_00", 150, (1241, 376), 0.0);
+    }
+
+    #[test]
+    fn reads_euroc() {
+        check("euroc_v1_01", 95, (752, 480), 1403715273.262142976);
+    }
+
+    #[test]
+    fn reads_video_and_image_folder_written_here() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut writer = videoio::VideoWriter::new(
+            dir.path().join("clip.avi"),
+            videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').expect("fourcc"),
+            25.0,
+            opencv::core::Size::new(64, 48),
+            false,
+        )
+        .expect("writer");
+        let folder = dir.path().join("images");
+        std::fs::create_dir(&folder).expect("mkdir");
+        for i in 0..5 {
+            let img = Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, (i * 40).into()).expect("mat");
+            writer.write(&img).expect("write frame");
+            imgcodecs::imwrite_def(folder.join(format!("{i:03}.png")), &img).expect("png");
+        }
+        writer.release().expect("close");
+        let mut video = open_source(&dir.path().join("clip.avi"), 30.0).expect("video opens");
+        let mut n = 0;
+        while let Some(f) = video.next_frame() {
+            let f = f.expect("frame");
+            assert_eq!((f.image.cols(), f.image.rows(), f.image.channels()), (64, 48, 1));
+            assert!((f.timestamp - n as f64 / 25.0).abs() < 1e-9);
+            n += 1;
+        }
+        assert_eq!(n, 5);
+        let mut images = open_source(&folder, 10.0).expect("folder opens");
+        assert_eq!(images.len_hint(), Some(5));
+        let second = images.next_frame().and_then(|_| images.next_frame()).expect("two").expect("decodes");
+        assert!((second.timestamp - 0.1).abs() < 1e-12);
+    }
+
+    #[test]
+    fn truncated_and_empty_inputs_name_the_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let good = Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, 7.into()).expect("mat");
+        let png = dir.path().join("000.png");
+        imgcodecs::imwrite_def(&png, &good).expect("png");
+        let bytes = std::fs::read(&png).expect("read");
+        std::fs::write(&png, &bytes[..bytes.len() / 3]).expect("truncate");
+        let mut src = open_source(dir.path(), 30.0).expect("folder");
+        let err = src.next_frame().expect("one").err().expect("truncated fails");
+        assert!(err.to_string().contains("000.png"), "{err}");
+
+        let tum = dir.path().join("tum");
+        std::fs::create_dir(&tum).expect("mkdir");
+        std::fs::write(tum.join("rgb.txt"), "# header only\n").expect("write");
+        let err = open_source(&tum, 30.0).err().expect("empty");
+        assert!(err.to_string().contains("empty sequence"), "{err}");
+        std::fs::write(tum.join("rgb.txt"), "1.0 rgb/missing.png\n").expect("write");
+        let err = open_source(&tum, 30.0).expect("lists").next_frame().expect("one").err().expect("missing");
+        assert!(err.to_string().contains("missing.png"), "{err}");
+    }
+}
