@@ -1,1 +1,121 @@
+//! Every iceoryx2 service of egoslam in one place: its name, payload type and QoS.
+//!
+//! | channel     | payload                          | producer  | consumer | delivery |
+//! |-------------|----------------------------------|-----------|----------|----------|
+//! | `frames`    | `[u8]` grey pixels + [`FrameMeta`] header | replay    | frontend | zero-copy; lossless (blocks) or real-time (drops new frames, counted) |
+//! | `keyframes` | `[u8]` = protobuf `egoslam.v1.Keyframe` | frontend  | solver   | lossless: producer blocks |
+//! | `windows`   | `[u8]` = protobuf `egoslam.v1.WindowSolution` | solver | merger | lossless: producer blocks |
+//!
+//! Lossless channels have safe overflow off and the `RetryUntilDelivered` backpressure
+//! strategy: a slow consumer slows its producer down, nothing is overwritten. A consumer that
+//! stops reading altogether (hung) makes the producer fail after
+//! [`BusOptions::delivery_timeout`] instead of blocking forever; see docs/bus.md.
+//!
+//! Service names carry a namespace (`egoslam/<namespace>/<channel>`), so that several
+//! pipelines (parallel tests, two cameras) can share one machine.
 
+mod channel;
+mod error;
+mod frame;
+mod message;
+mod port;
+
+pub use channel::{Channel, Delivery, FRAMES, KEYFRAMES, WINDOWS};
+pub use error::{BusOpenError, ReceiveError, SendError};
+pub use frame::{FrameMeta, FramePublisher, FrameSubscriber, ReceivedFrame};
+pub use message::{MessagePublisher, MessageSubscriber};
+
+use iceoryx2::prelude::*;
+use std::time::Duration;
+
+/// Options shared by all ports of one process.
+#[derive(Debug, Clone)]
+pub struct BusOptions {
+    /// Namespace of the service names (default "default"); tests use a unique one each.
+    pub namespace: String,
+    /// How long a lossless send may wait for a consumer that does not read (default 30 s,
+    /// longer than any window solve, shorter than an operator's patience).
+    pub delivery_timeout: Duration,
+    /// How long a producer waits at start for its consumer to connect (default 30 s).
+    pub connect_timeout: Duration,
+}
+
+impl Default for BusOptions {
+    fn default() -> Self {
+        Self {
+            namespace: "default".into(),
+            delivery_timeout: Duration::from_secs(30),
+            connect_timeout: Duration::from_secs(30),
+        }
+    }
+}
+
+/// One iceoryx2 node per process; ports are created from it.
+pub struct Bus {
+    node: Node<ipc::Service>,
+    options: BusOptions,
+}
+
+impl Bus {
+    /// Creates the node of this process, named after the service (`frontend`, ...).
+    ///
+    /// The iceoryx2 configuration is built here (defaults, dead-node cleanup on) rather than
+    /// looked up in `./config`, so every process of a pipeline agrees on it wherever it runs.
+    pub fn open(process_name: &str, options: BusOptions) -> Result<Self, BusOpenError> {
+        let config = Config::default();
+        let name = NodeName::new(process_name).map_err(|_| BusOpenError::BadName(process_name.into()))?;
+        let node = NodeBuilder::new()
+            .name(&name)
+            .config(&config)
+            .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+            .create::<ipc::Service>()
+            .map_err(|e| BusOpenError::Node(format!("{e:?}")))?;
+        Ok(Self { node, options })
+    }
+
+    /// The full iceoryx2 service name of a channel in this bus's namespace.
+    pub fn service_name(&self, channel: &Channel) -> String {
+        format!("egoslam/{}/{}", self.options.namespace, channel.name)
+    }
+
+    /// The options this bus was opened with.
+    pub fn options(&self) -> &BusOptions {
+        &self.options
+    }
+
+    pub(crate) fn node(&self) -> &Node<ipc::Service> {
+        &self.node
+    }
+
+    /// Sleeps up to `duration` (waking early on a signal). Returns `false` when the process
+    /// was asked to terminate (SIGINT/SIGTERM): callers then finish cleanly.
+    pub fn idle(&self, duration: Duration) -> bool {
+        self.node.wait(duration).is_ok()
+    }
+}
+
+/// Polls `f` until it yields a value, idling between attempts with a short backoff. Returns
+/// `Ok(None)` when the process is asked to terminate.
+pub(crate) fn poll_until<T, E>(
+    bus: &Bus,
+    timeout: Option<Duration>,
+    mut f: impl FnMut() -> Result<Option<T>, E>,
+    on_timeout: impl FnOnce() -> E,
+) -> Result<Option<T>, E> {
+    let start = std::time::Instant::now();
+    let mut spins = 0u32;
+    loop {
+        if let Some(v) = f()? {
+            return Ok(Some(v));
+        }
+        if timeout.is_some_and(|t| start.elapsed() > t) {
+            return Err(on_timeout());
+        }
+        spins += 1;
+        if spins < 64 {
+            std::thread::yield_now();
+        } else if !bus.idle(Duration::from_micros(200)) {
+            return Ok(None);
+        }
+    }
+}

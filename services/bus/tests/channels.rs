@@ -1,0 +1,113 @@
+//! The bus between threads of one process (the pipeline tests cover separate processes).
+
+use egoslam_bus::*;
+use egoslam_messages::v1::Keyframe;
+use std::time::Duration;
+
+fn options(test: &str) -> BusOptions {
+    BusOptions {
+        namespace: format!("test_{test}_{}", std::process::id()),
+        delivery_timeout: Duration::from_millis(500),
+        connect_timeout: Duration::from_secs(10),
+    }
+}
+
+#[test]
+fn frames_arrive_intact_in_order_with_end_of_stream() {
+    let opts = options("frames");
+    let consumer_opts = opts.clone();
+    let consumer = std::thread::spawn(move || {
+        let bus = Bus::open("consumer", consumer_opts).expect("bus");
+        let sub = FrameSubscriber::create(&bus).expect("subscriber");
+        let mut ids = Vec::new();
+        loop {
+            let f = sub.next().expect("receive").expect("not terminated");
+            if f.meta().is_end_of_stream() {
+                break;
+            }
+            let expected = (f.meta().frame_id % 251) as u8;
+            assert!(f.pixels().iter().all(|&p| p == expected));
+            assert_eq!(f.pixels().len(), 64 * 48);
+            ids.push(f.meta().frame_id);
+        }
+        ids
+    });
+    let bus = Bus::open("producer", opts).expect("bus");
+    let mut publisher = FramePublisher::create(&bus, 64 * 48, Delivery::Lossless).expect("publisher");
+    for id in 0..100u64 {
+        let meta = FrameMeta {
+            frame_id: id,
+            timestamp: id as f64 / 30.0,
+            width: 64,
+            height: 48,
+            ..Default::default()
+        };
+        publisher.send(meta, &vec![(id % 251) as u8; 64 * 48]).expect("send");
+    }
+    let bad = FrameMeta {
+        width: 10,
+        height: 10,
+        ..Default::default()
+    };
+    assert!(matches!(publisher.send(bad, &[0; 5]), Err(SendError::BadFrame { .. })));
+    publisher.finish(99).expect("eos");
+    let ids = consumer.join().expect("consumer thread");
+    assert_eq!(ids, (0..100).collect::<Vec<_>>());
+    assert_eq!(publisher.dropped(), 0);
+}
+
+#[test]
+fn lossless_messages_survive_a_slow_consumer() {
+    let opts = options("slow");
+    let consumer_opts = opts.clone();
+    let consumer = std::thread::spawn(move || {
+        let bus = Bus::open("consumer", consumer_opts).expect("bus");
+        let mut sub = MessageSubscriber::<Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
+        let mut ids = Vec::new();
+        while ids.len() < 300 {
+            let k = sub.next().expect("receive").expect("not terminated");
+            if ids.len() % 50 == 0 {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            ids.push(k.keyframe_id);
+        }
+        ids
+    });
+    let bus = Bus::open("producer", opts).expect("bus");
+    let mut publisher = MessagePublisher::<Keyframe>::create(&bus, KEYFRAMES).expect("publisher");
+    for id in 0..300u64 {
+        // Messages bigger than the initial slice make the publisher reallocate.
+        let tracks = (0..(id as usize * 20)).map(|t| egoslam_messages::v1::TrackObservation {
+            track_id: t as u64,
+            ..Default::default()
+        });
+        let kf = Keyframe {
+            keyframe_id: id,
+            tracks: tracks.collect(),
+            ..Default::default()
+        };
+        publisher.send(&kf).expect("lossless send");
+    }
+    let ids = consumer.join().expect("consumer thread");
+    assert_eq!(ids, (0..300).collect::<Vec<_>>());
+}
+
+#[test]
+fn a_consumer_that_stops_reading_fails_the_producer_instead_of_hanging_it() {
+    let opts = options("hung");
+    let bus_c = Bus::open("consumer", opts.clone()).expect("bus");
+    let _sub = MessageSubscriber::<Keyframe>::create(&bus_c, KEYFRAMES).expect("subscriber");
+    let bus = Bus::open("producer", opts).expect("bus");
+    let mut publisher = MessagePublisher::<Keyframe>::create(&bus, KEYFRAMES).expect("publisher");
+    let mut result = Ok(());
+    for id in 0..(KEYFRAMES.buffer as u64 + 2) {
+        result = publisher.send(&Keyframe {
+            keyframe_id: id,
+            ..Default::default()
+        });
+        if result.is_err() {
+            break;
+        }
+    }
+    assert!(matches!(result, Err(SendError::NotDelivered { .. })), "{result:?}");
+}
