@@ -1,0 +1,447 @@
+//! Feature tracking: GFTT corners followed by bidirectional pyramidal Lucas-Kanade.
+//!
+//! Shi and Tomasi, "Good Features to Track", CVPR 1994 (corners); Bouguet, "Pyramidal
+//! Implementation of the Lucas Kanade Feature Tracker", Intel 2000 (tracking); Kalal et al.,
+//! "Forward-Backward Error: Automatic Detection of Tracking Failures", ICPR 2010 (the
+//! bidirectional check the paper uses to drop drifting correspondences).
+
+use crate::keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
+use egoslam_geometry::PinholeRadtan;
+use nalgebra::Point2;
+use opencv::core::{Mat, Point, Point2f, Scalar, Size, TermCriteria, Vector, CV_8UC1};
+use opencv::prelude::*;
+use opencv::{imgproc, video};
+
+/// Errors of [`Tracker::process`].
+#[derive(Debug, thiserror::Error)]
+pub enum TrackerError {
+    /// The frame is not 8-bit single channel.
+    #[error("frame {frame_id}: expected 8-bit grey image, got type {cv_type}")]
+    NotGrey { frame_id: u64, cv_type: i32 },
+    /// The frame's size differs from the calibrated camera's.
+    #[error("frame {frame_id}: size {width}x{height} differs from the camera's {camera_width}x{camera_height}")]
+    SizeMismatch {
+        frame_id: u64,
+        width: i32,
+        height: i32,
+        camera_width: u32,
+        camera_height: u32,
+    },
+    /// An OpenCV call failed.
+    #[error("frame {frame_id}: OpenCV: {message}")]
+    OpenCv { frame_id: u64, message: String },
+}
+
+/// Tracker settings; the defaults are the paper's where it gives one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackerOptions {
+    /// Tracks kept alive (default 1000: enough for window SfM, cheap to track at 640x480).
+    pub target_tracks: usize,
+    /// Minimum distance between corners, pixels (default 10: spreads 1000 corners over VGA).
+    pub min_corner_distance_px: f64,
+    /// GFTT quality level relative to the best corner (default 0.01, OpenCV's usual value).
+    pub corner_quality: f64,
+    /// Lucas-Kanade window side, pixels (default 21, OpenCV's default).
+    pub lk_window_px: i32,
+    /// Pyramid levels above the base image (default 3: follows ~100 px/frame motion).
+    pub pyramid_levels: i32,
+    /// Maximum forward-backward error, pixels (default 1.0, as in Kalal et al. 2010's use).
+    pub max_forward_backward_px: f64,
+    /// Tracks closer than this to the image border are dropped (default 5 px): there the
+    /// LK window is mostly outside the image and the estimate drifts.
+    pub border_px: f32,
+    /// Between keyframes, new corners are detected when fewer than this fraction of
+    /// `target_tracks` are alive (default 0.7); at keyframes the count is always topped up.
+    pub replenish_below_fraction: f64,
+    /// Keyframe rule (P, m).
+    pub keyframes: KeyframePolicy,
+}
+
+impl Default for TrackerOptions {
+    fn default() -> Self {
+        Self {
+            target_tracks: 1000,
+            min_corner_distance_px: 10.0,
+            corner_quality: 0.01,
+            lk_window_px: 21,
+            pyramid_levels: 3,
+            max_forward_backward_px: 1.0,
+            border_px: 5.0,
+            replenish_below_fraction: 0.7,
+            keyframes: KeyframePolicy::default(),
+        }
+    }
+}
+
+/// One track's position in a keyframe.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackPoint {
+    pub track_id: u64,
+    /// Raw (distorted) pixel.
+    pub raw: Point2<f32>,
+    /// Undistorted pixel (ideal pinhole with the same intrinsics).
+    pub undistorted: Point2<f32>,
+}
+
+/// The tracks of a new keyframe.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeyframeTracks {
+    pub keyframe_id: u64,
+    pub frame_id: u64,
+    pub reason: KeyframeReason,
+    /// Mean flow since the previous keyframe, pixels.
+    pub mean_flow_px: f64,
+    pub tracks: Vec<TrackPoint>,
+}
+
+/// What one frame produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameOutcome {
+    pub keyframe: Option<KeyframeTracks>,
+    /// Tracks alive after this frame.
+    pub live_tracks: usize,
+    /// Tracks dropped by the forward-backward check on this frame.
+    pub rejected_forward_backward: usize,
+    /// Mean flow since the last keyframe, pixels.
+    pub mean_flow_px: f64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    id: u64,
+    pos: Point2f,
+    /// Position at the last keyframe, if the track existed then.
+    at_keyframe: Option<Point2f>,
+}
+
+/// Stateful tracker of one stream.
+pub struct Tracker {
+    options: TrackerOptions,
+    camera: PinholeRadtan,
+    tracks: Vec<Track>,
+    previous_pyramid: Option<Vector<Mat>>,
+    next_track_id: u64,
+    next_keyframe_id: u64,
+    frames_since_keyframe: u32,
+    tracks_at_keyframe: usize,
+    last_frame_id: Option<u64>,
+    last_mean_flow: f64,
+}
+
+fn cv_err(frame_id: u64) -> impl Fn(opencv::Error) -> TrackerError {
+    move |e| TrackerError::OpenCv {
+        frame_id,
+        message: e.to_string(),
+    }
+}
+
+impl Tracker {
+    /// A tracker for frames of `camera`.
+    pub fn new(camera: PinholeRadtan, options: TrackerOptions) -> Self {
+        Self {
+            options,
+            camera,
+            tracks: Vec::with_capacity(options.target_tracks),
+            previous_pyramid: None,
+            next_track_id: 0,
+            next_keyframe_id: 0,
+            frames_since_keyframe: 0,
+            tracks_at_keyframe: 0,
+            last_frame_id: None,
+            last_mean_flow: 0.0,
+        }
+    }
+
+    /// Tracks into `image` (8-bit grey) and decides whether it is a keyframe.
+    pub fn process(&mut self, frame_id: u64, image: &Mat) -> Result<FrameOutcome, TrackerError> {
+        let _span = tracing::trace_span!("track_frame", frame_id).entered();
+        if image.typ() != CV_8UC1 {
+            return Err(TrackerError::NotGrey {
+                frame_id,
+                cv_type: image.typ(),
+            });
+        }
+        if (image.cols() as u32, image.rows() as u32) != (self.camera.width, self.camera.height) {
+            return Err(TrackerError::SizeMismatch {
+                frame_id,
+                width: image.cols(),
+                height: image.rows(),
+                camera_width: self.camera.width,
+                camera_height: self.camera.height,
+            });
+        }
+        let err = cv_err(frame_id);
+        let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
+        let mut pyramid = Vector::<Mat>::new();
+        video::build_optical_flow_pyramid_def(image, &mut pyramid, win, self.options.pyramid_levels).map_err(&err)?;
+
+        let mut rejected = 0;
+        if let Some(previous) = self.previous_pyramid.take() {
+            rejected = self.track_into(&previous, &pyramid, frame_id)?;
+        }
+        self.frames_since_keyframe += 1;
+        let (mean_flow, surviving) = self.flow_since_keyframe();
+        let decision = if self.last_frame_id.is_none() {
+            KeyframeDecision::Keyframe(KeyframeReason::First)
+        } else {
+            self.options.keyframes.decide(self.frames_since_keyframe, mean_flow, surviving)
+        };
+        let keyframe = match decision {
+            KeyframeDecision::Keyframe(reason) => {
+                self.replenish(image, frame_id, 1.0)?;
+                Some(self.make_keyframe(frame_id, reason, mean_flow))
+            }
+            KeyframeDecision::Skip => {
+                self.replenish(image, frame_id, self.options.replenish_below_fraction)?;
+                None
+            }
+        };
+        self.previous_pyramid = Some(pyramid);
+        self.last_frame_id = Some(frame_id);
+        self.last_mean_flow = mean_flow;
+        Ok(FrameOutcome {
+            keyframe,
+            live_tracks: self.tracks.len(),
+            rejected_forward_backward: rejected,
+            mean_flow_px: mean_flow,
+        })
+    }
+
+    /// Makes the last processed frame a keyframe (end of stream), unless it already is one.
+    pub fn finish(&mut self) -> Option<KeyframeTracks> {
+        let frame_id = self.last_frame_id?;
+        (self.frames_since_keyframe > 0).then(|| self.make_keyframe(frame_id, KeyframeReason::Last, self.last_mean_flow))
+    }
+
+    /// Number of live tracks.
+    pub fn live_tracks(&self) -> usize {
+        self.tracks.len()
+    }
+
+    fn track_into(&mut self, previous: &Vector<Mat>, current: &Vector<Mat>, frame_id: u64) -> Result<usize, TrackerError> {
+        if self.tracks.is_empty() {
+            return Ok(0);
+        }
+        let err = cv_err(frame_id);
+        let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
+        let criteria = TermCriteria::new(
+            opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
+            30,
+            0.01,
+        )
+        .map_err(&err)?;
+        let p0: Vector<Point2f> = self.tracks.iter().map(|t| t.pos).collect();
+        let (mut p1, mut back) = (Vector::<Point2f>::new(), Vector::<Point2f>::new());
+        let (mut st1, mut st2) = (Vector::<u8>::new(), Vector::<u8>::new());
+        let mut lk_err = Vector::<f32>::new();
+        let levels = self.options.pyramid_levels;
+        video::calc_optical_flow_pyr_lk(previous, current, &p0, &mut p1, &mut st1, &mut lk_err, win, levels, criteria, 0, 1e-4)
+            .map_err(&err)?;
+        video::calc_optical_flow_pyr_lk(current, previous, &p1, &mut back, &mut st2, &mut lk_err, win, levels, criteria, 0, 1e-4)
+            .map_err(&err)?;
+        let max_fb2 = (self.options.max_forward_backward_px * self.options.max_forward_backward_px) as f32;
+        let (w, h) = (self.camera.width as f32, self.camera.height as f32);
+        let m = self.options.border_px;
+        let mut rejected = 0;
+        let mut kept = Vec::with_capacity(self.tracks.len());
+        for (i, track) in self.tracks.iter().enumerate() {
+            let (ok1, ok2) = (st1.get(i).unwrap_or(0) == 1, st2.get(i).unwrap_or(0) == 1);
+            let (Ok(a), Ok(b), Ok(c)) = (p0.get(i), p1.get(i), back.get(i)) else { continue };
+            if !(ok1 && ok2) || b.x < m || b.y < m || b.x > w - 1.0 - m || b.y > h - 1.0 - m {
+                continue;
+            }
+            let (dx, dy) = (a.x - c.x, a.y - c.y);
+            if dx * dx + dy * dy > max_fb2 {
+                rejected += 1;
+                continue;
+            }
+            kept.push(Track { pos: b, ..*track });
+        }
+        self.tracks = kept;
+        Ok(rejected)
+    }
+
+    fn flow_since_keyframe(&self) -> (f64, f64) {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for t in &self.tracks {
+            if let Some(k) = t.at_keyframe {
+                sum += f64::from(((t.pos.x - k.x).powi(2) + (t.pos.y - k.y).powi(2)).sqrt());
+                n += 1;
+            }
+        }
+        let mean = if n > 0 { sum / n as f64 } else { 0.0 };
+        let surviving = if self.tracks_at_keyframe > 0 {
+            n as f64 / self.tracks_at_keyframe as f64
+        } else {
+            1.0
+        };
+        (mean, surviving)
+    }
+
+    fn replenish(&mut self, image: &Mat, frame_id: u64, below_fraction: f64) -> Result<(), TrackerError> {
+        let target = self.options.target_tracks;
+        if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target {
+            return Ok(());
+        }
+        let err = cv_err(frame_id);
+        let mut mask = Mat::new_rows_cols_with_default(image.rows(), image.cols(), CV_8UC1, Scalar::all(255.0)).map_err(&err)?;
+        let radius = self.options.min_corner_distance_px.round() as i32;
+        for t in &self.tracks {
+            let c = Point::new(t.pos.x.round() as i32, t.pos.y.round() as i32);
+            imgproc::circle(&mut mask, c, radius, Scalar::all(0.0), -1, imgproc::LINE_8, 0).map_err(&err)?;
+        }
+        let mut corners = Vector::<Point2f>::new();
+        imgproc::good_features_to_track(
+            image,
+            &mut corners,
+            (target - self.tracks.len()) as i32,
+            self.options.corner_quality,
+            self.options.min_corner_distance_px,
+            &mask,
+            3,
+            false,
+            0.04,
+        )
+        .map_err(&err)?;
+        for c in corners {
+            self.tracks.push(Track {
+                id: self.next_track_id,
+                pos: c,
+                at_keyframe: None,
+            });
+            self.next_track_id += 1;
+        }
+        Ok(())
+    }
+
+    fn make_keyframe(&mut self, frame_id: u64, reason: KeyframeReason, mean_flow_px: f64) -> KeyframeTracks {
+        let camera = self.camera;
+        let tracks = self
+            .tracks
+            .iter_mut()
+            .map(|t| {
+                t.at_keyframe = Some(t.pos);
+                let raw = Point2::new(f64::from(t.pos.x), f64::from(t.pos.y));
+                let und = camera.undistort_pixel(raw);
+                TrackPoint {
+                    track_id: t.id,
+                    raw: Point2::new(t.pos.x, t.pos.y),
+                    undistorted: Point2::new(und.x as f32, und.y as f32),
+                }
+            })
+            .collect();
+        self.tracks_at_keyframe = self.tracks.len();
+        self.frames_since_keyframe = 0;
+        let keyframe_id = self.next_keyframe_id;
+        self.next_keyframe_id += 1;
+        KeyframeTracks {
+            keyframe_id,
+            frame_id,
+            reason,
+            mean_flow_px,
+            tracks,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{Mat, Rect};
+
+    /// A blurred random texture, big enough to crop shifted views from.
+    fn texture(w: i32, h: i32) -> Mat {
+        let mut noise = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        opencv::core::set_rng_seed(7).expect("seed");
+        opencv::core::randu(&mut noise, &Scalar::all(0.0), &Scalar::all(255.0)).expect("randu");
+        let mut blurred = Mat::default();
+        imgproc::gaussian_blur_def(&noise, &mut blurred, Size::new(7, 7), 1.5).expect("blur");
+        blurred
+    }
+
+    fn crop(img: &Mat, x: i32, y: i32, w: i32, h: i32) -> Mat {
+        Mat::roi(img, Rect::new(x, y, w, h)).expect("roi").try_clone().expect("clone")
+    }
+
+    fn camera(w: u32, h: u32) -> PinholeRadtan {
+        PinholeRadtan::new(w, h, [300.0, 300.0, w as f64 / 2.0, h as f64 / 2.0], [0.0; 5]).expect("camera")
+    }
+
+    #[test]
+    fn tracks_follow_a_known_shift_and_flow_triggers_keyframes() {
+        let big = texture(600, 300);
+        let (w, h) = (320, 240);
+        let mut tracker = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+        let mut keyframes = Vec::new();
+        let mut first_positions = std::collections::HashMap::new();
+        for i in 0..20 {
+            // The camera pans right by 3 px per frame: content moves left by 3 px.
+            let out = tracker.process(i, &crop(&big, 3 * i as i32, 30, w, h)).expect("tracks");
+            if let Some(k) = out.keyframe {
+                if k.keyframe_id == 0 {
+                    for t in &k.tracks {
+                        first_positions.insert(t.track_id, t.raw);
+                    }
+                } else if k.keyframe_id == 1 {
+                    // Every track of the first keyframe still alive moved by exactly -3 px/frame.
+                    let shift = -3.0 * k.frame_id as f32;
+                    let mut checked = 0;
+                    for t in &k.tracks {
+                        if let Some(p0) = first_positions.get(&t.track_id) {
+                            assert!((t.raw.x - p0.x - shift).abs() < 0.2, "x {} -> {}", p0.x, t.raw.x);
+                            assert!((t.raw.y - p0.y).abs() < 0.2);
+                            checked += 1;
+                        }
+                    }
+                    assert!(checked > 200, "only {checked} tracks survived");
+                }
+                keyframes.push((k.frame_id, k.reason));
+            }
+            assert!(out.live_tracks > 300, "frame {i}: {} tracks", out.live_tracks);
+        }
+        // 3 px/frame: mean flow passes m = 20 px on the 7th frame after a keyframe.
+        assert_eq!(keyframes[0], (0, KeyframeReason::First));
+        assert_eq!(keyframes[1], (7, KeyframeReason::Flow));
+        assert_eq!(keyframes[2], (14, KeyframeReason::Flow));
+    }
+
+    #[test]
+    fn forward_backward_check_drops_tracks_on_a_scrambled_frame() {
+        let big = texture(400, 300);
+        let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+        tracker.process(0, &crop(&big, 0, 0, 320, 240)).expect("first");
+        let before = tracker.live_tracks();
+        // An unrelated image: LK converges somewhere for many points, but not consistently
+        // in both directions.
+        let other = texture(400, 300);
+        let mut flipped = Mat::default();
+        opencv::core::flip(&crop(&other, 50, 40, 320, 240), &mut flipped, -1).expect("flip");
+        let out = tracker.process(1, &flipped).expect("tracks");
+        assert!(out.rejected_forward_backward > before / 4, "rejected {} of {before}", out.rejected_forward_backward);
+    }
+
+    #[test]
+    fn keyframe_every_p_frames_without_motion_and_finish_closes_the_stream() {
+        let img = texture(320, 240);
+        let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+        let mut kf_frames = Vec::new();
+        for i in 0..65 {
+            if let Some(k) = tracker.process(i, &img).expect("tracks").keyframe {
+                kf_frames.push(k.frame_id);
+            }
+        }
+        assert_eq!(kf_frames, vec![0, 30, 60]);
+        let last = tracker.finish().expect("trailing frames make a last keyframe");
+        assert_eq!((last.frame_id, last.reason, last.keyframe_id), (64, KeyframeReason::Last, 3));
+        assert!(tracker.finish().is_none());
+    }
+
+    #[test]
+    fn rejects_wrong_size_and_colour() {
+        let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+        let small = Mat::new_rows_cols_with_default(10, 10, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        assert!(matches!(tracker.process(0, &small), Err(TrackerError::SizeMismatch { .. })));
+        let colour = Mat::new_rows_cols_with_default(240, 320, opencv::core::CV_8UC3, Scalar::all(0.0)).expect("mat");
+        assert!(matches!(tracker.process(0, &colour), Err(TrackerError::NotGrey { .. })));
+    }
+}
