@@ -36,8 +36,9 @@ impl FrameMeta {
 /// Publishes frames; the pixels are copied once, into shared memory, and read in place.
 pub struct FramePublisher<'a> {
     bus: &'a Bus,
-    service: Service<FrameMeta>,
+    _service: Service<FrameMeta>,
     publisher: Publisher<ipc::Service, [u8], FrameMeta>,
+    delivery: Delivery,
     dropped: u64,
 }
 
@@ -54,8 +55,9 @@ impl<'a> FramePublisher<'a> {
         port::wait_for_subscriber(bus, &FRAMES, &service)?;
         Ok(Self {
             bus,
-            service,
+            _service: service,
             publisher,
+            delivery,
             dropped: 0,
         })
     }
@@ -68,8 +70,9 @@ impl<'a> FramePublisher<'a> {
                 reason: format!("{} bytes for {}x{}", pixels.len(), meta.width, meta.height),
             });
         }
-        let delivered = port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, pixels)?;
+        let delivered = port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, pixels, self.delivery)?;
         if delivered == 0 {
+            tracing::debug!(frame_id = meta.frame_id, "frame not delivered (consumer full)");
             self.dropped += 1;
         }
         Ok(())
@@ -82,21 +85,8 @@ impl<'a> FramePublisher<'a> {
             flags: FrameMeta::END_OF_STREAM,
             ..FrameMeta::default()
         };
-        // Wait until the consumer has room so the marker cannot be dropped.
-        let start = Instant::now();
-        loop {
-            if port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, &[])? > 0 {
-                return Ok(());
-            }
-            if start.elapsed() > self.bus.options().delivery_timeout
-                || self.service.dynamic_config().number_of_subscribers() == 0
-            {
-                return Err(SendError::NotDelivered {
-                    service: self.bus.service_name(&FRAMES),
-                });
-            }
-            std::thread::sleep(Duration::from_millis(1));
-        }
+        // Lossless whatever the frame mode: a dropped marker would hang the consumer.
+        port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, &[], Delivery::Lossless).map(|_| ())
     }
 
     /// Frames dropped because the consumer was full (real-time mode only).

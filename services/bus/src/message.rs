@@ -46,12 +46,7 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
                 service: self.bus.service_name(&self.channel),
                 reason: e.to_string(),
             })?;
-        let delivered = port::send_bytes(self.bus, &self.channel, &self.publisher, self.sequence, &self.buffer)?;
-        if delivered == 0 {
-            return Err(SendError::NotDelivered {
-                service: self.bus.service_name(&self.channel),
-            });
-        }
+        port::send_bytes(self.bus, &self.channel, &self.publisher, self.sequence, &self.buffer, Delivery::Lossless)?;
         self.sequence += 1;
         Ok(())
     }

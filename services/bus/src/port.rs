@@ -98,23 +98,41 @@ pub(crate) fn wait_for_subscriber<H: Debug + ZeroCopySend>(
     Ok(connected.is_some())
 }
 
-/// Loans `len` bytes, lets `fill` write header and payload, sends. Maps iceoryx2's errors.
-pub(crate) fn send_bytes<H: Debug + ZeroCopySend + Default>(
+/// Loans, fills and sends one sample; returns the number of consumers reached.
+///
+/// With [`Delivery::Lossless`] a sample that reached no consumer is sent again until it
+/// does: iceoryx2 only blocks on a full buffer once the subscriber has connected its side,
+/// which it does on its first `receive`; samples sent before that would otherwise vanish.
+/// Fails after the delivery timeout (consumer hung or gone).
+pub(crate) fn send_bytes<H: Debug + ZeroCopySend + Default + Copy>(
     bus: &Bus,
     channel: &Channel,
     publisher: &Publisher<ipc::Service, [u8], H>,
     header: H,
     bytes: &[u8],
+    delivery: Delivery,
 ) -> Result<usize, SendError> {
-    let mut sample = publisher.loan_slice_uninit(bytes.len()).map_err(|e| SendError::Loan {
-        service: bus.service_name(channel),
-        reason: format!("{e:?}"),
-    })?;
-    *sample.user_header_mut() = header;
-    let sample = sample.write_from_slice(bytes);
-    sample.send().map_err(|_| SendError::NotDelivered {
-        service: bus.service_name(channel),
-    })
+    let start = std::time::Instant::now();
+    loop {
+        let mut sample = publisher.loan_slice_uninit(bytes.len()).map_err(|e| SendError::Loan {
+            service: bus.service_name(channel),
+            reason: format!("{e:?}"),
+        })?;
+        *sample.user_header_mut() = header;
+        let sample = sample.write_from_slice(bytes);
+        let delivered = sample.send().map_err(|_| SendError::NotDelivered {
+            service: bus.service_name(channel),
+        })?;
+        if delivered > 0 || delivery == Delivery::DropNewest {
+            return Ok(delivered);
+        }
+        if start.elapsed() > bus.options().delivery_timeout {
+            return Err(SendError::NotDelivered {
+                service: bus.service_name(channel),
+            });
+        }
+        std::thread::sleep(Duration::from_micros(100));
+    }
 }
 
 /// Whether the producers of a service have all gone; cleans up dead nodes first, so a

@@ -1,1 +1,52 @@
-fn main() {}
+//! `egoslam`: the launcher and, as subcommands, the services it starts.
+//!
+//! One multi-call binary keeps deployment simple (one file on the wearable box, one build)
+//! while every service still runs as its own process, linked to the others by iceoryx2.
+
+mod cli;
+mod convert;
+mod eval;
+mod frontend_service;
+mod launcher;
+mod merger_service;
+mod output;
+mod replay;
+mod solver_service;
+mod stats;
+
+use clap::Parser;
+
+fn main() -> std::process::ExitCode {
+    let cli = cli::Cli::parse();
+    init_tracing(cli.verbose);
+    let result = match cli.command {
+        cli::Command::Run(args) => launcher::run(args),
+        cli::Command::Eval(args) => eval::run(args),
+        cli::Command::Replay(args) => replay::run(args),
+        cli::Command::Frontend(args) => frontend_service::run(args),
+        cli::Command::Solver(args) => solver_service::run(args),
+        cli::Command::Merger(args) => merger_service::run(args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn init_tracing(verbose: u8) {
+    let default = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+}

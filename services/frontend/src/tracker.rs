@@ -8,7 +8,7 @@
 use crate::keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::Point2;
-use opencv::core::{Mat, Point, Point2f, Scalar, Size, TermCriteria, Vector, CV_8UC1};
+use opencv::core::{Mat, Point, Point2f, Scalar, Size, TermCriteria, ToInputArray, Vector, CV_8UC1};
 use opencv::prelude::*;
 use opencv::{imgproc, video};
 
@@ -153,7 +153,8 @@ impl Tracker {
     }
 
     /// Tracks into `image` (8-bit grey) and decides whether it is a keyframe.
-    pub fn process(&mut self, frame_id: u64, image: &Mat) -> Result<FrameOutcome, TrackerError> {
+    /// `image` is any 8-bit grey matrix, including one borrowed from shared memory.
+    pub fn process(&mut self, frame_id: u64, image: &(impl MatTraitConst + ToInputArray)) -> Result<FrameOutcome, TrackerError> {
         let _span = tracing::trace_span!("track_frame", frame_id).entered();
         if image.typ() != CV_8UC1 {
             return Err(TrackerError::NotGrey {
@@ -278,7 +279,7 @@ impl Tracker {
         (mean, surviving)
     }
 
-    fn replenish(&mut self, image: &Mat, frame_id: u64, below_fraction: f64) -> Result<(), TrackerError> {
+    fn replenish(&mut self, image: &(impl MatTraitConst + ToInputArray), frame_id: u64, below_fraction: f64) -> Result<(), TrackerError> {
         let target = self.options.target_tracks;
         if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target {
             return Ok(());

@@ -20,7 +20,8 @@ pub struct GroundTruth {
     pub description: String,
 }
 
-fn read_tum(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
+/// Reads a TUM trajectory file (`timestamp tx ty tz qx qy qz qw`).
+pub fn read_tum_file(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
     let text = read_text(path)?;
     data_lines(&text)
         .map(|(n, line)| {
@@ -180,7 +181,7 @@ pub fn load_ground_truth(path: &Path) -> Result<GroundTruth, SourceError> {
             let d = format!("KITTI poses {} with times {}", path.display(), times.display());
             (read_kitti(path, &times)?, d)
         }
-        8 if !is_csv => (read_tum(path)?, format!("TUM trajectory {}", path.display())),
+        8 if !is_csv => (read_tum_file(path)?, format!("TUM trajectory {}", path.display())),
         n if is_csv && n >= 8 => (read_euroc_csv(path)?, format!("EuRoC body poses {}", path.display())),
         n => {
             return Err(SourceError::parse(path, 0, format!("unrecognised ground truth: {n} columns")));

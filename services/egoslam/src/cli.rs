@@ -1,0 +1,114 @@
+//! Command-line interface (every option documented here is listed in docs/config.md).
+
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser, Debug)]
+#[command(name = "egoslam", version, about = "Monocular SLAM for egocentric video: temporal windows solved as global SfM")]
+pub struct Cli {
+    /// More logging (-v debug, -vv trace); EGOSLAM_LOG overrides (tracing filter syntax).
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run the whole pipeline on a sequence (default: the embedded TUM clip) and write results.
+    Run(RunArgs),
+    /// ATE RMSE of a TUM trajectory against ground truth (TUM, KITTI or EuRoC layout).
+    Eval(EvalArgs),
+    /// Service: publish a sequence's frames on the bus.
+    Replay(ReplayArgs),
+    /// Service: track frames, publish keyframes.
+    Frontend(ServiceArgs),
+    /// Service: solve windows of keyframes.
+    Solver(ServiceArgs),
+    /// Service: merge windows into one map, write the outputs.
+    Merger(ServiceArgs),
+}
+
+/// Options of the tracking and solving stages, shared by `run` and the services.
+#[derive(Args, Debug, Clone)]
+pub struct PipelineArgs {
+    /// P: a keyframe at least every P frames.
+    #[arg(long, default_value_t = 30)]
+    pub keyframe_every: u32,
+    /// m: a keyframe when the mean flow since the last one exceeds m pixels.
+    #[arg(long, default_value_t = 20.0)]
+    pub keyframe_flow_px: f64,
+    /// Tracks kept alive by the frontend.
+    #[arg(long, default_value_t = 1000)]
+    pub tracks: usize,
+    /// K: keyframes per window (10-30).
+    #[arg(long, default_value_t = 20)]
+    pub window: usize,
+    /// O: keyframes shared by consecutive windows.
+    #[arg(long, default_value_t = 5)]
+    pub overlap: usize,
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// Sequence: TUM/KITTI/EuRoC folder, video file or image folder. Default: the embedded
+    /// TUM fr1_rpy clip (tests/data/tum_fr1_rpy_120), evaluated against its ground truth.
+    #[arg(long)]
+    pub input: Option<PathBuf>,
+    /// Calibration YAML (or KITTI calib.txt); default: the dataset's own.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// Output folder (created): trajectory.tum, keyframes.tum, map.ply, report.json.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Ground truth to evaluate against; default: found next to the input, if any.
+    #[arg(long)]
+    pub gt: Option<PathBuf>,
+    /// Replay at the recorded rate (frames dropped if the frontend falls behind) instead of
+    /// as fast as the frontend consumes them (lossless).
+    #[arg(long)]
+    pub realtime: bool,
+    /// Frame rate assumed for image folders.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    #[command(flatten)]
+    pub pipeline: PipelineArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    /// Estimated trajectory, TUM format.
+    pub estimate: PathBuf,
+    /// Ground truth: TUM file, KITTI poses file, EuRoC csv/TUM file, or a dataset folder.
+    pub ground_truth: PathBuf,
+    /// Maximum timestamp difference for association, seconds.
+    #[arg(long, default_value_t = 0.02)]
+    pub max_dt: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct ReplayArgs {
+    #[arg(long)]
+    pub input: PathBuf,
+    #[arg(long)]
+    pub realtime: bool,
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    #[command(flatten)]
+    pub service: ServiceArgs,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct ServiceArgs {
+    /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
+    #[arg(long, default_value = "default")]
+    pub namespace: String,
+    /// Output folder: services write their statistics (and the merger its map) here.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Calibration YAML in egoslam format (the launcher writes DIR/camera.yaml).
+    #[arg(long)]
+    pub camera: Option<PathBuf>,
+    #[command(flatten)]
+    pub pipeline: PipelineArgs,
+}

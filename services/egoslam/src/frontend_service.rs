@@ -1,0 +1,129 @@
+//! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
+
+use crate::cli::ServiceArgs;
+use crate::stats::ServiceStats;
+use anyhow::{bail, Context};
+use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
+use egoslam_frontend::{KeyframePolicy, KeyframeReason, KeyframeTracks, Tracker, TrackerOptions};
+use egoslam_messages::v1 as pb;
+use egoslam_sources::calibration::read_calibration_file;
+use opencv::core::Mat;
+use std::time::Instant;
+
+fn reason(r: KeyframeReason) -> pb::KeyframeReason {
+    match r {
+        KeyframeReason::First => pb::KeyframeReason::First,
+        KeyframeReason::FrameCount => pb::KeyframeReason::FrameCount,
+        KeyframeReason::Flow => pb::KeyframeReason::Flow,
+        KeyframeReason::TrackLoss => pb::KeyframeReason::TrackLoss,
+        KeyframeReason::Last => pb::KeyframeReason::Last,
+    }
+}
+
+/// The proto message of a keyframe.
+fn keyframe_message(k: &KeyframeTracks, timestamp_s: f64, intrinsics: &pb::Intrinsics, skipped: Vec<pb::FrameStamp>) -> pb::Keyframe {
+    pb::Keyframe {
+        keyframe_id: k.keyframe_id,
+        frame_id: k.frame_id,
+        timestamp_s,
+        intrinsics: Some(intrinsics.clone()),
+        tracks: k
+            .tracks
+            .iter()
+            .map(|t| pb::TrackObservation {
+                track_id: t.track_id,
+                raw_x: t.raw.x,
+                raw_y: t.raw.y,
+                x: t.undistorted.x,
+                y: t.undistorted.y,
+            })
+            .collect(),
+        frames_since_previous: skipped,
+        mean_flow_px: k.mean_flow_px as f32,
+        reason: reason(k.reason) as i32,
+        end_of_stream: false,
+        trailing_frames: Vec::new(),
+    }
+}
+
+pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
+    let mut stats = ServiceStats::new("frontend");
+    let calib_path = args.camera.clone().context("the frontend needs --camera (calibration YAML)")?;
+    let calib = read_calibration_file(&calib_path)?;
+    let (w, h) = (calib.width.context("camera file lacks width")?, calib.height.context("camera file lacks height")?);
+    let camera = calib.camera_for(w, h)?;
+    let intrinsics = pb::Intrinsics {
+        width: w,
+        height: h,
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        distortion: camera.distortion.to_vec(),
+    };
+    let options = TrackerOptions {
+        target_tracks: args.pipeline.tracks,
+        keyframes: KeyframePolicy {
+            max_frames_between: args.pipeline.keyframe_every,
+            max_mean_flow_px: args.pipeline.keyframe_flow_px,
+            ..KeyframePolicy::default()
+        },
+        ..TrackerOptions::default()
+    };
+    let mut tracker = Tracker::new(camera, options);
+    let bus = Bus::open(
+        "frontend",
+        BusOptions {
+            namespace: args.namespace.clone(),
+            ..BusOptions::default()
+        },
+    )?;
+    let frames = FrameSubscriber::create(&bus)?;
+    let mut keyframes = MessagePublisher::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
+    let mut skipped: Vec<pb::FrameStamp> = Vec::new();
+    let mut last_stamp: Option<pb::FrameStamp> = None;
+    let started = Instant::now();
+    loop {
+        let Some(frame) = frames.next()? else { bail!("terminated by signal") };
+        let meta = *frame.meta();
+        if meta.is_end_of_stream() {
+            break;
+        }
+        let image = Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
+            .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
+        let outcome = stats.time("track", || tracker.process(meta.frame_id, &image))?;
+        drop(image);
+        drop(frame);
+        stats.frames += 1;
+        stats.count("rejected_forward_backward", outcome.rejected_forward_backward as u64);
+        let stamp = pb::FrameStamp {
+            frame_id: meta.frame_id,
+            timestamp_s: meta.timestamp,
+        };
+        match outcome.keyframe {
+            Some(k) => {
+                let msg = keyframe_message(&k, meta.timestamp, &intrinsics, std::mem::take(&mut skipped));
+                stats.time("publish", || keyframes.send(&msg))?;
+                stats.keyframes += 1;
+                tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
+            }
+            None => skipped.push(stamp.clone()),
+        }
+        last_stamp = Some(stamp);
+    }
+    // The last frame becomes a keyframe so that every frame lies between two keyframes.
+    if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {
+        skipped.retain(|s| s.frame_id != last.frame_id);
+        let msg = keyframe_message(&k, last.timestamp_s, &intrinsics, std::mem::take(&mut skipped));
+        keyframes.send(&msg)?;
+        stats.keyframes += 1;
+    }
+    keyframes.send(&pb::Keyframe {
+        end_of_stream: true,
+        trailing_frames: skipped,
+        ..Default::default()
+    })?;
+    let secs = started.elapsed().as_secs_f64();
+    tracing::info!(frames = stats.frames, keyframes = stats.keyframes, "frontend finished ({:.1} frames/s)", stats.frames as f64 / secs);
+    stats.write(&args.out)
+}

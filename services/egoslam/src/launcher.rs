@@ -1,0 +1,213 @@
+//! `egoslam run`: checks the input, starts the services, supervises them, reports.
+
+use crate::cli::{PipelineArgs, RunArgs};
+use crate::eval::{evaluate, summary};
+use crate::output::{camera_yaml, write_atomically};
+use crate::stats::ServiceStats;
+use anyhow::{bail, Context};
+use egoslam_sources::ground_truth::{read_tum_file, GroundTruth};
+use egoslam_sources::{detect_layout, load_calibration, load_ground_truth, open_source, Layout};
+use opencv::prelude::*;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+/// The embedded default sequence: a 120-frame TUM fr1_rpy clip shipped in the repository.
+fn default_input() -> PathBuf {
+    std::env::var_os("EGOSLAM_DEFAULT_SEQUENCE")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/tum_fr1_rpy_120"))
+}
+
+fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
+    vec![
+        format!("--keyframe-every={}", p.keyframe_every),
+        format!("--keyframe-flow-px={}", p.keyframe_flow_px),
+        format!("--tracks={}", p.tracks),
+        format!("--window={}", p.window),
+        format!("--overlap={}", p.overlap),
+    ]
+}
+
+/// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
+fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
+    let root = layout.root();
+    if let Layout::Kitti { dir } = layout {
+        let name = dir.file_name()?.to_string_lossy().into_owned();
+        let poses = dir.parent()?.parent()?.join("poses").join(format!("{name}.txt"));
+        if poses.is_file() {
+            return load_ground_truth(&poses).ok();
+        }
+    }
+    root.ancestors().take(3).find_map(|d| load_ground_truth(d).ok())
+}
+
+struct Supervised {
+    name: &'static str,
+    child: Child,
+}
+
+fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
+    let exe = std::env::current_exe().context("locating the egoslam executable")?;
+    let child = Command::new(exe)
+        .arg(name)
+        .args(args)
+        .spawn()
+        .with_context(|| format!("starting the {name} service"))?;
+    Ok(Supervised { name, child })
+}
+
+fn stop_all(children: &mut [Supervised]) {
+    for c in children.iter_mut() {
+        // SIGTERM first: services finish their current item and release shared memory.
+        let _ = Command::new("kill").arg("-TERM").arg(c.child.id().to_string()).status();
+    }
+    let deadline = Instant::now() + Duration::from_secs(3);
+    for c in children.iter_mut() {
+        while Instant::now() < deadline && matches!(c.child.try_wait(), Ok(None)) {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = c.child.kill();
+        let _ = c.child.wait();
+    }
+}
+
+/// Waits for every service; the first failure stops the others and is reported.
+fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<()> {
+    loop {
+        let mut running = 0;
+        for i in 0..children.len() {
+            match children[i].child.try_wait()? {
+                Some(status) if !status.success() => {
+                    let name = children[i].name;
+                    stop_all(&mut children);
+                    bail!("the {name} service failed ({status}); the pipeline was stopped");
+                }
+                Some(_) => {}
+                None => running += 1,
+            }
+        }
+        if running == 0 {
+            return Ok(());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let input = args.input.clone().unwrap_or_else(default_input);
+    let layout = detect_layout(&input)?;
+    let calibration = load_calibration(&layout, args.calib.as_deref())?;
+    // Decode the first frame now: a bad path, unreadable image or wrong calibration size
+    // fails here, before any process starts.
+    let mut source = open_source(&input, args.fps)?;
+    let total_frames = source.len_hint();
+    let first = source.next_frame().with_context(|| format!("{}: no frames", input.display()))??;
+    let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
+    drop(source);
+
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    for stale in ["trajectory.tum", "keyframes.tum", "map.ply", "report.json"] {
+        let _ = std::fs::remove_file(out.join(stale));
+    }
+    let _ = std::fs::remove_dir_all(out.join("stats"));
+    let camera_file = out.join("camera.yaml");
+    write_atomically(&camera_file, camera_yaml(&camera, &calibration.origin).as_bytes())?;
+    tracing::info!(input = %input.display(), ?layout, frames = ?total_frames, calibration = %calibration.origin.display(), "starting pipeline");
+
+    let namespace = format!("run{}", std::process::id());
+    let mut common = vec![
+        format!("--namespace={namespace}"),
+        format!("--out={}", out.display()),
+        format!("--camera={}", camera_file.display()),
+    ];
+    common.extend(pipeline_flags(&args.pipeline));
+    let mut replay_args = vec![format!("--input={}", input.display()), format!("--fps={}", args.fps)];
+    if args.realtime {
+        replay_args.push("--realtime".into());
+    }
+    replay_args.extend(common.iter().cloned());
+    // Consumers first; every producer also waits for its consumer to connect.
+    let mut children = Vec::new();
+    for name in ["merger", "solver", "frontend"] {
+        match spawn(name, &common) {
+            Ok(c) => children.push(c),
+            Err(e) => {
+                stop_all(&mut children);
+                return Err(e);
+            }
+        }
+    }
+    match spawn("replay", &replay_args) {
+        Ok(c) => children.push(c),
+        Err(e) => {
+            stop_all(&mut children);
+            return Err(e);
+        }
+    }
+    supervise(children)?;
+
+    let stats: Vec<ServiceStats> = ["replay", "frontend", "solver", "merger"]
+        .iter()
+        .map(|s| ServiceStats::read(out, s))
+        .collect::<anyhow::Result<_>>()?;
+    let (replay, frontend, solver, merger) = (&stats[0], &stats[1], &stats[2], &stats[3]);
+    let mut timings = serde_json::Map::new();
+    for s in &stats {
+        for (stage, ms) in &s.timings_ms {
+            timings.insert(format!("{}.{stage}", s.service), json!(ms));
+        }
+    }
+    timings.insert("total".into(), json!(started.elapsed().as_secs_f64() * 1e3));
+    let counter = |s: &ServiceStats, k: &str| s.counters.get(k).copied().unwrap_or(0);
+
+    let ground_truth = match &args.gt {
+        Some(p) => Some(load_ground_truth(p)?),
+        None => find_ground_truth(&layout),
+    };
+    let mut accuracy = serde_json::Value::Null;
+    if let Some(gt) = &ground_truth {
+        let mut acc = serde_json::Map::new();
+        for (key, file) in [("trajectory", "trajectory.tum"), ("keyframes", "keyframes.tum")] {
+            let est = read_tum_file(&out.join(file))?;
+            match evaluate(&est, &gt.poses, 0.02) {
+                Ok(r) => {
+                    println!("{key}: {}", summary(&r));
+                    acc.insert(key.into(), json!({"ate_rmse_m": r.rmse, "ate_mean_m": r.mean, "ate_median_m": r.median, "ate_max_m": r.max, "matched": r.matched, "gt_path_m": r.gt_path_length, "scale": r.alignment.scale}));
+                }
+                Err(e) => println!("{key}: not evaluated: {e}"),
+            }
+        }
+        acc.insert("ground_truth".into(), json!(gt.description));
+        accuracy = serde_json::Value::Object(acc);
+    }
+    let report = json!({
+        "input": input.display().to_string(),
+        "layout": format!("{layout:?}"),
+        "calibration": calibration.origin.display().to_string(),
+        "frames": replay.frames,
+        "dropped_frames": counter(replay, "dropped_frames"),
+        "posed_frames": counter(merger, "posed_frames"),
+        "keyframes": frontend.keyframes,
+        "windows": solver.windows,
+        "unsolved_windows": counter(merger, "unsolved_windows"),
+        "segments": counter(merger, "segments"),
+        "map_points": counter(merger, "map_points"),
+        "timings_ms": timings,
+        "accuracy": accuracy,
+    });
+    write_atomically(&out.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "frames {} (posed {}), keyframes {}, windows {}, segments {}; results in {}",
+        replay.frames,
+        counter(merger, "posed_frames"),
+        frontend.keyframes,
+        solver.windows,
+        counter(merger, "segments"),
+        out.display()
+    );
+    Ok(())
+}

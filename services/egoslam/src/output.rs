@@ -1,0 +1,65 @@
+//! Result files: TUM trajectories, PLY point clouds, egoslam calibration YAML.
+
+use anyhow::Context;
+use egoslam_geometry::{PinholeRadtan, StampedPose};
+use nalgebra::Vector3;
+use std::io::Write;
+use std::path::Path;
+
+/// Writes `bytes` to `path` via a temporary file and a rename, so readers (and a crash)
+/// only ever see the old or the new complete file.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let tmp = path.with_extension("tmp");
+    let mut f = std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    f.write_all(bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    f.sync_all().ok();
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming to {}", path.display()))
+}
+
+/// TUM trajectory text: `timestamp tx ty tz qx qy qz qw`.
+pub fn tum_text(poses: &[StampedPose]) -> String {
+    let mut s = String::from("# timestamp tx ty tz qx qy qz qw (world_from_camera)\n");
+    for p in poses {
+        let q = p.rotation.quaternion();
+        s.push_str(&format!(
+            "{:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
+            p.timestamp, p.position.x, p.position.y, p.position.z, q.i, q.j, q.k, q.w
+        ));
+    }
+    s
+}
+
+/// ASCII PLY of map points.
+pub fn ply_text(points: &[Vector3<f64>]) -> String {
+    let mut s = format!(
+        "ply\nformat ascii 1.0\ncomment egoslam map points\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+        points.len()
+    );
+    for p in points {
+        s.push_str(&format!("{} {} {}\n", p.x as f32, p.y as f32, p.z as f32));
+    }
+    s
+}
+
+/// The calibration in egoslam's own YAML format (docs/config.md).
+pub fn camera_yaml(camera: &PinholeRadtan, origin: &Path) -> String {
+    let d = camera.distortion;
+    format!(
+        "# resolved by egoslam from {}\nwidth: {}\nheight: {}\nfx: {}\nfy: {}\ncx: {}\ncy: {}\ndistortion: [{}, {}, {}, {}, {}]\n",
+        origin.display(),
+        camera.width,
+        camera.height,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        d[0],
+        d[1],
+        d[2],
+        d[3],
+        d[4]
+    )
+}

@@ -1,0 +1,63 @@
+//! Per-service statistics, written to `OUT/stats/<service>.json` when a service ends (and
+//! periodically), and gathered by the launcher into `report.json`.
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What one service did.
+#[derive(Debug, Default, Clone, Serialize, Deserialize)]
+pub struct ServiceStats {
+    pub service: String,
+    pub frames: u64,
+    pub keyframes: u64,
+    pub windows: u64,
+    /// Total wall time per stage, milliseconds.
+    pub timings_ms: BTreeMap<String, f64>,
+    /// Free counters (dropped frames, rejected tracks, failed windows...).
+    pub counters: BTreeMap<String, u64>,
+}
+
+impl ServiceStats {
+    pub fn new(service: &str) -> Self {
+        Self {
+            service: service.into(),
+            ..Self::default()
+        }
+    }
+
+    /// Runs `f`, adding its wall time to `stage` (and recording a tracing span for it).
+    pub fn time<T>(&mut self, stage: &str, f: impl FnOnce() -> T) -> T {
+        let _span = tracing::debug_span!("stage", service = %self.service, stage).entered();
+        let start = Instant::now();
+        let out = f();
+        self.add_time(stage, start.elapsed().as_secs_f64() * 1e3);
+        out
+    }
+
+    pub fn add_time(&mut self, stage: &str, ms: f64) {
+        *self.timings_ms.entry(stage.into()).or_default() += ms;
+    }
+
+    pub fn count(&mut self, counter: &str, n: u64) {
+        *self.counters.entry(counter.into()).or_default() += n;
+    }
+
+    pub fn path(out: &Path, service: &str) -> PathBuf {
+        out.join("stats").join(format!("{service}.json"))
+    }
+
+    /// Writes atomically (temp file + rename): a crash never leaves half a file.
+    pub fn write(&self, out: &Path) -> anyhow::Result<()> {
+        let path = Self::path(out, &self.service);
+        crate::output::write_atomically(&path, serde_json::to_string_pretty(self)?.as_bytes())
+    }
+
+    pub fn read(out: &Path, service: &str) -> anyhow::Result<Self> {
+        let path = Self::path(out, service);
+        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+    }
+}

@@ -1,0 +1,214 @@
+//! Chaining windows into map segments.
+
+use egoslam_geometry::{Similarity, StampedPose};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use std::collections::BTreeMap;
+
+/// One solved window as the merger needs it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WindowInput {
+    /// `(keyframe id, pose in the window's frame)`, in keyframe order.
+    pub poses: Vec<(u64, StampedPose)>,
+    /// `(track id, position in the window's frame)`.
+    pub points: Vec<(u64, Vector3<f64>)>,
+}
+
+/// What happened to a window.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WindowOutcome {
+    /// It started a new map segment (first window, or after a break).
+    NewSegment { segment: u32 },
+    /// It was aligned to the current segment; `residual` is the RMS distance of the shared
+    /// keyframe centres after alignment, in map units.
+    Aligned { segment: u32, transform: Similarity, residual: f64 },
+}
+
+/// The growing map: keyframe poses and points per segment.
+#[derive(Debug, Default)]
+pub struct MapBuilder {
+    /// keyframe id -> (segment, pose in the segment's frame).
+    keyframes: BTreeMap<u64, (u32, StampedPose)>,
+    /// track id -> (segment, position).
+    points: BTreeMap<u64, (u32, Vector3<f64>)>,
+    current_segment: Option<u32>,
+    segments: u32,
+}
+
+/// Rotation `R` minimising `sum ||R_map_i - R R_win_i||_F` (chordal L2 mean of the relative
+/// rotations, Hartley et al., "Rotation Averaging", IJCV 2013, section 5.3).
+fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
+    let sum: Matrix3<f64> = rotations.iter().map(|r| r.matrix()).sum();
+    let svd = sum.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut d = Matrix3::identity();
+            if (u * v_t).determinant() < 0.0 {
+                d[(2, 2)] = -1.0;
+            }
+            Rotation3::from_matrix_unchecked(u * d * v_t)
+        }
+        _ => Rotation3::identity(),
+    }
+}
+
+/// Similarity mapping window poses onto map poses of the same keyframes. The rotation comes
+/// from the camera orientations (well determined even under pure rotation, the egocentric
+/// case where the centres barely move); scale and translation from the centres given that
+/// rotation (Umeyama 1991 with the rotation fixed). With no spread in the centres, the scale
+/// is kept at 1.
+pub fn align_shared(window: &[StampedPose], map: &[StampedPose]) -> (Similarity, f64) {
+    let rel: Vec<Rotation3<f64>> = window
+        .iter()
+        .zip(map)
+        .map(|(w, m)| (m.rotation * w.rotation.inverse()).to_rotation_matrix())
+        .collect();
+    let rotation = chordal_mean(&rel);
+    let n = window.len() as f64;
+    let mu_w = window.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
+    let mu_m = map.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
+    let (mut num, mut den, mut map_spread) = (0.0, 0.0, 0.0);
+    for (w, m) in window.iter().zip(map) {
+        let rw = rotation * (w.position - mu_w);
+        num += (m.position - mu_m).dot(&rw);
+        den += rw.norm_squared();
+        map_spread += (m.position - mu_m).norm_squared();
+    }
+    let scale = if den > 1e-18 && map_spread > 1e-18 && num > 0.0 { num / den } else { 1.0 };
+    let translation = mu_m - scale * (rotation * mu_w);
+    let transform = Similarity {
+        scale,
+        rotation,
+        translation,
+    };
+    let residual = (window
+        .iter()
+        .zip(map)
+        .map(|(w, m)| (transform.apply(&w.position) - m.position).norm_squared())
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    (transform, residual)
+}
+
+fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
+    StampedPose {
+        timestamp: p.timestamp,
+        position: t.apply(&p.position),
+        rotation: UnitQuaternion::from_rotation_matrix(&t.rotation) * p.rotation,
+    }
+}
+
+impl MapBuilder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// A window that could not be solved breaks the map: the next solved window starts a
+    /// new segment.
+    pub fn break_segment(&mut self) {
+        self.current_segment = None;
+    }
+
+    /// Adds a solved window: aligned on the keyframes it shares with the current segment,
+    /// or a new segment when it shares fewer than two.
+    pub fn add_window(&mut self, window: &WindowInput) -> WindowOutcome {
+        let segment = self.current_segment;
+        let shared: Vec<(StampedPose, StampedPose)> = window
+            .poses
+            .iter()
+            .filter_map(|(id, p)| match self.keyframes.get(id) {
+                Some((s, m)) if Some(*s) == segment => Some((*p, *m)),
+                _ => None,
+            })
+            .collect();
+        let (segment, transform, outcome) = match segment {
+            Some(seg) if shared.len() >= 2 => {
+                let (w, m): (Vec<_>, Vec<_>) = shared.into_iter().unzip();
+                let (transform, residual) = align_shared(&w, &m);
+                (seg, transform, WindowOutcome::Aligned { segment: seg, transform, residual })
+            }
+            _ => {
+                let seg = self.segments;
+                self.segments += 1;
+                self.current_segment = Some(seg);
+                (seg, Similarity::identity(), WindowOutcome::NewSegment { segment: seg })
+            }
+        };
+        for (id, p) in &window.poses {
+            // Keyframes already in this segment keep their pose (the older window anchored
+            // them); new ones are added in the segment's frame.
+            let keep = matches!(self.keyframes.get(id), Some((s, _)) if *s == segment);
+            if !keep {
+                self.keyframes.insert(*id, (segment, transform_pose(&transform, p)));
+            }
+        }
+        for (track, x) in &window.points {
+            self.points.insert(*track, (segment, transform.apply(x)));
+        }
+        outcome
+    }
+
+    /// Number of segments so far (breaks = segments - 1).
+    pub fn segments(&self) -> u32 {
+        self.segments
+    }
+
+    /// Posed keyframes in id order with their segment.
+    pub fn keyframes(&self) -> impl Iterator<Item = (u64, u32, &StampedPose)> {
+        self.keyframes.iter().map(|(id, (s, p))| (*id, *s, p))
+    }
+
+    /// Map points with their segment.
+    pub fn points(&self) -> impl Iterator<Item = (u64, u32, &Vector3<f64>)> {
+        self.points.iter().map(|(id, (s, p))| (*id, *s, p))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(t: f64, p: Vector3<f64>, yaw: f64) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position: p,
+            rotation: UnitQuaternion::from_euler_angles(0.0, yaw, 0.1 * yaw),
+        }
+    }
+
+    #[test]
+    fn second_window_in_another_frame_is_brought_back() {
+        let truth: Vec<StampedPose> = (0..15).map(|i| pose(i as f64, Vector3::new(i as f64 * 0.1, 0.02 * i as f64, 0.0), 0.05 * i as f64)).collect();
+        let mut map = MapBuilder::new();
+        let first = WindowInput {
+            poses: (0..10).map(|i| (i as u64, truth[i])).collect(),
+            points: vec![(7, Vector3::new(1.0, 2.0, 3.0))],
+        };
+        assert_eq!(map.add_window(&first), WindowOutcome::NewSegment { segment: 0 });
+        // The second window's frame: scaled by 3, rotated, shifted.
+        let g = Similarity {
+            scale: 3.0,
+            rotation: Rotation3::from_euler_angles(0.4, -0.2, 1.0),
+            translation: Vector3::new(5.0, -1.0, 2.0),
+        };
+        let second = WindowInput {
+            poses: (5..15).map(|i| (i as u64, transform_pose(&g, &truth[i]))).collect(),
+            points: vec![(8, g.apply(&Vector3::new(-1.0, 0.5, 4.0)))],
+        };
+        match map.add_window(&second) {
+            WindowOutcome::Aligned { residual, .. } => assert!(residual < 1e-9),
+            other => panic!("{other:?}"),
+        }
+        for (id, seg, p) in map.keyframes() {
+            assert_eq!(seg, 0);
+            let t = truth[id as usize];
+            assert!((p.position - t.position).norm() < 1e-9, "kf {id}");
+            assert!(p.rotation.angle_to(&t.rotation) < 1e-9);
+        }
+        let (_, _, x) = map.points().find(|(id, _, _)| *id == 8).expect("point 8");
+        assert!((x - Vector3::new(-1.0, 0.5, 4.0)).norm() < 1e-9);
+        map.break_segment();
+        assert_eq!(map.add_window(&first), WindowOutcome::NewSegment { segment: 1 });
+        assert_eq!(map.segments(), 2);
+    }
+}

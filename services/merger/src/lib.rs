@@ -1,0 +1,9 @@
+//! The merger (paper, section 5): successive windows, each solved in its own frame and scale,
+//! are chained by a 7-DoF similarity estimated on the keyframes they share; frames between
+//! keyframes are posed by interpolation.
+
+pub mod chaining;
+pub mod interpolation;
+
+pub use chaining::{MapBuilder, WindowInput, WindowOutcome};
+pub use interpolation::interpolate_frames;
