@@ -45,7 +45,11 @@ pub struct FramePublisher<'a> {
 impl<'a> FramePublisher<'a> {
     /// Opens the frames channel as producer and waits for the consumer to connect.
     /// `max_bytes` is the largest frame (width x height) expected: it sizes the first loan.
-    pub fn create(bus: &'a Bus, max_bytes: usize, delivery: Delivery) -> Result<Self, BusOpenError> {
+    pub fn create(
+        bus: &'a Bus,
+        max_bytes: usize,
+        delivery: Delivery,
+    ) -> Result<Self, BusOpenError> {
         let service = port::open_service::<FrameMeta>(bus, &FRAMES)?;
         let channel = crate::Channel {
             initial_bytes: max_bytes.max(1),
@@ -70,9 +74,19 @@ impl<'a> FramePublisher<'a> {
                 reason: format!("{} bytes for {}x{}", pixels.len(), meta.width, meta.height),
             });
         }
-        let delivered = port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, pixels, self.delivery)?;
+        let delivered = port::send_bytes(
+            self.bus,
+            &FRAMES,
+            &self.publisher,
+            meta,
+            pixels,
+            self.delivery,
+        )?;
         if delivered == 0 {
-            tracing::debug!(frame_id = meta.frame_id, "frame not delivered (consumer full)");
+            tracing::debug!(
+                frame_id = meta.frame_id,
+                "frame not delivered (consumer full)"
+            );
             self.dropped += 1;
         }
         Ok(())
@@ -86,7 +100,15 @@ impl<'a> FramePublisher<'a> {
             ..FrameMeta::default()
         };
         // Lossless whatever the frame mode: a dropped marker would hang the consumer.
-        port::send_bytes(self.bus, &FRAMES, &self.publisher, meta, &[], Delivery::Lossless).map(|_| ())
+        port::send_bytes(
+            self.bus,
+            &FRAMES,
+            &self.publisher,
+            meta,
+            &[],
+            Delivery::Lossless,
+        )
+        .map(|_| ())
     }
 
     /// Frames dropped because the consumer was full (real-time mode only).
@@ -133,7 +155,7 @@ impl<'a> FrameSubscriber<'a> {
 
     /// Waits for the next frame. `Ok(None)` means the process was asked to stop.
     /// Fails with [`ReceiveError::ProducerGone`] if the producer dies mid-stream.
-    pub fn next(&self) -> Result<Option<ReceivedFrame>, ReceiveError> {
+    pub fn receive(&self) -> Result<Option<ReceivedFrame>, ReceiveError> {
         let mut last_liveness_check = Instant::now();
         crate::poll_until(
             self.bus,
@@ -145,7 +167,9 @@ impl<'a> FrameSubscriber<'a> {
                 })?;
                 if got.is_none() && last_liveness_check.elapsed() > Duration::from_secs(1) {
                     last_liveness_check = Instant::now();
-                    if port::producers_gone(self.bus, &self.service) && !self.subscriber.has_samples().unwrap_or(false) {
+                    if port::producers_gone(self.bus, &self.service)
+                        && !self.subscriber.has_samples().unwrap_or(false)
+                    {
                         return Err(ReceiveError::ProducerGone {
                             service: self.bus.service_name(&FRAMES),
                         });

@@ -63,7 +63,8 @@ impl Bus {
     /// looked up in `./config`, so every process of a pipeline agrees on it wherever it runs.
     pub fn open(process_name: &str, options: BusOptions) -> Result<Self, BusOpenError> {
         let config = Config::default();
-        let name = NodeName::new(process_name).map_err(|_| BusOpenError::BadName(process_name.into()))?;
+        let name =
+            NodeName::new(process_name).map_err(|_| BusOpenError::BadName(process_name.into()))?;
         let node = NodeBuilder::new()
             .name(&name)
             .config(&config)

@@ -46,7 +46,14 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
                 service: self.bus.service_name(&self.channel),
                 reason: e.to_string(),
             })?;
-        port::send_bytes(self.bus, &self.channel, &self.publisher, self.sequence, &self.buffer, Delivery::Lossless)?;
+        port::send_bytes(
+            self.bus,
+            &self.channel,
+            &self.publisher,
+            self.sequence,
+            &self.buffer,
+            Delivery::Lossless,
+        )?;
         self.sequence += 1;
         Ok(())
     }
@@ -79,7 +86,7 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
     }
 
     /// Waits for and decodes the next message. `Ok(None)`: the process was asked to stop.
-    pub fn next(&mut self) -> Result<Option<M>, ReceiveError> {
+    pub fn receive(&mut self) -> Result<Option<M>, ReceiveError> {
         let name = self.bus.service_name(&self.channel);
         let mut last_liveness_check = Instant::now();
         let sample = crate::poll_until(
@@ -92,15 +99,21 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
                 })?;
                 if got.is_none() && last_liveness_check.elapsed() > Duration::from_secs(1) {
                     last_liveness_check = Instant::now();
-                    if port::producers_gone(self.bus, &self.service) && !self.subscriber.has_samples().unwrap_or(false) {
-                        return Err(ReceiveError::ProducerGone { service: name.clone() });
+                    if port::producers_gone(self.bus, &self.service)
+                        && !self.subscriber.has_samples().unwrap_or(false)
+                    {
+                        return Err(ReceiveError::ProducerGone {
+                            service: name.clone(),
+                        });
                     }
                 }
                 Ok(got)
             },
             || unreachable!("no timeout"),
         )?;
-        let Some(sample) = sample else { return Ok(None) };
+        let Some(sample) = sample else {
+            return Ok(None);
+        };
         let sequence = *sample.user_header();
         if sequence != self.expected {
             return Err(ReceiveError::Decode {

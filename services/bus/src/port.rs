@@ -12,9 +12,15 @@ use std::time::Duration;
 pub(crate) type Service<H> = PubSubFactory<ipc::Service, [u8], H>;
 
 /// The service of `channel`, created by whichever side comes first.
-pub(crate) fn open_service<H: Debug + ZeroCopySend>(bus: &Bus, channel: &Channel) -> Result<Service<H>, BusOpenError> {
+pub(crate) fn open_service<H: Debug + ZeroCopySend>(
+    bus: &Bus,
+    channel: &Channel,
+) -> Result<Service<H>, BusOpenError> {
     let name = bus.service_name(channel);
-    let service_name: ServiceName = name.as_str().try_into().map_err(|_| BusOpenError::BadName(name.clone()))?;
+    let service_name: ServiceName = name
+        .as_str()
+        .try_into()
+        .map_err(|_| BusOpenError::BadName(name.clone()))?;
     bus.node()
         .service_builder(&service_name)
         .publish_subscribe::<[u8]>()
@@ -89,7 +95,11 @@ pub(crate) fn wait_for_subscriber<H: Debug + ZeroCopySend>(
     let connected = crate::poll_until(
         bus,
         Some(bus.options().connect_timeout),
-        || Ok::<_, BusOpenError>((service.dynamic_config().number_of_subscribers() > 0).then_some(())),
+        || {
+            Ok::<_, BusOpenError>(
+                (service.dynamic_config().number_of_subscribers() > 0).then_some(()),
+            )
+        },
         || BusOpenError::NoSubscriber {
             service: bus.service_name(channel),
             seconds,
@@ -114,10 +124,12 @@ pub(crate) fn send_bytes<H: Debug + ZeroCopySend + Default + Copy>(
 ) -> Result<usize, SendError> {
     let start = std::time::Instant::now();
     loop {
-        let mut sample = publisher.loan_slice_uninit(bytes.len()).map_err(|e| SendError::Loan {
-            service: bus.service_name(channel),
-            reason: format!("{e:?}"),
-        })?;
+        let mut sample = publisher
+            .loan_slice_uninit(bytes.len())
+            .map_err(|e| SendError::Loan {
+                service: bus.service_name(channel),
+                reason: format!("{e:?}"),
+            })?;
         *sample.user_header_mut() = header;
         let sample = sample.write_from_slice(bytes);
         let delivered = sample.send().map_err(|_| SendError::NotDelivered {

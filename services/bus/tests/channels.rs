@@ -21,7 +21,7 @@ fn frames_arrive_intact_in_order_with_end_of_stream() {
         let sub = FrameSubscriber::create(&bus).expect("subscriber");
         let mut ids = Vec::new();
         loop {
-            let f = sub.next().expect("receive").expect("not terminated");
+            let f = sub.receive().expect("receive").expect("not terminated");
             if f.meta().is_end_of_stream() {
                 break;
             }
@@ -33,7 +33,8 @@ fn frames_arrive_intact_in_order_with_end_of_stream() {
         ids
     });
     let bus = Bus::open("producer", opts).expect("bus");
-    let mut publisher = FramePublisher::create(&bus, 64 * 48, Delivery::Lossless).expect("publisher");
+    let mut publisher =
+        FramePublisher::create(&bus, 64 * 48, Delivery::Lossless).expect("publisher");
     for id in 0..100u64 {
         let meta = FrameMeta {
             frame_id: id,
@@ -42,14 +43,19 @@ fn frames_arrive_intact_in_order_with_end_of_stream() {
             height: 48,
             ..Default::default()
         };
-        publisher.send(meta, &vec![(id % 251) as u8; 64 * 48]).expect("send");
+        publisher
+            .send(meta, &vec![(id % 251) as u8; 64 * 48])
+            .expect("send");
     }
     let bad = FrameMeta {
         width: 10,
         height: 10,
         ..Default::default()
     };
-    assert!(matches!(publisher.send(bad, &[0; 5]), Err(SendError::BadFrame { .. })));
+    assert!(matches!(
+        publisher.send(bad, &[0; 5]),
+        Err(SendError::BadFrame { .. })
+    ));
     publisher.finish(99).expect("eos");
     let ids = consumer.join().expect("consumer thread");
     assert_eq!(ids, (0..100).collect::<Vec<_>>());
@@ -65,7 +71,7 @@ fn lossless_messages_survive_a_slow_consumer() {
         let mut sub = MessageSubscriber::<Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
         let mut ids = Vec::new();
         while ids.len() < 300 {
-            let k = sub.next().expect("receive").expect("not terminated");
+            let k = sub.receive().expect("receive").expect("not terminated");
             if ids.len() % 50 == 0 {
                 std::thread::sleep(Duration::from_millis(20));
             }
@@ -109,5 +115,8 @@ fn a_consumer_that_stops_reading_fails_the_producer_instead_of_hanging_it() {
             break;
         }
     }
-    assert!(matches!(result, Err(SendError::NotDelivered { .. })), "{result:?}");
+    assert!(
+        matches!(result, Err(SendError::NotDelivered { .. })),
+        "{result:?}"
+    );
 }

@@ -4,7 +4,11 @@ use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
 #[derive(Parser, Debug)]
-#[command(name = "egoslam", version, about = "Monocular SLAM for egocentric video: temporal windows solved as global SfM")]
+#[command(
+    name = "egoslam",
+    version,
+    about = "Monocular SLAM for egocentric video: temporal windows solved as global SfM"
+)]
 pub struct Cli {
     /// More logging (-v debug, -vv trace); EGOSLAM_LOG overrides (tracing filter syntax).
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]

@@ -4,27 +4,18 @@ use egoslam_geometry::StampedPose;
 use egoslam_messages::v1 as pb;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-pub fn vec3_to_pb(v: &Vector3<f64>) -> pb::Vec3 {
-    pb::Vec3 { x: v.x, y: v.y, z: v.z }
-}
-
 pub fn vec3_from_pb(v: &Option<pb::Vec3>) -> Vector3<f64> {
-    v.as_ref().map_or_else(Vector3::zeros, |v| Vector3::new(v.x, v.y, v.z))
-}
-
-pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
-    let q = p.rotation.quaternion();
-    pb::Pose {
-        frame_id,
-        timestamp_s: p.timestamp,
-        position: Some(vec3_to_pb(&p.position)),
-        orientation: Some(pb::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w }),
-        segment_id,
-    }
+    v.as_ref()
+        .map_or_else(Vector3::zeros, |v| Vector3::new(v.x, v.y, v.z))
 }
 
 pub fn pose_from_pb(p: &pb::Pose) -> StampedPose {
-    let q = p.orientation.as_ref().map_or_else(Quaternion::identity, |q| Quaternion::new(q.w, q.x, q.y, q.z));
+    let q = p
+        .orientation
+        .as_ref()
+        .map_or_else(Quaternion::identity, |q| {
+            Quaternion::new(q.w, q.x, q.y, q.z)
+        });
     StampedPose {
         timestamp: p.timestamp_s,
         position: vec3_from_pb(&p.position),

@@ -6,12 +6,19 @@ use egoslam_sources::ground_truth::read_tum_file;
 use egoslam_sources::load_ground_truth;
 
 /// ATE with the usual failure cases turned into messages.
-pub fn evaluate(estimate: &[StampedPose], ground_truth: &[StampedPose], max_dt: f64) -> anyhow::Result<AteReport> {
+pub fn evaluate(
+    estimate: &[StampedPose],
+    ground_truth: &[StampedPose],
+    max_dt: f64,
+) -> anyhow::Result<AteReport> {
     if estimate.is_empty() {
         anyhow::bail!("the estimate has no poses");
     }
-    absolute_trajectory_error(estimate, ground_truth, max_dt)
-        .map_err(|e| anyhow::anyhow!("cannot align estimate and ground truth ({e}); are the timestamps on the same clock?"))
+    absolute_trajectory_error(estimate, ground_truth, max_dt).map_err(|e| {
+        anyhow::anyhow!(
+            "cannot align estimate and ground truth ({e}); are the timestamps on the same clock?"
+        )
+    })
 }
 
 /// One line a human reads.

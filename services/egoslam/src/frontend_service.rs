@@ -21,7 +21,12 @@ fn reason(r: KeyframeReason) -> pb::KeyframeReason {
 }
 
 /// The proto message of a keyframe.
-fn keyframe_message(k: &KeyframeTracks, timestamp_s: f64, intrinsics: &pb::Intrinsics, skipped: Vec<pb::FrameStamp>) -> pb::Keyframe {
+fn keyframe_message(
+    k: &KeyframeTracks,
+    timestamp_s: f64,
+    intrinsics: &pb::Intrinsics,
+    skipped: Vec<pb::FrameStamp>,
+) -> pb::Keyframe {
     pb::Keyframe {
         keyframe_id: k.keyframe_id,
         frame_id: k.frame_id,
@@ -48,9 +53,15 @@ fn keyframe_message(k: &KeyframeTracks, timestamp_s: f64, intrinsics: &pb::Intri
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("frontend");
-    let calib_path = args.camera.clone().context("the frontend needs --camera (calibration YAML)")?;
+    let calib_path = args
+        .camera
+        .clone()
+        .context("the frontend needs --camera (calibration YAML)")?;
     let calib = read_calibration_file(&calib_path)?;
-    let (w, h) = (calib.width.context("camera file lacks width")?, calib.height.context("camera file lacks height")?);
+    let (w, h) = (
+        calib.width.context("camera file lacks width")?,
+        calib.height.context("camera file lacks height")?,
+    );
     let camera = calib.camera_for(w, h)?;
     let intrinsics = pb::Intrinsics {
         width: w,
@@ -84,37 +95,53 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut last_stamp: Option<pb::FrameStamp> = None;
     let started = Instant::now();
     loop {
-        let Some(frame) = frames.next()? else { bail!("terminated by signal") };
+        let Some(frame) = frames.receive()? else {
+            bail!("terminated by signal")
+        };
         let meta = *frame.meta();
         if meta.is_end_of_stream() {
             break;
         }
-        let image = Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
-            .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
+        let image =
+            Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
+                .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
         let outcome = stats.time("track", || tracker.process(meta.frame_id, &image))?;
         drop(image);
         drop(frame);
         stats.frames += 1;
-        stats.count("rejected_forward_backward", outcome.rejected_forward_backward as u64);
+        stats.count(
+            "rejected_forward_backward",
+            outcome.rejected_forward_backward as u64,
+        );
         let stamp = pb::FrameStamp {
             frame_id: meta.frame_id,
             timestamp_s: meta.timestamp,
         };
         match outcome.keyframe {
             Some(k) => {
-                let msg = keyframe_message(&k, meta.timestamp, &intrinsics, std::mem::take(&mut skipped));
+                let msg = keyframe_message(
+                    &k,
+                    meta.timestamp,
+                    &intrinsics,
+                    std::mem::take(&mut skipped),
+                );
                 stats.time("publish", || keyframes.send(&msg))?;
                 stats.keyframes += 1;
                 tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
             }
-            None => skipped.push(stamp.clone()),
+            None => skipped.push(stamp),
         }
         last_stamp = Some(stamp);
     }
     // The last frame becomes a keyframe so that every frame lies between two keyframes.
     if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {
         skipped.retain(|s| s.frame_id != last.frame_id);
-        let msg = keyframe_message(&k, last.timestamp_s, &intrinsics, std::mem::take(&mut skipped));
+        let msg = keyframe_message(
+            &k,
+            last.timestamp_s,
+            &intrinsics,
+            std::mem::take(&mut skipped),
+        );
         keyframes.send(&msg)?;
         stats.keyframes += 1;
     }
@@ -124,6 +151,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         ..Default::default()
     })?;
     let secs = started.elapsed().as_secs_f64();
-    tracing::info!(frames = stats.frames, keyframes = stats.keyframes, "frontend finished ({:.1} frames/s)", stats.frames as f64 / secs);
+    tracing::info!(
+        frames = stats.frames,
+        keyframes = stats.keyframes,
+        "frontend finished ({:.1} frames/s)",
+        stats.frames as f64 / secs
+    );
     stats.write(&args.out)
 }

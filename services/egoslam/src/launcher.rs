@@ -17,7 +17,9 @@ use std::time::{Duration, Instant};
 fn default_input() -> PathBuf {
     std::env::var_os("EGOSLAM_DEFAULT_SEQUENCE")
         .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/tum_fr1_rpy_120"))
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/tum_fr1_rpy_120")
+        })
 }
 
 fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
@@ -35,12 +37,18 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
     let root = layout.root();
     if let Layout::Kitti { dir } = layout {
         let name = dir.file_name()?.to_string_lossy().into_owned();
-        let poses = dir.parent()?.parent()?.join("poses").join(format!("{name}.txt"));
+        let poses = dir
+            .parent()?
+            .parent()?
+            .join("poses")
+            .join(format!("{name}.txt"));
         if poses.is_file() {
             return load_ground_truth(&poses).ok();
         }
     }
-    root.ancestors().take(3).find_map(|d| load_ground_truth(d).ok())
+    root.ancestors()
+        .take(3)
+        .find_map(|d| load_ground_truth(d).ok())
 }
 
 struct Supervised {
@@ -61,7 +69,10 @@ fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
 fn stop_all(children: &mut [Supervised]) {
     for c in children.iter_mut() {
         // SIGTERM first: services finish their current item and release shared memory.
-        let _ = Command::new("kill").arg("-TERM").arg(c.child.id().to_string()).status();
+        let _ = Command::new("kill")
+            .arg("-TERM")
+            .arg(c.child.id().to_string())
+            .status();
     }
     let deadline = Instant::now() + Duration::from_secs(3);
     for c in children.iter_mut() {
@@ -99,12 +110,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let input = args.input.clone().unwrap_or_else(default_input);
     let layout = detect_layout(&input)?;
-    let calibration = load_calibration(&layout, args.calib.as_deref())?;
-    // Decode the first frame now: a bad path, unreadable image or wrong calibration size
-    // fails here, before any process starts.
+    // Open the sequence and decode the first frame now: a bad path, an empty sequence, an
+    // unreadable image or a wrong calibration size fails here, before any process starts.
     let mut source = open_source(&input, args.fps)?;
     let total_frames = source.len_hint();
-    let first = source.next_frame().with_context(|| format!("{}: no frames", input.display()))??;
+    let first = source
+        .next_frame()
+        .with_context(|| format!("{}: no frames", input.display()))??;
+    let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
     drop(source);
 
@@ -115,7 +128,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     let _ = std::fs::remove_dir_all(out.join("stats"));
     let camera_file = out.join("camera.yaml");
-    write_atomically(&camera_file, camera_yaml(&camera, &calibration.origin).as_bytes())?;
+    write_atomically(
+        &camera_file,
+        camera_yaml(&camera, &calibration.origin).as_bytes(),
+    )?;
     tracing::info!(input = %input.display(), ?layout, frames = ?total_frames, calibration = %calibration.origin.display(), "starting pipeline");
 
     let namespace = format!("run{}", std::process::id());
@@ -125,7 +141,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         format!("--camera={}", camera_file.display()),
     ];
     common.extend(pipeline_flags(&args.pipeline));
-    let mut replay_args = vec![format!("--input={}", input.display()), format!("--fps={}", args.fps)];
+    let mut replay_args = vec![
+        format!("--input={}", input.display()),
+        format!("--fps={}", args.fps),
+    ];
     if args.realtime {
         replay_args.push("--realtime".into());
     }
@@ -171,7 +190,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut accuracy = serde_json::Value::Null;
     if let Some(gt) = &ground_truth {
         let mut acc = serde_json::Map::new();
-        for (key, file) in [("trajectory", "trajectory.tum"), ("keyframes", "keyframes.tum")] {
+        for (key, file) in [
+            ("trajectory", "trajectory.tum"),
+            ("keyframes", "keyframes.tum"),
+        ] {
             let est = read_tum_file(&out.join(file))?;
             match evaluate(&est, &gt.poses, 0.02) {
                 Ok(r) => {
@@ -199,7 +221,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "timings_ms": timings,
         "accuracy": accuracy,
     });
-    write_atomically(&out.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomically(
+        &out.join("report.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
     println!(
         "frames {} (posed {}), keyframes {}, windows {}, segments {}; results in {}",
         replay.frames,

@@ -24,18 +24,30 @@ struct FrameIndex {
 impl FrameIndex {
     fn add_stamp(&mut self, k: &pb::KeyframeStamp) {
         self.frames.insert(k.frame_id, k.timestamp_s);
-        for (id, t) in k.frames_since_previous_ids.iter().zip(&k.frames_since_previous_timestamps_s) {
+        for (id, t) in k
+            .frames_since_previous_ids
+            .iter()
+            .zip(&k.frames_since_previous_timestamps_s)
+        {
             self.frames.insert(*id, *t);
         }
     }
 }
 
-fn write_outputs(out: &Path, map: &MapBuilder, frames: &FrameIndex, stats: &mut ServiceStats) -> anyhow::Result<()> {
+fn write_outputs(
+    out: &Path,
+    map: &MapBuilder,
+    frames: &FrameIndex,
+    stats: &mut ServiceStats,
+) -> anyhow::Result<()> {
     let keyframes: Vec<(u32, StampedPose)> = map.keyframes().map(|(_, s, p)| (s, *p)).collect();
     let mut sorted = keyframes.clone();
     sorted.sort_by(|a, b| a.1.timestamp.total_cmp(&b.1.timestamp));
     let stamps: Vec<f64> = frames.frames.values().copied().collect();
-    let posed: Vec<StampedPose> = interpolate_frames(&sorted, &stamps).into_iter().map(|(_, p, _)| p).collect();
+    let posed: Vec<StampedPose> = interpolate_frames(&sorted, &stamps)
+        .into_iter()
+        .map(|(_, p, _)| p)
+        .collect();
     let kf_poses: Vec<StampedPose> = sorted.iter().map(|(_, p)| *p).collect();
     let points: Vec<_> = map.points().map(|(_, _, x)| *x).collect();
     write_atomically(&out.join("trajectory.tum"), tum_text(&posed).as_bytes())?;
@@ -43,9 +55,15 @@ fn write_outputs(out: &Path, map: &MapBuilder, frames: &FrameIndex, stats: &mut 
     write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())?;
     stats.frames = frames.frames.len() as u64;
     stats.keyframes = kf_poses.len() as u64;
-    stats.counters.insert("posed_frames".into(), posed.len() as u64);
-    stats.counters.insert("segments".into(), u64::from(map.segments()));
-    stats.counters.insert("map_points".into(), points.len() as u64);
+    stats
+        .counters
+        .insert("posed_frames".into(), posed.len() as u64);
+    stats
+        .counters
+        .insert("segments".into(), u64::from(map.segments()));
+    stats
+        .counters
+        .insert("map_points".into(), points.len() as u64);
     stats.write(out)
 }
 
@@ -63,7 +81,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut map = MapBuilder::new();
     let mut frames = FrameIndex::default();
     loop {
-        let Some(w) = windows.next()? else { bail!("terminated by signal") };
+        let Some(w) = windows.receive()? else {
+            bail!("terminated by signal")
+        };
         for k in &w.keyframes {
             frames.add_stamp(k);
         }
@@ -74,7 +94,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             break;
         }
         stats.windows += 1;
-        let status = w.quality.as_ref().map_or(pb::SolveStatus::Unspecified, |q| q.status());
+        let status = w
+            .quality
+            .as_ref()
+            .map_or(pb::SolveStatus::Unspecified, |q| q.status());
         if status == pb::SolveStatus::Solved && !w.poses.is_empty() {
             let input = WindowInput {
                 poses: w
@@ -82,17 +105,36 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                     .iter()
                     .filter_map(|kp| kp.pose.as_ref().map(|p| (kp.keyframe_id, pose_from_pb(p))))
                     .collect(),
-                points: w.points.iter().map(|p| (p.track_id, vec3_from_pb(&p.position))).collect(),
+                points: w
+                    .points
+                    .iter()
+                    .map(|p| (p.track_id, vec3_from_pb(&p.position)))
+                    .collect(),
             };
             let outcome = stats.time("align", || map.add_window(&input));
             match outcome {
-                WindowOutcome::NewSegment { segment } => tracing::info!(window = w.window_id, segment, "new map segment"),
-                WindowOutcome::Aligned { residual, transform, .. } => {
-                    tracing::debug!(window = w.window_id, residual, scale = transform.scale, "window aligned")
+                WindowOutcome::NewSegment { segment } => {
+                    tracing::info!(window = w.window_id, segment, "new map segment")
+                }
+                WindowOutcome::Aligned {
+                    residual,
+                    transform,
+                    ..
+                } => {
+                    tracing::debug!(
+                        window = w.window_id,
+                        residual,
+                        scale = transform.scale,
+                        "window aligned"
+                    )
                 }
             }
         } else {
-            let reason = w.quality.as_ref().map(|q| q.reason.clone()).unwrap_or_default();
+            let reason = w
+                .quality
+                .as_ref()
+                .map(|q| q.reason.clone())
+                .unwrap_or_default();
             tracing::warn!(window = w.window_id, ?status, %reason, "window not solved: map breaks here");
             stats.count("unsolved_windows", 1);
             map.break_segment();
@@ -102,6 +144,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         stats.add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
     }
     write_outputs(&args.out, &map, &frames, &mut stats)?;
-    tracing::info!(windows = stats.windows, segments = map.segments(), "merger finished");
+    tracing::info!(
+        windows = stats.windows,
+        segments = map.segments(),
+        "merger finished"
+    );
     Ok(())
 }

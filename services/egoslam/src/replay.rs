@@ -23,7 +23,11 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
-    let delivery = if args.realtime { Delivery::DropNewest } else { Delivery::Lossless };
+    let delivery = if args.realtime {
+        Delivery::DropNewest
+    } else {
+        Delivery::Lossless
+    };
     let mut publisher: Option<FramePublisher> = None;
     let (start, mut first_t) = (Instant::now(), None);
     let mut last_progress = Instant::now();
@@ -40,11 +44,15 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         } else {
             frame.image.try_clone()?
         };
-        let pixels = image.data_bytes().with_context(|| format!("{}: pixel access", frame.source))?;
+        let pixels = image
+            .data_bytes()
+            .with_context(|| format!("{}: pixel access", frame.source))?;
         if publisher.is_none() {
             publisher = Some(FramePublisher::create(&bus, pixels.len(), delivery)?);
         }
-        let Some(publisher) = publisher.as_mut() else { bail!("frame publisher missing") };
+        let Some(publisher) = publisher.as_mut() else {
+            bail!("frame publisher missing")
+        };
         if args.realtime {
             let t0 = *first_t.get_or_insert(frame.timestamp);
             let due = Duration::from_secs_f64((frame.timestamp - t0).max(0.0));
@@ -73,9 +81,15 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             }
         }
     }
-    let Some(mut publisher) = publisher else { bail!("{}: no frames", args.input.display()) };
+    let Some(mut publisher) = publisher else {
+        bail!("{}: no frames", args.input.display())
+    };
     publisher.finish(last_id)?;
     stats.count("dropped_frames", publisher.dropped());
-    tracing::info!(frames = stats.frames, dropped = publisher.dropped(), "replay finished");
+    tracing::info!(
+        frames = stats.frames,
+        dropped = publisher.dropped(),
+        "replay finished"
+    );
     stats.write(&args.service.out)
 }

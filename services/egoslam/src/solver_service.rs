@@ -15,12 +15,20 @@ fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
         frame_id: k.frame_id,
         timestamp_s: k.timestamp_s,
         frames_since_previous_ids: k.frames_since_previous.iter().map(|f| f.frame_id).collect(),
-        frames_since_previous_timestamps_s: k.frames_since_previous.iter().map(|f| f.timestamp_s).collect(),
+        frames_since_previous_timestamps_s: k
+            .frames_since_previous
+            .iter()
+            .map(|f| f.timestamp_s)
+            .collect(),
     }
 }
 
 /// Solves one window. Until the estimators land this forwards the keyframes only.
-fn solve(window_id: u64, window: &Window<pb::Keyframe>, stats: &mut ServiceStats) -> pb::WindowSolution {
+fn solve(
+    window_id: u64,
+    window: &Window<pb::Keyframe>,
+    stats: &mut ServiceStats,
+) -> pb::WindowSolution {
     stats.time("window", || pb::WindowSolution {
         window_id,
         keyframe_ids: window.keyframes.iter().map(|k| k.keyframe_id).collect(),
@@ -52,7 +60,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut windows = MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     let mut trailing = Vec::new();
     loop {
-        let Some(k) = keyframes.next()? else { bail!("terminated by signal") };
+        let Some(k) = keyframes.receive()? else {
+            bail!("terminated by signal")
+        };
         let end_of_stream = k.end_of_stream;
         let window = if end_of_stream {
             trailing = k.trailing_frames;
@@ -76,6 +86,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         trailing_frames: trailing,
         ..Default::default()
     })?;
-    tracing::info!(keyframes = stats.keyframes, windows = stats.windows, "solver finished");
+    tracing::info!(
+        keyframes = stats.keyframes,
+        windows = stats.windows,
+        "solver finished"
+    );
     stats.write(&args.out)
 }

@@ -57,7 +57,8 @@ impl ServiceStats {
 
     pub fn read(out: &Path, service: &str) -> anyhow::Result<Self> {
         let path = Self::path(out, service);
-        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
         serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
     }
 }

@@ -43,7 +43,12 @@ pub enum KeyframeDecision {
 impl KeyframePolicy {
     /// Decides for the current frame, given the frames and mean flow since the last keyframe
     /// and the fraction of that keyframe's tracks still alive.
-    pub fn decide(&self, frames_since: u32, mean_flow_px: f64, surviving_fraction: f64) -> KeyframeDecision {
+    pub fn decide(
+        &self,
+        frames_since: u32,
+        mean_flow_px: f64,
+        surviving_fraction: f64,
+    ) -> KeyframeDecision {
         if mean_flow_px > self.max_mean_flow_px {
             KeyframeDecision::Keyframe(KeyframeReason::Flow)
         } else if frames_since >= self.max_frames_between {
@@ -64,8 +69,17 @@ mod tests {
     fn paper_rule_p_frames_or_m_pixels() {
         let p = KeyframePolicy::default();
         assert_eq!(p.decide(29, 19.9, 1.0), KeyframeDecision::Skip);
-        assert_eq!(p.decide(30, 0.0, 1.0), KeyframeDecision::Keyframe(KeyframeReason::FrameCount));
-        assert_eq!(p.decide(3, 20.5, 1.0), KeyframeDecision::Keyframe(KeyframeReason::Flow));
-        assert_eq!(p.decide(3, 1.0, 0.3), KeyframeDecision::Keyframe(KeyframeReason::TrackLoss));
+        assert_eq!(
+            p.decide(30, 0.0, 1.0),
+            KeyframeDecision::Keyframe(KeyframeReason::FrameCount)
+        );
+        assert_eq!(
+            p.decide(3, 20.5, 1.0),
+            KeyframeDecision::Keyframe(KeyframeReason::Flow)
+        );
+        assert_eq!(
+            p.decide(3, 1.0, 0.3),
+            KeyframeDecision::Keyframe(KeyframeReason::TrackLoss)
+        );
     }
 }

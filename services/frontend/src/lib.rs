@@ -8,4 +8,6 @@ pub mod keyframe_policy;
 pub mod tracker;
 
 pub use keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
-pub use tracker::{FrameOutcome, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions};
+pub use tracker::{
+    FrameOutcome, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions,
+};

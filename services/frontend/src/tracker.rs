@@ -8,7 +8,9 @@
 use crate::keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::Point2;
-use opencv::core::{Mat, Point, Point2f, Scalar, Size, TermCriteria, ToInputArray, Vector, CV_8UC1};
+use opencv::core::{
+    Mat, Point, Point2f, Scalar, Size, TermCriteria, ToInputArray, Vector, CV_8UC1,
+};
 use opencv::prelude::*;
 use opencv::{imgproc, video};
 
@@ -154,7 +156,11 @@ impl Tracker {
 
     /// Tracks into `image` (8-bit grey) and decides whether it is a keyframe.
     /// `image` is any 8-bit grey matrix, including one borrowed from shared memory.
-    pub fn process(&mut self, frame_id: u64, image: &(impl MatTraitConst + ToInputArray)) -> Result<FrameOutcome, TrackerError> {
+    pub fn process(
+        &mut self,
+        frame_id: u64,
+        image: &(impl MatTraitConst + ToInputArray),
+    ) -> Result<FrameOutcome, TrackerError> {
         let _span = tracing::trace_span!("track_frame", frame_id).entered();
         if image.typ() != CV_8UC1 {
             return Err(TrackerError::NotGrey {
@@ -174,7 +180,13 @@ impl Tracker {
         let err = cv_err(frame_id);
         let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
         let mut pyramid = Vector::<Mat>::new();
-        video::build_optical_flow_pyramid_def(image, &mut pyramid, win, self.options.pyramid_levels).map_err(&err)?;
+        video::build_optical_flow_pyramid_def(
+            image,
+            &mut pyramid,
+            win,
+            self.options.pyramid_levels,
+        )
+        .map_err(&err)?;
 
         let mut rejected = 0;
         if let Some(previous) = self.previous_pyramid.take() {
@@ -185,7 +197,9 @@ impl Tracker {
         let decision = if self.last_frame_id.is_none() {
             KeyframeDecision::Keyframe(KeyframeReason::First)
         } else {
-            self.options.keyframes.decide(self.frames_since_keyframe, mean_flow, surviving)
+            self.options
+                .keyframes
+                .decide(self.frames_since_keyframe, mean_flow, surviving)
         };
         let keyframe = match decision {
             KeyframeDecision::Keyframe(reason) => {
@@ -211,7 +225,8 @@ impl Tracker {
     /// Makes the last processed frame a keyframe (end of stream), unless it already is one.
     pub fn finish(&mut self) -> Option<KeyframeTracks> {
         let frame_id = self.last_frame_id?;
-        (self.frames_since_keyframe > 0).then(|| self.make_keyframe(frame_id, KeyframeReason::Last, self.last_mean_flow))
+        (self.frames_since_keyframe > 0)
+            .then(|| self.make_keyframe(frame_id, KeyframeReason::Last, self.last_mean_flow))
     }
 
     /// Number of live tracks.
@@ -219,7 +234,12 @@ impl Tracker {
         self.tracks.len()
     }
 
-    fn track_into(&mut self, previous: &Vector<Mat>, current: &Vector<Mat>, frame_id: u64) -> Result<usize, TrackerError> {
+    fn track_into(
+        &mut self,
+        previous: &Vector<Mat>,
+        current: &Vector<Mat>,
+        frame_id: u64,
+    ) -> Result<usize, TrackerError> {
         if self.tracks.is_empty() {
             return Ok(0);
         }
@@ -236,18 +256,45 @@ impl Tracker {
         let (mut st1, mut st2) = (Vector::<u8>::new(), Vector::<u8>::new());
         let mut lk_err = Vector::<f32>::new();
         let levels = self.options.pyramid_levels;
-        video::calc_optical_flow_pyr_lk(previous, current, &p0, &mut p1, &mut st1, &mut lk_err, win, levels, criteria, 0, 1e-4)
-            .map_err(&err)?;
-        video::calc_optical_flow_pyr_lk(current, previous, &p1, &mut back, &mut st2, &mut lk_err, win, levels, criteria, 0, 1e-4)
-            .map_err(&err)?;
-        let max_fb2 = (self.options.max_forward_backward_px * self.options.max_forward_backward_px) as f32;
+        video::calc_optical_flow_pyr_lk(
+            previous,
+            current,
+            &p0,
+            &mut p1,
+            &mut st1,
+            &mut lk_err,
+            win,
+            levels,
+            criteria,
+            0,
+            1e-4,
+        )
+        .map_err(&err)?;
+        video::calc_optical_flow_pyr_lk(
+            current,
+            previous,
+            &p1,
+            &mut back,
+            &mut st2,
+            &mut lk_err,
+            win,
+            levels,
+            criteria,
+            0,
+            1e-4,
+        )
+        .map_err(&err)?;
+        let max_fb2 =
+            (self.options.max_forward_backward_px * self.options.max_forward_backward_px) as f32;
         let (w, h) = (self.camera.width as f32, self.camera.height as f32);
         let m = self.options.border_px;
         let mut rejected = 0;
         let mut kept = Vec::with_capacity(self.tracks.len());
         for (i, track) in self.tracks.iter().enumerate() {
             let (ok1, ok2) = (st1.get(i).unwrap_or(0) == 1, st2.get(i).unwrap_or(0) == 1);
-            let (Ok(a), Ok(b), Ok(c)) = (p0.get(i), p1.get(i), back.get(i)) else { continue };
+            let (Ok(a), Ok(b), Ok(c)) = (p0.get(i), p1.get(i), back.get(i)) else {
+                continue;
+            };
             if !(ok1 && ok2) || b.x < m || b.y < m || b.x > w - 1.0 - m || b.y > h - 1.0 - m {
                 continue;
             }
@@ -279,17 +326,38 @@ impl Tracker {
         (mean, surviving)
     }
 
-    fn replenish(&mut self, image: &(impl MatTraitConst + ToInputArray), frame_id: u64, below_fraction: f64) -> Result<(), TrackerError> {
+    fn replenish(
+        &mut self,
+        image: &(impl MatTraitConst + ToInputArray),
+        frame_id: u64,
+        below_fraction: f64,
+    ) -> Result<(), TrackerError> {
         let target = self.options.target_tracks;
-        if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target {
+        if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target
+        {
             return Ok(());
         }
         let err = cv_err(frame_id);
-        let mut mask = Mat::new_rows_cols_with_default(image.rows(), image.cols(), CV_8UC1, Scalar::all(255.0)).map_err(&err)?;
+        let mut mask = Mat::new_rows_cols_with_default(
+            image.rows(),
+            image.cols(),
+            CV_8UC1,
+            Scalar::all(255.0),
+        )
+        .map_err(&err)?;
         let radius = self.options.min_corner_distance_px.round() as i32;
         for t in &self.tracks {
             let c = Point::new(t.pos.x.round() as i32, t.pos.y.round() as i32);
-            imgproc::circle(&mut mask, c, radius, Scalar::all(0.0), -1, imgproc::LINE_8, 0).map_err(&err)?;
+            imgproc::circle(
+                &mut mask,
+                c,
+                radius,
+                Scalar::all(0.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )
+            .map_err(&err)?;
         }
         let mut corners = Vector::<Point2f>::new();
         imgproc::good_features_to_track(
@@ -315,7 +383,12 @@ impl Tracker {
         Ok(())
     }
 
-    fn make_keyframe(&mut self, frame_id: u64, reason: KeyframeReason, mean_flow_px: f64) -> KeyframeTracks {
+    fn make_keyframe(
+        &mut self,
+        frame_id: u64,
+        reason: KeyframeReason,
+        mean_flow_px: f64,
+    ) -> KeyframeTracks {
         let camera = self.camera;
         let tracks = self
             .tracks
@@ -352,7 +425,8 @@ mod tests {
 
     /// A blurred random texture, big enough to crop shifted views from.
     fn texture(w: i32, h: i32) -> Mat {
-        let mut noise = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        let mut noise =
+            Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("mat");
         opencv::core::set_rng_seed(7).expect("seed");
         opencv::core::randu(&mut noise, &Scalar::all(0.0), &Scalar::all(255.0)).expect("randu");
         let mut blurred = Mat::default();
@@ -361,11 +435,20 @@ mod tests {
     }
 
     fn crop(img: &Mat, x: i32, y: i32, w: i32, h: i32) -> Mat {
-        Mat::roi(img, Rect::new(x, y, w, h)).expect("roi").try_clone().expect("clone")
+        Mat::roi(img, Rect::new(x, y, w, h))
+            .expect("roi")
+            .try_clone()
+            .expect("clone")
     }
 
     fn camera(w: u32, h: u32) -> PinholeRadtan {
-        PinholeRadtan::new(w, h, [300.0, 300.0, w as f64 / 2.0, h as f64 / 2.0], [0.0; 5]).expect("camera")
+        PinholeRadtan::new(
+            w,
+            h,
+            [300.0, 300.0, w as f64 / 2.0, h as f64 / 2.0],
+            [0.0; 5],
+        )
+        .expect("camera")
     }
 
     #[test]
@@ -377,7 +460,9 @@ mod tests {
         let mut first_positions = std::collections::HashMap::new();
         for i in 0..20 {
             // The camera pans right by 3 px per frame: content moves left by 3 px.
-            let out = tracker.process(i, &crop(&big, 3 * i as i32, 30, w, h)).expect("tracks");
+            let out = tracker
+                .process(i, &crop(&big, 3 * i as i32, 30, w, h))
+                .expect("tracks");
             if let Some(k) = out.keyframe {
                 if k.keyframe_id == 0 {
                     for t in &k.tracks {
@@ -389,7 +474,12 @@ mod tests {
                     let mut checked = 0;
                     for t in &k.tracks {
                         if let Some(p0) = first_positions.get(&t.track_id) {
-                            assert!((t.raw.x - p0.x - shift).abs() < 0.2, "x {} -> {}", p0.x, t.raw.x);
+                            assert!(
+                                (t.raw.x - p0.x - shift).abs() < 0.2,
+                                "x {} -> {}",
+                                p0.x,
+                                t.raw.x
+                            );
                             assert!((t.raw.y - p0.y).abs() < 0.2);
                             checked += 1;
                         }
@@ -398,7 +488,11 @@ mod tests {
                 }
                 keyframes.push((k.frame_id, k.reason));
             }
-            assert!(out.live_tracks > 300, "frame {i}: {} tracks", out.live_tracks);
+            assert!(
+                out.live_tracks > 300,
+                "frame {i}: {} tracks",
+                out.live_tracks
+            );
         }
         // 3 px/frame: mean flow passes m = 20 px on the 7th frame after a keyframe.
         assert_eq!(keyframes[0], (0, KeyframeReason::First));
@@ -410,7 +504,9 @@ mod tests {
     fn forward_backward_check_drops_tracks_on_a_scrambled_frame() {
         let big = texture(400, 300);
         let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
-        tracker.process(0, &crop(&big, 0, 0, 320, 240)).expect("first");
+        tracker
+            .process(0, &crop(&big, 0, 0, 320, 240))
+            .expect("first");
         let before = tracker.live_tracks();
         // An unrelated image: LK converges somewhere for many points, but not consistently
         // in both directions.
@@ -418,7 +514,11 @@ mod tests {
         let mut flipped = Mat::default();
         opencv::core::flip(&crop(&other, 50, 40, 320, 240), &mut flipped, -1).expect("flip");
         let out = tracker.process(1, &flipped).expect("tracks");
-        assert!(out.rejected_forward_backward > before / 4, "rejected {} of {before}", out.rejected_forward_backward);
+        assert!(
+            out.rejected_forward_backward > before / 4,
+            "rejected {} of {before}",
+            out.rejected_forward_backward
+        );
     }
 
     #[test]
@@ -432,17 +532,31 @@ mod tests {
             }
         }
         assert_eq!(kf_frames, vec![0, 30, 60]);
-        let last = tracker.finish().expect("trailing frames make a last keyframe");
-        assert_eq!((last.frame_id, last.reason, last.keyframe_id), (64, KeyframeReason::Last, 3));
+        let last = tracker
+            .finish()
+            .expect("trailing frames make a last keyframe");
+        assert_eq!(
+            (last.frame_id, last.reason, last.keyframe_id),
+            (64, KeyframeReason::Last, 3)
+        );
         assert!(tracker.finish().is_none());
     }
 
     #[test]
     fn rejects_wrong_size_and_colour() {
         let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
-        let small = Mat::new_rows_cols_with_default(10, 10, CV_8UC1, Scalar::all(0.0)).expect("mat");
-        assert!(matches!(tracker.process(0, &small), Err(TrackerError::SizeMismatch { .. })));
-        let colour = Mat::new_rows_cols_with_default(240, 320, opencv::core::CV_8UC3, Scalar::all(0.0)).expect("mat");
-        assert!(matches!(tracker.process(0, &colour), Err(TrackerError::NotGrey { .. })));
+        let small =
+            Mat::new_rows_cols_with_default(10, 10, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        assert!(matches!(
+            tracker.process(0, &small),
+            Err(TrackerError::SizeMismatch { .. })
+        ));
+        let colour =
+            Mat::new_rows_cols_with_default(240, 320, opencv::core::CV_8UC3, Scalar::all(0.0))
+                .expect("mat");
+        assert!(matches!(
+            tracker.process(0, &colour),
+            Err(TrackerError::NotGrey { .. })
+        ));
     }
 }

@@ -132,14 +132,22 @@ mod tests {
         assert!((est.translation - truth.translation).norm() < 1e-9);
         assert!(est.rotation.angle_to(&truth.rotation) < 1e-9);
         let round = est.compose(&est.inverse());
-        assert!((round.apply(&Vector3::new(3.0, 4.0, 5.0)) - Vector3::new(3.0, 4.0, 5.0)).norm() < 1e-9);
+        assert!(
+            (round.apply(&Vector3::new(3.0, 4.0, 5.0)) - Vector3::new(3.0, 4.0, 5.0)).norm() < 1e-9
+        );
     }
 
     #[test]
     fn rejects_degenerate_input() {
         let p = vec![Vector3::new(1.0, 1.0, 1.0); 5];
         assert_eq!(umeyama(&p, &p), Err(AlignmentError::Degenerate));
-        assert_eq!(umeyama(&p[..2], &p[..2]), Err(AlignmentError::TooFewPoints(2)));
-        assert_eq!(umeyama(&p[..3], &p[..2]), Err(AlignmentError::LengthMismatch(3, 2)));
+        assert_eq!(
+            umeyama(&p[..2], &p[..2]),
+            Err(AlignmentError::TooFewPoints(2))
+        );
+        assert_eq!(
+            umeyama(&p[..3], &p[..2]),
+            Err(AlignmentError::LengthMismatch(3, 2))
+        );
     }
 }

@@ -120,8 +120,12 @@ impl PinholeRadtan {
                 break;
             }
             let h = 1e-7;
-            let jx = (self.distort_normalized(Point2::new(p.x + h, p.y)) - self.distort_normalized(p)) / h;
-            let jy = (self.distort_normalized(Point2::new(p.x, p.y + h)) - self.distort_normalized(p)) / h;
+            let jx = (self.distort_normalized(Point2::new(p.x + h, p.y))
+                - self.distort_normalized(p))
+                / h;
+            let jy = (self.distort_normalized(Point2::new(p.x, p.y + h))
+                - self.distort_normalized(p))
+                / h;
             let j = nalgebra::Matrix2::from_columns(&[jx, jy]);
             if let Some(inv) = j.try_inverse() {
                 p -= inv * f;
@@ -144,7 +148,12 @@ impl PinholeRadtan {
 
     /// Camera-frame point -> ideal (undistorted) pixel; `None` behind the camera.
     pub fn project_undistorted(&self, pc: &Vector3<f64>) -> Option<Point2<f64>> {
-        (pc.z > 1e-9).then(|| Point2::new(self.fx * pc.x / pc.z + self.cx, self.fy * pc.y / pc.z + self.cy))
+        (pc.z > 1e-9).then(|| {
+            Point2::new(
+                self.fx * pc.x / pc.z + self.cx,
+                self.fy * pc.y / pc.z + self.cy,
+            )
+        })
     }
 
     /// Camera-frame point -> raw (distorted) pixel; `None` behind the camera.
@@ -153,12 +162,18 @@ impl PinholeRadtan {
             return None;
         }
         let d = self.distort_normalized(Point2::new(pc.x / pc.z, pc.y / pc.z));
-        Some(Point2::new(self.fx * d.x + self.cx, self.fy * d.y + self.cy))
+        Some(Point2::new(
+            self.fx * d.x + self.cx,
+            self.fy * d.y + self.cy,
+        ))
     }
 
     /// True when a pixel lies inside the image (with half-pixel borders).
     pub fn contains(&self, px: Point2<f64>) -> bool {
-        px.x >= -0.5 && px.y >= -0.5 && px.x <= self.width as f64 - 0.5 && px.y <= self.height as f64 - 0.5
+        px.x >= -0.5
+            && px.y >= -0.5
+            && px.x <= self.width as f64 - 0.5
+            && px.y <= self.height as f64 - 0.5
     }
 }
 
@@ -183,7 +198,11 @@ mod tests {
         for u in (0..640).step_by(40) {
             for v in (0..480).step_by(40) {
                 let ideal = Point2::new(u as f64, v as f64);
-                let pc = Vector3::new((ideal.x - cam.cx) / cam.fx, (ideal.y - cam.cy) / cam.fy, 1.0);
+                let pc = Vector3::new(
+                    (ideal.x - cam.cx) / cam.fx,
+                    (ideal.y - cam.cy) / cam.fy,
+                    1.0,
+                );
                 let raw = cam.project_raw(&pc).expect("in front");
                 let back = cam.undistort_pixel(raw);
                 worst = worst.max((back - ideal).norm());
@@ -213,6 +232,9 @@ mod tests {
             PinholeRadtan::new(0, 480, [1.0, 1.0, 0.0, 0.0], [0.0; 5]),
             Err(CameraError::BadSize { .. })
         ));
-        assert!(PinholeRadtan::new(10, 10, [1.0, 1.0, 0.0, 0.0], [f64::NAN, 0.0, 0.0, 0.0, 0.0]).is_err());
+        assert!(
+            PinholeRadtan::new(10, 10, [1.0, 1.0, 0.0, 0.0], [f64::NAN, 0.0, 0.0, 0.0, 0.0])
+                .is_err()
+        );
     }
 }

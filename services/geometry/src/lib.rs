@@ -8,4 +8,4 @@ pub mod trajectory;
 
 pub use alignment::{umeyama, AlignmentError, Similarity};
 pub use camera::{CameraError, PinholeRadtan};
-pub use trajectory::{associate, absolute_trajectory_error, AteReport, StampedPose};
+pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};

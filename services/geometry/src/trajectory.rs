@@ -25,7 +25,10 @@ pub fn associate(est: &[StampedPose], gt: &[StampedPose], max_dt: f64) -> Vec<(u
     for (i, e) in est.iter().enumerate() {
         // Binary search the first ground-truth stamp >= e - max_dt, then scan the window.
         let start = gt_order.partition_point(|&g| gt[g].timestamp < e.timestamp - max_dt);
-        for &g in gt_order[start..].iter().take_while(|&&g| gt[g].timestamp <= e.timestamp + max_dt) {
+        for &g in gt_order[start..]
+            .iter()
+            .take_while(|&&g| gt[g].timestamp <= e.timestamp + max_dt)
+        {
             candidates.push(((gt[g].timestamp - e.timestamp).abs(), i, g));
         }
     }
@@ -68,7 +71,11 @@ pub fn absolute_trajectory_error(
     let src: Vec<_> = pairs.iter().map(|&(i, _)| est[i].position).collect();
     let dst: Vec<_> = pairs.iter().map(|&(_, g)| gt[g].position).collect();
     let alignment = umeyama(&src, &dst)?;
-    let mut errors: Vec<f64> = src.iter().zip(&dst).map(|(s, d)| (alignment.apply(s) - d).norm()).collect();
+    let mut errors: Vec<f64> = src
+        .iter()
+        .zip(&dst)
+        .map(|(s, d)| (alignment.apply(s) - d).norm())
+        .collect();
     let n = errors.len() as f64;
     let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
     let mean = errors.iter().sum::<f64>() / n;
@@ -102,8 +109,14 @@ mod tests {
 
     #[test]
     fn association_respects_the_window_and_uses_each_pose_once() {
-        let est: Vec<_> = [0.0, 0.1, 0.2, 0.5].iter().map(|&t| pose(t, Vector3::zeros())).collect();
-        let gt: Vec<_> = [0.005, 0.095, 0.11, 0.9].iter().map(|&t| pose(t, Vector3::zeros())).collect();
+        let est: Vec<_> = [0.0, 0.1, 0.2, 0.5]
+            .iter()
+            .map(|&t| pose(t, Vector3::zeros()))
+            .collect();
+        let gt: Vec<_> = [0.005, 0.095, 0.11, 0.9]
+            .iter()
+            .map(|&t| pose(t, Vector3::zeros()))
+            .collect();
         let pairs = associate(&est, &gt, 0.02);
         assert_eq!(pairs, vec![(0, 0), (1, 1)]);
     }
@@ -116,7 +129,12 @@ mod tests {
             translation: Vector3::new(5.0, 0.0, -1.0),
         };
         let gt: Vec<_> = (0..50)
-            .map(|i| pose(i as f64 * 0.1, Vector3::new(i as f64 * 0.1, (i as f64 * 0.3).sin(), 0.0)))
+            .map(|i| {
+                pose(
+                    i as f64 * 0.1,
+                    Vector3::new(i as f64 * 0.1, (i as f64 * 0.3).sin(), 0.0),
+                )
+            })
             .collect();
         let est: Vec<_> = gt
             .iter()

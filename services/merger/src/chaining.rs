@@ -20,7 +20,11 @@ pub enum WindowOutcome {
     NewSegment { segment: u32 },
     /// It was aligned to the current segment; `residual` is the RMS distance of the shared
     /// keyframe centres after alignment, in map units.
-    Aligned { segment: u32, transform: Similarity, residual: f64 },
+    Aligned {
+        segment: u32,
+        transform: Similarity,
+        residual: f64,
+    },
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -73,7 +77,11 @@ pub fn align_shared(window: &[StampedPose], map: &[StampedPose]) -> (Similarity,
         den += rw.norm_squared();
         map_spread += (m.position - mu_m).norm_squared();
     }
-    let scale = if den > 1e-18 && map_spread > 1e-18 && num > 0.0 { num / den } else { 1.0 };
+    let scale = if den > 1e-18 && map_spread > 1e-18 && num > 0.0 {
+        num / den
+    } else {
+        1.0
+    };
     let translation = mu_m - scale * (rotation * mu_w);
     let transform = Similarity {
         scale,
@@ -125,13 +133,25 @@ impl MapBuilder {
             Some(seg) if shared.len() >= 2 => {
                 let (w, m): (Vec<_>, Vec<_>) = shared.into_iter().unzip();
                 let (transform, residual) = align_shared(&w, &m);
-                (seg, transform, WindowOutcome::Aligned { segment: seg, transform, residual })
+                (
+                    seg,
+                    transform,
+                    WindowOutcome::Aligned {
+                        segment: seg,
+                        transform,
+                        residual,
+                    },
+                )
             }
             _ => {
                 let seg = self.segments;
                 self.segments += 1;
                 self.current_segment = Some(seg);
-                (seg, Similarity::identity(), WindowOutcome::NewSegment { segment: seg })
+                (
+                    seg,
+                    Similarity::identity(),
+                    WindowOutcome::NewSegment { segment: seg },
+                )
             }
         };
         for (id, p) in &window.poses {
@@ -139,7 +159,8 @@ impl MapBuilder {
             // them); new ones are added in the segment's frame.
             let keep = matches!(self.keyframes.get(id), Some((s, _)) if *s == segment);
             if !keep {
-                self.keyframes.insert(*id, (segment, transform_pose(&transform, p)));
+                self.keyframes
+                    .insert(*id, (segment, transform_pose(&transform, p)));
             }
         }
         for (track, x) in &window.points {
@@ -178,13 +199,24 @@ mod tests {
 
     #[test]
     fn second_window_in_another_frame_is_brought_back() {
-        let truth: Vec<StampedPose> = (0..15).map(|i| pose(i as f64, Vector3::new(i as f64 * 0.1, 0.02 * i as f64, 0.0), 0.05 * i as f64)).collect();
+        let truth: Vec<StampedPose> = (0..15)
+            .map(|i| {
+                pose(
+                    i as f64,
+                    Vector3::new(i as f64 * 0.1, 0.02 * i as f64, 0.0),
+                    0.05 * i as f64,
+                )
+            })
+            .collect();
         let mut map = MapBuilder::new();
         let first = WindowInput {
             poses: (0..10).map(|i| (i as u64, truth[i])).collect(),
             points: vec![(7, Vector3::new(1.0, 2.0, 3.0))],
         };
-        assert_eq!(map.add_window(&first), WindowOutcome::NewSegment { segment: 0 });
+        assert_eq!(
+            map.add_window(&first),
+            WindowOutcome::NewSegment { segment: 0 }
+        );
         // The second window's frame: scaled by 3, rotated, shifted.
         let g = Similarity {
             scale: 3.0,
@@ -192,7 +224,9 @@ mod tests {
             translation: Vector3::new(5.0, -1.0, 2.0),
         };
         let second = WindowInput {
-            poses: (5..15).map(|i| (i as u64, transform_pose(&g, &truth[i]))).collect(),
+            poses: (5..15)
+                .map(|i| (i as u64, transform_pose(&g, &truth[i])))
+                .collect(),
             points: vec![(8, g.apply(&Vector3::new(-1.0, 0.5, 4.0)))],
         };
         match map.add_window(&second) {
@@ -208,7 +242,10 @@ mod tests {
         let (_, _, x) = map.points().find(|(id, _, _)| *id == 8).expect("point 8");
         assert!((x - Vector3::new(-1.0, 0.5, 4.0)).norm() < 1e-9);
         map.break_segment();
-        assert_eq!(map.add_window(&first), WindowOutcome::NewSegment { segment: 1 });
+        assert_eq!(
+            map.add_window(&first),
+            WindowOutcome::NewSegment { segment: 1 }
+        );
         assert_eq!(map.segments(), 2);
     }
 }

@@ -9,7 +9,10 @@ use egoslam_geometry::StampedPose;
 
 /// Poses at `timestamps` from keyframe poses sorted by time, each with its segment.
 /// Returns `(index into timestamps, pose, segment)` for every frame that could be posed.
-pub fn interpolate_frames(keyframes: &[(u32, StampedPose)], timestamps: &[f64]) -> Vec<(usize, StampedPose, u32)> {
+pub fn interpolate_frames(
+    keyframes: &[(u32, StampedPose)],
+    timestamps: &[f64],
+) -> Vec<(usize, StampedPose, u32)> {
     let mut out = Vec::new();
     for (i, &t) in timestamps.iter().enumerate() {
         let after = keyframes.partition_point(|(_, k)| k.timestamp < t);
@@ -52,9 +55,17 @@ mod tests {
             position: Vector3::new(x, 0.0, 0.0),
             rotation: UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
         };
-        let kfs = vec![(0, k(0.0, 0.0, 0.0)), (0, k(1.0, 2.0, 0.4)), (1, k(2.0, 9.0, 0.0))];
+        let kfs = vec![
+            (0, k(0.0, 0.0, 0.0)),
+            (0, k(1.0, 2.0, 0.4)),
+            (1, k(2.0, 9.0, 0.0)),
+        ];
         let out = interpolate_frames(&kfs, &[-0.5, 0.25, 1.0, 1.5]);
-        assert_eq!(out.len(), 2, "before the first and across a break are unposed");
+        assert_eq!(
+            out.len(),
+            2,
+            "before the first and across a break are unposed"
+        );
         assert_eq!(out[0].0, 1);
         assert!((out[0].1.position.x - 0.5).abs() < 1e-12);
         assert!((out[0].1.rotation.angle() - 0.1).abs() < 1e-12);

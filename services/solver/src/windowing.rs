@@ -16,7 +16,10 @@ pub struct WindowOptions {
 
 impl Default for WindowOptions {
     fn default() -> Self {
-        Self { size: 20, overlap: 5 }
+        Self {
+            size: 20,
+            overlap: 5,
+        }
     }
 }
 
@@ -89,7 +92,11 @@ mod tests {
 
     #[test]
     fn windows_overlap_and_cover_every_keyframe_once_as_new() {
-        let mut b = WindowBuilder::new(WindowOptions { size: 10, overlap: 3 }).expect("valid");
+        let mut b = WindowBuilder::new(WindowOptions {
+            size: 10,
+            overlap: 3,
+        })
+        .expect("valid");
         let mut windows: Vec<Window<u32>> = (0..33).filter_map(|k| b.push(k)).collect();
         windows.extend(b.finish());
         assert_eq!(windows[0].keyframes, (0..10).collect::<Vec<_>>());
@@ -98,14 +105,25 @@ mod tests {
         assert_eq!(windows[1].overlap, 3);
         let last = windows.last().expect("some");
         assert_eq!(*last.keyframes.last().expect("kf"), 32);
-        let new: Vec<u32> = windows.iter().flat_map(|w| w.keyframes[w.overlap..].to_vec()).collect();
+        let new: Vec<u32> = windows
+            .iter()
+            .flat_map(|w| w.keyframes[w.overlap..].to_vec())
+            .collect();
         assert_eq!(new, (0..33).collect::<Vec<_>>());
         assert!(b.finish().is_none());
     }
 
     #[test]
     fn rejects_overlap_that_cannot_chain() {
-        assert!(WindowBuilder::<u8>::new(WindowOptions { size: 10, overlap: 10 }).is_err());
-        assert!(WindowBuilder::<u8>::new(WindowOptions { size: 10, overlap: 2 }).is_err());
+        assert!(WindowBuilder::<u8>::new(WindowOptions {
+            size: 10,
+            overlap: 10
+        })
+        .is_err());
+        assert!(WindowBuilder::<u8>::new(WindowOptions {
+            size: 10,
+            overlap: 2
+        })
+        .is_err());
     }
 }

@@ -76,16 +76,23 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
         .filter(|l| !l.starts_with('%') && l.trim() != "---")
         .collect::<Vec<_>>()
         .join("\n");
-    let doc: Value =
-        serde_yaml::from_str(&cleaned).map_err(|e| SourceError::parse(path, e.location().map_or(0, |l| l.line()), e.to_string()))?;
-    let get = |keys: &[&str]| -> Option<f64> { keys.iter().find_map(|k| doc.get(*k).and_then(yaml_number)) };
+    let doc: Value = serde_yaml::from_str(&cleaned).map_err(|e| {
+        SourceError::parse(path, e.location().map_or(0, |l| l.line()), e.to_string())
+    })?;
+    let get = |keys: &[&str]| -> Option<f64> {
+        keys.iter().find_map(|k| doc.get(*k).and_then(yaml_number))
+    };
     let missing = |what: &str| SourceError::parse(path, 0, format!("calibration lacks {what}"));
     let size = |w: Option<f64>, h: Option<f64>| (w.map(|w| w as u32), h.map(|h| h as u32));
 
     if let Some(intr) = doc.get("intrinsics").and_then(yaml_numbers) {
         // Kalibr / EuRoC sensor.yaml
         if intr.len() != 4 {
-            return Err(SourceError::parse(path, 0, "intrinsics must be [fu, fv, cu, cv]"));
+            return Err(SourceError::parse(
+                path,
+                0,
+                "intrinsics must be [fu, fv, cu, cv]",
+            ));
         }
         let mut distortion = [0.0; 5];
         if let Some(d) = doc.get("distortion_coefficients").and_then(yaml_numbers) {
@@ -95,11 +102,18 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
         }
         if let Some(model) = doc.get("distortion_model").and_then(Value::as_str) {
             if !matches!(model, "radial-tangential" | "radtan" | "plumb_bob" | "none") {
-                return Err(SourceError::parse(path, 0, format!("distortion model {model:?} is not supported (radial-tangential only)")));
+                return Err(SourceError::parse(
+                    path,
+                    0,
+                    format!("distortion model {model:?} is not supported (radial-tangential only)"),
+                ));
             }
         }
         let res = doc.get("resolution").and_then(yaml_numbers);
-        let (width, height) = size(res.as_ref().map(|r| r[0]), res.as_ref().and_then(|r| r.get(1).copied()));
+        let (width, height) = size(
+            res.as_ref().map(|r| r[0]),
+            res.as_ref().and_then(|r| r.get(1).copied()),
+        );
         return Ok(Calibration {
             width,
             height,
@@ -110,7 +124,9 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
     }
     for prefix in ["", "Camera.", "Camera1."] {
         let key = |k: &str| format!("{prefix}{k}");
-        let Some(fx) = get(&[&key("fx")]) else { continue };
+        let Some(fx) = get(&[&key("fx")]) else {
+            continue;
+        };
         let fy = get(&[&key("fy")]).ok_or_else(|| missing("fy"))?;
         let cx = get(&[&key("cx")]).ok_or_else(|| missing("cx"))?;
         let cy = get(&[&key("cy")]).ok_or_else(|| missing("cy"))?;
@@ -138,11 +154,20 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
 
 fn parse_kitti_calib(path: &Path, text: &str) -> Result<Calibration, SourceError> {
     let (line_no, line) = data_lines(text)
-        .find(|(_, l)| l.starts_with("P0:") || l.chars().next().is_some_and(|c| c.is_ascii_digit() || c == '-'))
+        .find(|(_, l)| {
+            l.starts_with("P0:")
+                || l.chars()
+                    .next()
+                    .is_some_and(|c| c.is_ascii_digit() || c == '-')
+        })
         .ok_or_else(|| SourceError::parse(path, 0, "no P0 row"))?;
     let values = parse_floats(path, line_no, line.trim_start_matches("P0:"))?;
     if values.len() < 12 {
-        return Err(SourceError::parse(path, line_no, format!("P0 needs 12 numbers, got {}", values.len())));
+        return Err(SourceError::parse(
+            path,
+            line_no,
+            format!("P0 needs 12 numbers, got {}", values.len()),
+        ));
     }
     Ok(Calibration {
         width: None,
@@ -169,9 +194,15 @@ pub fn read_calibration_file(path: &Path) -> Result<Calibration, SourceError> {
 fn builtin_tum(dir: &Path) -> Option<Calibration> {
     let name = dir.to_string_lossy().to_ascii_lowercase();
     let (fc, d) = if name.contains("freiburg1") || name.contains("fr1") {
-        ([517.306408, 516.469215, 318.643040, 255.313989], [0.262383, -0.953104, -0.005358, 0.002628, 1.163314])
+        (
+            [517.306408, 516.469215, 318.643040, 255.313989],
+            [0.262383, -0.953104, -0.005358, 0.002628, 1.163314],
+        )
     } else if name.contains("freiburg2") || name.contains("fr2") {
-        ([520.908620, 521.007327, 325.141442, 249.701764], [0.231222, -0.784899, -0.003257, -0.000105, 0.917205])
+        (
+            [520.908620, 521.007327, 325.141442, 249.701764],
+            [0.231222, -0.784899, -0.003257, -0.000105, 0.917205],
+        )
     } else if name.contains("freiburg3") || name.contains("fr3") {
         ([535.4, 539.2, 320.1, 247.6], [0.0; 5])
     } else {
@@ -188,10 +219,18 @@ fn builtin_tum(dir: &Path) -> Option<Calibration> {
 
 fn candidate_files(dir: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_file()).collect())
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| e.path())
+                .filter(|p| p.is_file())
+                .collect()
+        })
         .unwrap_or_default();
     files.retain(|p| {
-        let name = p.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
         let ext_ok = name.ends_with(".yaml") || name.ends_with(".yml") || name.ends_with(".txt");
         ext_ok && (name.starts_with("calib") || name.starts_with("camera") || name == "sensor.yaml")
     });
@@ -202,7 +241,10 @@ fn candidate_files(dir: &Path) -> Vec<PathBuf> {
 /// The calibration for a sequence: `explicit` when given, else the dataset's own file
 /// (EuRoC `sensor.yaml`, KITTI `calib.txt`, a `calib*`/`camera*` file in the sequence folder
 /// or up to three folders above), else TUM's published values for TUM folders.
-pub fn load_calibration(layout: &Layout, explicit: Option<&Path>) -> Result<Calibration, SourceError> {
+pub fn load_calibration(
+    layout: &Layout,
+    explicit: Option<&Path>,
+) -> Result<Calibration, SourceError> {
     if let Some(path) = explicit {
         return read_calibration_file(path);
     }
@@ -238,7 +280,9 @@ mod tests {
     use crate::detect_layout;
 
     fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(sub);
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/data")
+            .join(sub);
         p.exists().then_some(p).or_else(|| {
             eprintln!("skipping: ../shared/data/{sub} is absent");
             None
@@ -278,12 +322,18 @@ mod tests {
         assert_eq!(c.distortion[1], -0.2);
         assert!(c.camera_for(640, 480).is_ok());
         let err = c.camera_for(1241, 376).expect_err("size mismatch");
-        assert!(err.to_string().contains("cam.yaml") && err.to_string().contains("640x480"), "{err}");
+        assert!(
+            err.to_string().contains("cam.yaml") && err.to_string().contains("640x480"),
+            "{err}"
+        );
         std::fs::write(&f, "fy: 1\n").expect("write");
         assert!(read_calibration_file(&f).is_err());
         let zero = dir.path().join("zero.yaml");
         std::fs::write(&zero, "fx: 0\nfy: 1\ncx: 1\ncy: 1\n").expect("write");
-        let err = read_calibration_file(&zero).expect("parses").camera_for(10, 10).expect_err("bad focal");
+        let err = read_calibration_file(&zero)
+            .expect("parses")
+            .camera_for(10, 10)
+            .expect_err("bad focal");
         assert!(err.to_string().contains("focal"), "{err}");
     }
 }

@@ -32,7 +32,9 @@ pub enum SourceError {
     #[error("{path}: missing calibration (none found next to the sequence; pass --calib FILE)")]
     MissingCalibration { path: PathBuf },
     /// The calibration's image size differs from the frames'.
-    #[error("{path}: calibration is for {calib_width}x{calib_height} but frames are {width}x{height}")]
+    #[error(
+        "{path}: calibration is for {calib_width}x{calib_height} but frames are {width}x{height}"
+    )]
     CalibrationSize {
         path: PathBuf,
         calib_width: u32,
@@ -83,7 +85,11 @@ pub(crate) fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
 }
 
 /// Parses whitespace- or comma-separated floats of one line.
-pub(crate) fn parse_floats(path: &std::path::Path, line_no: usize, line: &str) -> Result<Vec<f64>, SourceError> {
+pub(crate) fn parse_floats(
+    path: &std::path::Path,
+    line_no: usize,
+    line: &str,
+) -> Result<Vec<f64>, SourceError> {
     line.split(|c: char| c.is_whitespace() || c == ',')
         .filter(|s| !s.is_empty())
         .map(|s| {

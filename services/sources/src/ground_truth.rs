@@ -8,7 +8,9 @@
 use crate::error::{data_lines, parse_floats, read_text};
 use crate::SourceError;
 use egoslam_geometry::StampedPose;
-use nalgebra::{Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 use serde_yaml::Value;
 use std::path::{Path, PathBuf};
 
@@ -27,7 +29,11 @@ pub fn read_tum_file(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
         .map(|(n, line)| {
             let v = parse_floats(path, n, line)?;
             if v.len() != 8 {
-                return Err(SourceError::parse(path, n, format!("expected 8 numbers (TUM), got {}", v.len())));
+                return Err(SourceError::parse(
+                    path,
+                    n,
+                    format!("expected 8 numbers (TUM), got {}", v.len()),
+                ));
             }
             Ok(StampedPose {
                 timestamp: v[0],
@@ -52,7 +58,11 @@ fn read_kitti(path: &Path, times: &Path) -> Result<Vec<StampedPose>, SourceError
         .map(|((n, line), t)| {
             let v = parse_floats(path, n, line)?;
             if v.len() != 12 {
-                return Err(SourceError::parse(path, n, format!("expected 12 numbers (KITTI 3x4), got {}", v.len())));
+                return Err(SourceError::parse(
+                    path,
+                    n,
+                    format!("expected 12 numbers (KITTI 3x4), got {}", v.len()),
+                ));
             }
             let r = Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
             Ok(StampedPose {
@@ -70,7 +80,11 @@ fn read_euroc_csv(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
         .map(|(n, line)| {
             let v = parse_floats(path, n, line)?;
             if v.len() < 8 {
-                return Err(SourceError::parse(path, n, "expected 'ns, px, py, pz, qw, qx, qy, qz, ...'"));
+                return Err(SourceError::parse(
+                    path,
+                    n,
+                    "expected 'ns, px, py, pz, qw, qx, qy, qz, ...'",
+                ));
             }
             Ok(StampedPose {
                 timestamp: v[0] * 1e-9,
@@ -84,8 +98,13 @@ fn read_euroc_csv(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
 /// `T_BS` (camera to body) from a Kalibr/EuRoC `sensor.yaml`.
 pub fn read_body_from_sensor(path: &Path) -> Result<Isometry3<f64>, SourceError> {
     let text = read_text(path)?;
-    let cleaned: String = text.lines().filter(|l| !l.starts_with('%')).collect::<Vec<_>>().join("\n");
-    let doc: Value = serde_yaml::from_str(&cleaned).map_err(|e| SourceError::parse(path, 0, e.to_string()))?;
+    let cleaned: String = text
+        .lines()
+        .filter(|l| !l.starts_with('%'))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let doc: Value =
+        serde_yaml::from_str(&cleaned).map_err(|e| SourceError::parse(path, 0, e.to_string()))?;
     let data: Vec<f64> = doc
         .get("T_BS")
         .and_then(|t| t.get("data"))
@@ -93,7 +112,11 @@ pub fn read_body_from_sensor(path: &Path) -> Result<Isometry3<f64>, SourceError>
         .map(|s| s.iter().filter_map(Value::as_f64).collect())
         .unwrap_or_default();
     if data.len() != 16 {
-        return Err(SourceError::parse(path, 0, "T_BS must be a 4x4 matrix (data: 16 numbers)"));
+        return Err(SourceError::parse(
+            path,
+            0,
+            "T_BS must be a 4x4 matrix (data: 16 numbers)",
+        ));
     }
     let m = Matrix4::from_row_slice(&data);
     let r = Rotation3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned());
@@ -124,14 +147,19 @@ fn find_euroc_sensor(start: &Path) -> Option<PathBuf> {
 fn kitti_times_for(poses: &Path) -> Option<PathBuf> {
     let stem = poses.file_stem()?.to_string_lossy().into_owned();
     let dataset = poses.parent()?.parent()?;
-    [dataset.join("sequences").join(&stem).join("times.txt"), poses.with_file_name(format!("{stem}_times.txt"))]
-        .into_iter()
-        .find(|p| p.is_file())
+    [
+        dataset.join("sequences").join(&stem).join("times.txt"),
+        poses.with_file_name(format!("{stem}_times.txt")),
+    ]
+    .into_iter()
+    .find(|p| p.is_file())
 }
 
 fn first_data_columns(path: &Path) -> Result<usize, SourceError> {
     let text = read_text(path)?;
-    let (n, line) = data_lines(&text).next().ok_or_else(|| SourceError::Empty { path: path.into() })?;
+    let (n, line) = data_lines(&text)
+        .next()
+        .ok_or_else(|| SourceError::Empty { path: path.into() })?;
     Ok(parse_floats(path, n, line)?.len())
 }
 
@@ -148,24 +176,44 @@ pub fn load_ground_truth(path: &Path) -> Result<GroundTruth, SourceError> {
         }
         // Any *groundtruth*/*gt* file or KITTI dataset/poses/NN.txt, one level down at most.
         let mut files: Vec<PathBuf> = Vec::new();
-        for dir in [path.to_path_buf(), path.join("dataset/poses"), path.join("poses")] {
+        for dir in [
+            path.to_path_buf(),
+            path.join("dataset/poses"),
+            path.join("poses"),
+        ] {
             if let Ok(rd) = std::fs::read_dir(&dir) {
-                files.extend(rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_file()));
+                files.extend(
+                    rd.filter_map(|e| e.ok())
+                        .map(|e| e.path())
+                        .filter(|p| p.is_file()),
+                );
             }
         }
         files.sort();
         let pick = files.iter().find(|p| {
-            let name = p.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
-            name.contains("groundtruth") || (name.ends_with(".txt") && p.parent().is_some_and(|d| d.ends_with("poses")))
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().to_ascii_lowercase())
+                .unwrap_or_default();
+            name.contains("groundtruth")
+                || (name.ends_with(".txt") && p.parent().is_some_and(|d| d.ends_with("poses")))
         });
         if let Some(f) = pick {
             return load_ground_truth(f);
         }
         // A TUM sequence in a subfolder.
         if let Ok(rd) = std::fs::read_dir(path) {
-            let mut subdirs: Vec<PathBuf> = rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect();
+            let mut subdirs: Vec<PathBuf> = rd
+                .filter_map(|e| e.ok())
+                .map(|e| e.path())
+                .filter(|p| p.is_dir())
+                .collect();
             subdirs.sort();
-            if let Some(f) = subdirs.iter().map(|d| d.join("groundtruth.txt")).find(|f| f.is_file()) {
+            if let Some(f) = subdirs
+                .iter()
+                .map(|d| d.join("groundtruth.txt"))
+                .find(|f| f.is_file())
+            {
                 return load_ground_truth(&f);
             }
         }
@@ -176,15 +224,33 @@ pub fn load_ground_truth(path: &Path) -> Result<GroundTruth, SourceError> {
     let (mut poses, mut description) = match columns {
         12 => {
             let times = kitti_times_for(path).ok_or_else(|| {
-                SourceError::parse(path, 0, "KITTI poses need times.txt (looked in ../sequences/NN/ and NN_times.txt)")
+                SourceError::parse(
+                    path,
+                    0,
+                    "KITTI poses need times.txt (looked in ../sequences/NN/ and NN_times.txt)",
+                )
             })?;
-            let d = format!("KITTI poses {} with times {}", path.display(), times.display());
+            let d = format!(
+                "KITTI poses {} with times {}",
+                path.display(),
+                times.display()
+            );
             (read_kitti(path, &times)?, d)
         }
-        8 if !is_csv => (read_tum_file(path)?, format!("TUM trajectory {}", path.display())),
-        n if is_csv && n >= 8 => (read_euroc_csv(path)?, format!("EuRoC body poses {}", path.display())),
+        8 if !is_csv => (
+            read_tum_file(path)?,
+            format!("TUM trajectory {}", path.display()),
+        ),
+        n if is_csv && n >= 8 => (
+            read_euroc_csv(path)?,
+            format!("EuRoC body poses {}", path.display()),
+        ),
         n => {
-            return Err(SourceError::parse(path, 0, format!("unrecognised ground truth: {n} columns")));
+            return Err(SourceError::parse(
+                path,
+                0,
+                format!("unrecognised ground truth: {n} columns"),
+            ));
         }
     };
     // EuRoC ground truth is of the body (IMU), not the camera.
@@ -204,7 +270,9 @@ mod tests {
     use super::*;
 
     fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(sub);
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/data")
+            .join(sub);
         p.exists().then_some(p).or_else(|| {
             eprintln!("skipping: ../shared/data/{sub} is absent");
             None
@@ -213,7 +281,9 @@ mod tests {
 
     #[test]
     fn tum_ground_truth() {
-        let Some(d) = shared("tum_fr1_rpy") else { return };
+        let Some(d) = shared("tum_fr1_rpy") else {
+            return;
+        };
         let gt = load_ground_truth(&d).expect("gt");
         assert_eq!(gt.poses.len(), 2742);
         assert!((gt.poses[0].timestamp - 1305031225.93).abs() < 0.01);
@@ -221,17 +291,25 @@ mod tests {
 
     #[test]
     fn kitti_ground_truth_has_stamped_prefix_in_metres() {
-        let Some(d) = shared("kitti_odometry_00") else { return };
+        let Some(d) = shared("kitti_odometry_00") else {
+            return;
+        };
         let gt = load_ground_truth(&d).expect("gt");
         assert_eq!(gt.poses.len(), 150);
         assert!(gt.poses[0].position.norm() < 1e-6);
-        let path: f64 = gt.poses.windows(2).map(|w| (w[1].position - w[0].position).norm()).sum();
+        let path: f64 = gt
+            .poses
+            .windows(2)
+            .map(|w| (w[1].position - w[0].position).norm())
+            .sum();
         assert!((path - 108.0).abs() < 5.0, "path {path} m");
     }
 
     #[test]
     fn euroc_ground_truth_is_camera_not_body() {
-        let Some(d) = shared("euroc_v1_01") else { return };
+        let Some(d) = shared("euroc_v1_01") else {
+            return;
+        };
         let gt = load_ground_truth(&d.join("groundtruth_V101_tum_from_evo.txt")).expect("gt");
         assert!(gt.description.contains("T_BS"));
         // First row body position 0.878895 2.183400 0.948427; the camera sits a few cm away.

@@ -19,7 +19,8 @@ pub enum Layout {
 }
 
 const VIDEO_EXTENSIONS: &[&str] = &["mp4", "avi", "mkv", "mov", "webm", "m4v", "mpg", "mpeg"];
-pub(crate) const IMAGE_EXTENSIONS: &[&str] = &["png", "jpg", "jpeg", "bmp", "tif", "tiff", "pgm", "ppm"];
+pub(crate) const IMAGE_EXTENSIONS: &[&str] =
+    &["png", "jpg", "jpeg", "bmp", "tif", "tiff", "pgm", "ppm"];
 
 fn has_extension(path: &Path, list: &[&str]) -> bool {
     path.extension()
@@ -48,7 +49,12 @@ fn layout_here(dir: &Path) -> Option<Layout> {
 
 fn sorted_subdirs(dir: &Path) -> Vec<PathBuf> {
     let mut subdirs: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect())
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| e.path())
+                .filter(|p| p.is_dir())
+                .collect()
+        })
         .unwrap_or_default();
     subdirs.sort();
     subdirs
@@ -115,9 +121,18 @@ mod tests {
     #[test]
     fn detects_each_shared_dataset_from_its_root() {
         let Some(data) = shared() else { return };
-        assert!(matches!(detect_layout(&data.join("tum_fr1_rpy")), Ok(Layout::Tum { .. })));
-        assert!(matches!(detect_layout(&data.join("kitti_odometry_00")), Ok(Layout::Kitti { .. })));
-        assert!(matches!(detect_layout(&data.join("euroc_v1_01")), Ok(Layout::Euroc { .. })));
+        assert!(matches!(
+            detect_layout(&data.join("tum_fr1_rpy")),
+            Ok(Layout::Tum { .. })
+        ));
+        assert!(matches!(
+            detect_layout(&data.join("kitti_odometry_00")),
+            Ok(Layout::Kitti { .. })
+        ));
+        assert!(matches!(
+            detect_layout(&data.join("euroc_v1_01")),
+            Ok(Layout::Euroc { .. })
+        ));
     }
 
     #[test]
@@ -130,6 +145,9 @@ mod tests {
         assert!(err.to_string().contains("nope"), "{err}");
         let vid = dir.path().join("clip.mp4");
         std::fs::write(&vid, b"x").expect("write");
-        assert_eq!(detect_layout(&vid).expect("video"), Layout::Video { file: vid });
+        assert_eq!(
+            detect_layout(&vid).expect("video"),
+            Layout::Video { file: vid }
+        );
     }
 }

@@ -37,13 +37,32 @@ struct IndexedSource {
     next: usize,
 }
 
+/// True when a PNG or JPEG file lacks its end marker. libjpeg decodes a truncated file
+/// "successfully" (grey bottom rows, a warning on stderr); tracking on such a frame would
+/// silently corrupt the map, so it is refused here.
+fn is_truncated(bytes: &[u8]) -> bool {
+    let tail = &bytes[bytes.len().saturating_sub(32)..];
+    if bytes.starts_with(&[0xFF, 0xD8]) {
+        return !tail.windows(2).any(|w| w == [0xFF, 0xD9]);
+    }
+    if bytes.starts_with(b"\x89PNG") {
+        return !tail.windows(4).any(|w| w == b"IEND");
+    }
+    false
+}
+
 /// Decodes an image file to 8-bit grey, naming the file on any failure.
 pub fn decode_grey(path: &Path) -> Result<Mat, SourceError> {
     let bytes = std::fs::read(path).map_err(|e| SourceError::io(path, e))?;
+    if is_truncated(&bytes) {
+        return Err(SourceError::BadImage { path: path.into() });
+    }
     let buf = Vector::<u8>::from_slice(&bytes);
-    let img = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_GRAYSCALE).map_err(|e| SourceError::OpenCv {
-        path: path.into(),
-        message: e.to_string(),
+    let img = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_GRAYSCALE).map_err(|e| {
+        SourceError::OpenCv {
+            path: path.into(),
+            message: e.to_string(),
+        }
     })?;
     if img.empty() || img.cols() <= 0 || img.rows() <= 0 {
         return Err(SourceError::BadImage { path: path.into() });
@@ -133,7 +152,11 @@ fn tum_entries(dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
         .map(|(n, line)| {
             let mut parts = line.split_whitespace();
             let (Some(t), Some(file)) = (parts.next(), parts.next()) else {
-                return Err(SourceError::parse(&index, n, "expected 'timestamp filename'"));
+                return Err(SourceError::parse(
+                    &index,
+                    n,
+                    "expected 'timestamp filename'",
+                ));
             };
             let t = t
                 .parse::<f64>()
@@ -150,7 +173,9 @@ fn kitti_entries(dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
         .enumerate()
         .map(|(i, (n, line))| {
             let v = parse_floats(&times, n, line)?;
-            let t = *v.first().ok_or_else(|| SourceError::parse(&times, n, "empty line"))?;
+            let t = *v
+                .first()
+                .ok_or_else(|| SourceError::parse(&times, n, "empty line"))?;
             Ok((t, dir.join("image_0").join(format!("{i:06}.png"))))
         })
         .collect()
@@ -163,7 +188,11 @@ fn euroc_entries(cam_dir: &Path) -> Result<Vec<(f64, PathBuf)>, SourceError> {
         .map(|(n, line)| {
             let mut parts = line.split(',').map(str::trim);
             let (Some(ns), Some(file)) = (parts.next(), parts.next()) else {
-                return Err(SourceError::parse(&csv, n, "expected 'timestamp_ns,filename'"));
+                return Err(SourceError::parse(
+                    &csv,
+                    n,
+                    "expected 'timestamp_ns,filename'",
+                ));
             };
             let ns = ns
                 .parse::<u64>()
@@ -181,7 +210,11 @@ fn folder_entries(dir: &Path, fps: f64) -> Result<Vec<(f64, PathBuf)>, SourceErr
         .filter(|p| p.is_file() && is_image(p))
         .collect();
     files.sort();
-    Ok(files.into_iter().enumerate().map(|(i, p)| (i as f64 / fps, p)).collect())
+    Ok(files
+        .into_iter()
+        .enumerate()
+        .map(|(i, p)| (i as f64 / fps, p))
+        .collect())
 }
 
 /// Opens the sequence at `path` (any supported layout). `fps` sets the timestamps of image
@@ -194,12 +227,13 @@ pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, Source
         Layout::Euroc { cam_dir } => euroc_entries(cam_dir)?,
         Layout::ImageFolder { dir } => folder_entries(dir, fps)?,
         Layout::Video { file } => {
-            let capture = videoio::VideoCapture::from_file(file, videoio::CAP_ANY).map_err(|e| {
-                SourceError::OpenCv {
-                    path: file.clone(),
-                    message: e.to_string(),
-                }
-            })?;
+            let capture =
+                videoio::VideoCapture::from_file(file, videoio::CAP_ANY).map_err(|e| {
+                    SourceError::OpenCv {
+                        path: file.clone(),
+                        message: e.to_string(),
+                    }
+                })?;
             if !capture.is_opened().unwrap_or(false) {
                 return Err(SourceError::OpenCv {
                     path: file.clone(),
@@ -212,7 +246,11 @@ pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, Source
                 file: file.clone(),
                 layout: layout.clone(),
                 capture,
-                fps: if reported > 0.0 && reported.is_finite() { reported } else { fps },
+                fps: if reported > 0.0 && reported.is_finite() {
+                    reported
+                } else {
+                    fps
+                },
                 frames: (count >= 1.0).then_some(count as usize),
                 next: 0,
                 grey: Mat::default(),
@@ -236,7 +274,9 @@ mod tests {
     use super::*;
 
     fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(sub);
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/data")
+            .join(sub);
         p.exists().then_some(p).or_else(|| {
             eprintln!("skipping: ../shared/data/{sub} is absent");
             None
@@ -274,7 +314,7 @@ mod tests {
 
     #[test]
     fn reads_euroc() {
-        check("euroc_v1_01", 95, (752, 480), 1403715273.262142976);
+        check("euroc_v1_01", 95, (752, 480), 1403715273.262143);
     }
 
     #[test]
@@ -291,7 +331,9 @@ mod tests {
         let folder = dir.path().join("images");
         std::fs::create_dir(&folder).expect("mkdir");
         for i in 0..5 {
-            let img = Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, (i * 40).into()).expect("mat");
+            let img =
+                Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, (i * 40).into())
+                    .expect("mat");
             writer.write(&img).expect("write frame");
             imgcodecs::imwrite_def(folder.join(format!("{i:03}.png")), &img).expect("png");
         }
@@ -300,27 +342,39 @@ mod tests {
         let mut n = 0;
         while let Some(f) = video.next_frame() {
             let f = f.expect("frame");
-            assert_eq!((f.image.cols(), f.image.rows(), f.image.channels()), (64, 48, 1));
+            assert_eq!(
+                (f.image.cols(), f.image.rows(), f.image.channels()),
+                (64, 48, 1)
+            );
             assert!((f.timestamp - n as f64 / 25.0).abs() < 1e-9);
             n += 1;
         }
         assert_eq!(n, 5);
         let mut images = open_source(&folder, 10.0).expect("folder opens");
         assert_eq!(images.len_hint(), Some(5));
-        let second = images.next_frame().and_then(|_| images.next_frame()).expect("two").expect("decodes");
+        let second = images
+            .next_frame()
+            .and_then(|_| images.next_frame())
+            .expect("two")
+            .expect("decodes");
         assert!((second.timestamp - 0.1).abs() < 1e-12);
     }
 
     #[test]
     fn truncated_and_empty_inputs_name_the_file() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let good = Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, 7.into()).expect("mat");
+        let good =
+            Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, 7.into()).expect("mat");
         let png = dir.path().join("000.png");
         imgcodecs::imwrite_def(&png, &good).expect("png");
         let bytes = std::fs::read(&png).expect("read");
         std::fs::write(&png, &bytes[..bytes.len() / 3]).expect("truncate");
         let mut src = open_source(dir.path(), 30.0).expect("folder");
-        let err = src.next_frame().expect("one").err().expect("truncated fails");
+        let err = src
+            .next_frame()
+            .expect("one")
+            .err()
+            .expect("truncated fails");
         assert!(err.to_string().contains("000.png"), "{err}");
 
         let tum = dir.path().join("tum");
@@ -329,7 +383,12 @@ mod tests {
         let err = open_source(&tum, 30.0).err().expect("empty");
         assert!(err.to_string().contains("empty sequence"), "{err}");
         std::fs::write(tum.join("rgb.txt"), "1.0 rgb/missing.png\n").expect("write");
-        let err = open_source(&tum, 30.0).expect("lists").next_frame().expect("one").err().expect("missing");
+        let err = open_source(&tum, 30.0)
+            .expect("lists")
+            .next_frame()
+            .expect("one")
+            .err()
+            .expect("missing");
         assert!(err.to_string().contains("missing.png"), "{err}");
     }
 }

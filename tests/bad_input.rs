@@ -1,0 +1,126 @@
+//! Bad input gives one clear error naming the file, a non-zero exit and no panic.
+
+mod common;
+
+use common::*;
+use std::path::Path;
+
+/// Runs `egoslam run` and returns (success, stderr).
+fn run(input: &Path, extra: &[&str]) -> (bool, String) {
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = egoslam()
+        .args(["run", "--input"])
+        .arg(input)
+        .arg("--out")
+        .arg(out.path())
+        .args(extra)
+        .output()
+        .expect("runs");
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(!stderr.contains("panicked"), "panic: {stderr}");
+    (o.status.success(), stderr)
+}
+
+/// A TUM folder of `n` frames copied from the fixture.
+fn tum_copy(dir: &Path, n: usize) {
+    let src = tum_fixture();
+    std::fs::create_dir_all(dir.join("rgb")).expect("mkdir");
+    let index = std::fs::read_to_string(src.join("rgb.txt")).expect("rgb.txt");
+    let lines: Vec<&str> = index
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .take(n)
+        .collect();
+    for l in &lines {
+        let file = l.split_whitespace().nth(1).expect("file");
+        std::fs::copy(src.join(file), dir.join(file)).expect("copy");
+    }
+    std::fs::write(dir.join("rgb.txt"), lines.join("\n") + "\n").expect("write");
+    std::fs::copy(src.join("camera.yaml"), dir.join("camera.yaml")).expect("copy calib");
+}
+
+#[test]
+fn missing_path() {
+    let (ok, err) = run(Path::new("/nonexistent/sequence"), &[]);
+    assert!(!ok);
+    assert!(
+        err.contains("/nonexistent/sequence") && err.contains("No such file"),
+        "{err}"
+    );
+}
+
+#[test]
+fn unknown_layout() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("readme.md"), "nothing").expect("write");
+    let (ok, err) = run(dir.path(), &[]);
+    assert!(!ok);
+    assert!(err.contains("unknown layout"), "{err}");
+}
+
+#[test]
+fn empty_sequence() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("rgb.txt"), "# timestamp filename\n").expect("write");
+    let (ok, err) = run(dir.path(), &[]);
+    assert!(!ok);
+    assert!(err.contains("empty sequence"), "{err}");
+}
+
+#[test]
+fn truncated_image_mid_stream_stops_the_pipeline_and_names_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 12);
+    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("read");
+    let victim = index
+        .lines()
+        .nth(6)
+        .and_then(|l| l.split_whitespace().nth(1))
+        .expect("7th")
+        .to_string();
+    let bytes = std::fs::read(dir.path().join(&victim)).expect("read");
+    std::fs::write(dir.path().join(&victim), &bytes[..bytes.len() / 4]).expect("truncate");
+    let (ok, err) = run(dir.path(), &[]);
+    assert!(!ok);
+    let name = Path::new(&victim)
+        .file_name()
+        .expect("name")
+        .to_string_lossy()
+        .into_owned();
+    assert!(err.contains(&name), "{err}");
+    assert!(err.contains("replay service failed"), "{err}");
+}
+
+#[test]
+fn wrong_calibration_size() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 3);
+    let calib = dir.path().join("kitti.yaml");
+    std::fs::write(
+        &calib,
+        "width: 1241\nheight: 376\nfx: 718.856\nfy: 718.856\ncx: 607.19\ncy: 185.21\n",
+    )
+    .expect("write");
+    let (ok, err) = run(dir.path(), &["--calib", calib.to_str().expect("utf8")]);
+    assert!(!ok);
+    assert!(
+        err.contains("kitti.yaml") && err.contains("1241x376") && err.contains("640x480"),
+        "{err}"
+    );
+}
+
+#[test]
+fn missing_calibration() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let images = dir.path().join("my_walk");
+    tum_copy(&images, 3);
+    std::fs::remove_file(images.join("rgb.txt")).expect("rm");
+    std::fs::remove_file(images.join("camera.yaml")).expect("rm");
+    let rgb = images.join("rgb");
+    let (ok, err) = run(&rgb, &[]);
+    assert!(!ok);
+    assert!(
+        err.contains("missing calibration") && err.contains("--calib"),
+        "{err}"
+    );
+}

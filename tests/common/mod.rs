@@ -1,0 +1,38 @@
+//! Helpers shared by the integration tests: the binary, the fixtures, unique namespaces.
+
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+pub fn egoslam() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_egoslam"))
+}
+
+pub fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The in-repo TUM fr1_rpy clip (CC BY 4.0).
+pub fn tum_fixture() -> PathBuf {
+    repo().join("tests/data/tum_fr1_rpy_120")
+}
+
+/// A sequence from ../shared/data, or None (with a message) when it is absent.
+pub fn shared(name: &str) -> Option<PathBuf> {
+    let p = repo().join("../shared/data").join(name);
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!(
+            "skipping: {} is absent (shared test data not on this machine)",
+            p.display()
+        );
+        None
+    }
+}
+
+/// A bus namespace no other test uses.
+pub fn namespace(test: &str) -> String {
+    format!("it_{test}_{}", std::process::id())
+}

@@ -1,0 +1,224 @@
+//! The real processes over iceoryx2 on real frames.
+
+mod common;
+
+use common::*;
+use egoslam_bus::{Bus, BusOptions, MessageSubscriber, KEYFRAMES};
+use egoslam_messages::v1 as pb;
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::time::Duration;
+
+/// Runs replay + frontend as processes and collects the keyframe stream in this process.
+fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
+    let ns = namespace(test);
+    let out = tempfile::tempdir().expect("tempdir");
+    // Resolve the calibration the way the launcher does, through `run`'s checks, by writing
+    // the dataset's own calibration in egoslam format.
+    let layout = egoslam_sources::detect_layout(input).expect("layout");
+    let calib = egoslam_sources::load_calibration(&layout, None).expect("calibration");
+    let mut src = egoslam_sources::open_source(input, 30.0).expect("source");
+    let frames = src.len_hint().expect("known length");
+    let first = src.next_frame().expect("frame").expect("decodes");
+    use opencv::prelude::MatTraitConst;
+    let camera = calib
+        .camera_for(first.image.cols() as u32, first.image.rows() as u32)
+        .expect("camera");
+    let camera_file = out.path().join("camera.yaml");
+    let d = camera.distortion;
+    std::fs::write(
+        &camera_file,
+        format!(
+            "width: {}\nheight: {}\nfx: {}\nfy: {}\ncx: {}\ncy: {}\ndistortion: [{}, {}, {}, {}, {}]\n",
+            camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, d[0], d[1], d[2], d[3], d[4]
+        ),
+    )
+    .expect("camera file");
+
+    let bus = Bus::open(
+        "test",
+        BusOptions {
+            namespace: ns.clone(),
+            ..BusOptions::default()
+        },
+    )
+    .expect("bus");
+    let mut sub = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
+    let common_args = [
+        format!("--namespace={ns}"),
+        format!("--out={}", out.path().display()),
+        format!("--camera={}", camera_file.display()),
+    ];
+    let mut frontend = egoslam()
+        .arg("frontend")
+        .args(&common_args)
+        .spawn()
+        .expect("frontend");
+    let mut replay = egoslam()
+        .arg("replay")
+        .arg(format!("--input={}", input.display()))
+        .args(&common_args)
+        .spawn()
+        .expect("replay");
+    let mut keyframes = Vec::new();
+    loop {
+        let k = sub.receive().expect("receive").expect("not terminated");
+        if k.end_of_stream {
+            keyframes.push(k);
+            break;
+        }
+        keyframes.push(k);
+    }
+    assert!(replay.wait().expect("replay exit").success());
+    assert!(frontend.wait().expect("frontend exit").success());
+    std::thread::sleep(Duration::from_millis(10));
+    (keyframes, frames)
+}
+
+/// Checks a keyframe stream: ids strictly increasing without gaps, tracks inside the image,
+/// every frame accounted for exactly once, enough tracks for SfM.
+fn check_stream(
+    keyframes: &[pb::Keyframe],
+    frames: usize,
+    min_keyframes: usize,
+    max_keyframes: usize,
+) {
+    let (eos, kfs) = keyframes.split_last().expect("end of stream");
+    assert!(eos.end_of_stream);
+    assert!(
+        kfs.len() >= min_keyframes && kfs.len() <= max_keyframes,
+        "{} keyframes",
+        kfs.len()
+    );
+    let mut seen_frames = BTreeSet::new();
+    for (i, k) in kfs.iter().enumerate() {
+        assert_eq!(
+            k.keyframe_id, i as u64,
+            "keyframe ids must be 0,1,2,... without gaps"
+        );
+        let intr = k.intrinsics.as_ref().expect("intrinsics");
+        assert!(
+            k.tracks.len() >= 100,
+            "keyframe {} has only {} tracks",
+            i,
+            k.tracks.len()
+        );
+        for t in &k.tracks {
+            assert!(
+                t.raw_x >= 0.0
+                    && t.raw_y >= 0.0
+                    && t.raw_x < intr.width as f32
+                    && t.raw_y < intr.height as f32
+            );
+        }
+        let ids: BTreeSet<u64> = k.tracks.iter().map(|t| t.track_id).collect();
+        assert_eq!(
+            ids.len(),
+            k.tracks.len(),
+            "track ids unique within a keyframe"
+        );
+        for f in &k.frames_since_previous {
+            assert!(seen_frames.insert(f.frame_id));
+        }
+        assert!(seen_frames.insert(k.frame_id));
+    }
+    for f in &eos.trailing_frames {
+        assert!(seen_frames.insert(f.frame_id));
+    }
+    assert_eq!(
+        seen_frames,
+        (0..frames as u64).collect::<BTreeSet<_>>(),
+        "every frame once"
+    );
+    assert_eq!(kfs[0].reason, pb::KeyframeReason::First as i32);
+    // Consecutive keyframes share tracks (needed for the five-point relative pose).
+    for w in kfs.windows(2) {
+        let a: BTreeSet<u64> = w[0].tracks.iter().map(|t| t.track_id).collect();
+        let shared = w[1]
+            .tracks
+            .iter()
+            .filter(|t| a.contains(&t.track_id))
+            .count();
+        assert!(
+            shared >= 50,
+            "keyframes {} and {} share {shared} tracks",
+            w[0].keyframe_id,
+            w[1].keyframe_id
+        );
+    }
+}
+
+#[test]
+fn tum_fixture_keyframe_stream_through_real_processes() {
+    let (kfs, frames) = keyframe_stream(&tum_fixture(), "tum");
+    assert_eq!(frames, 120);
+    // fr1_rpy turns fast (20-95 deg/s): the flow rule fires often.
+    check_stream(&kfs, frames, 20, 110);
+}
+
+#[test]
+fn kitti_keyframe_stream() {
+    let Some(input) = shared("kitti_odometry_00") else {
+        return;
+    };
+    let (kfs, frames) = keyframe_stream(&input, "kitti");
+    check_stream(&kfs, frames, 15, 150);
+}
+
+#[test]
+fn euroc_keyframe_stream() {
+    let Some(input) = shared("euroc_v1_01") else {
+        return;
+    };
+    let (kfs, frames) = keyframe_stream(&input, "euroc");
+    // The MAV sits still: only the P = 30 rule fires (95 frames -> keyframes 0, 30, 60, 90 + last).
+    check_stream(&kfs, frames, 4, 6);
+}
+
+#[test]
+fn run_writes_every_output_and_the_report() {
+    let out = tempfile::tempdir().expect("tempdir");
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path())
+        .status()
+        .expect("run");
+    assert!(status.success());
+    for f in [
+        "trajectory.tum",
+        "keyframes.tum",
+        "map.ply",
+        "report.json",
+        "camera.yaml",
+    ] {
+        assert!(out.path().join(f).is_file(), "{f} missing");
+    }
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("read"),
+    )
+    .expect("json");
+    for key in [
+        "frames",
+        "posed_frames",
+        "keyframes",
+        "windows",
+        "segments",
+        "timings_ms",
+    ] {
+        assert!(report.get(key).is_some(), "report lacks {key}");
+    }
+    assert_eq!(report["frames"], 120);
+    assert_eq!(report["dropped_frames"], 0);
+    let keyframes = report["keyframes"].as_u64().expect("number");
+    let windows = report["windows"].as_u64().expect("number");
+    // K = 20, O = 5: 1 + ceil((keyframes - 20) / 15) windows.
+    assert_eq!(windows, 1 + keyframes.saturating_sub(20).div_ceil(15));
+    assert!(
+        report["timings_ms"]["frontend.track"]
+            .as_f64()
+            .expect("timing")
+            > 0.0
+    );
+}

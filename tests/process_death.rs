@@ -1,0 +1,117 @@
+//! A service that dies is noticed: its consumer fails instead of hanging, and the launcher
+//! stops the whole pipeline with an error naming the service.
+
+mod common;
+
+use common::*;
+use std::time::{Duration, Instant};
+
+#[test]
+fn consumer_notices_a_killed_producer() {
+    let ns = namespace("death");
+    let out = tempfile::tempdir().expect("tempdir");
+    let camera = tum_fixture().join("camera.yaml");
+    let args = [
+        format!("--namespace={ns}"),
+        format!("--out={}", out.path().display()),
+        format!("--camera={}", camera.display()),
+    ];
+    let mut merger = egoslam().arg("merger").args(&args).spawn().expect("merger");
+    let mut solver = egoslam().arg("solver").args(&args).spawn().expect("solver");
+    let mut frontend = egoslam()
+        .arg("frontend")
+        .args(&args)
+        .spawn()
+        .expect("frontend");
+    let mut replay = egoslam()
+        .arg("replay")
+        .arg(format!("--input={}", tum_fixture().display()))
+        .arg("--realtime")
+        .args(&args)
+        .spawn()
+        .expect("replay");
+    std::thread::sleep(Duration::from_millis(1500));
+    replay.kill().expect("SIGKILL replay");
+    replay.wait().expect("reaped");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = frontend.try_wait().expect("poll") {
+            break s;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "frontend hangs after its producer died"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(
+        !status.success(),
+        "frontend must fail when its producer dies mid-stream"
+    );
+    // The failure travels down the pipeline: each consumer sees its producer vanish.
+    for (name, child) in [("solver", &mut solver), ("merger", &mut merger)] {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(s) = child.try_wait().expect("poll") {
+                break s;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "{name} hangs after its producer died"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(!status.success(), "{name} must report the broken stream");
+    }
+}
+
+#[test]
+fn launcher_stops_everything_when_a_service_dies() {
+    let out = tempfile::tempdir().expect("tempdir");
+    let mut run = egoslam()
+        .args(["run", "--realtime", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run");
+    // Find the frontend child and kill it.
+    std::thread::sleep(Duration::from_millis(1500));
+    let children = std::process::Command::new("pgrep")
+        .args(["-P", &run.id().to_string(), "-f", "egoslam frontend"])
+        .output()
+        .expect("pgrep");
+    let pid = String::from_utf8_lossy(&children.stdout).trim().to_string();
+    assert!(!pid.is_empty(), "frontend child not found");
+    std::process::Command::new("kill")
+        .args(["-9", &pid])
+        .status()
+        .expect("kill");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = run.try_wait().expect("poll") {
+            break s;
+        }
+        assert!(start.elapsed() < Duration::from_secs(20), "launcher hangs");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(!status.success());
+    let mut stderr = String::new();
+    use std::io::Read;
+    run.stderr
+        .take()
+        .expect("pipe")
+        .read_to_string(&mut stderr)
+        .expect("read");
+    assert!(stderr.contains("frontend service failed"), "{stderr}");
+    // No orphans: the other services were stopped.
+    let left = std::process::Command::new("pgrep")
+        .args(["-f", &format!("--out={}", out.path().display())])
+        .output()
+        .expect("pgrep");
+    assert!(
+        String::from_utf8_lossy(&left.stdout).trim().is_empty(),
+        "services left running"
+    );
+}
