@@ -1,12 +1,9 @@
 //! The zero-copy frames channel: grey pixels in shared memory, metadata in a C header.
 
-use crate::port::{self, Service};
+use crate::port::{Inbox, Outbox};
 use crate::{Bus, BusOpenError, Delivery, ReceiveError, SendError, FRAMES};
-use iceoryx2::port::publisher::Publisher;
-use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
-use std::time::{Duration, Instant};
 
 /// Header of a frame sample. `#[repr(C)]` so a C++ iceoryx2 subscriber can read it.
 #[derive(Debug, Default, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -36,9 +33,7 @@ impl FrameMeta {
 /// Publishes frames; the pixels are copied once, into shared memory, and read in place.
 pub struct FramePublisher<'a> {
     bus: &'a Bus,
-    _service: Service<FrameMeta>,
-    publisher: Publisher<ipc::Service, [u8], FrameMeta>,
-    delivery: Delivery,
+    outbox: Outbox<FrameMeta>,
     dropped: u64,
 }
 
@@ -50,18 +45,9 @@ impl<'a> FramePublisher<'a> {
         max_bytes: usize,
         delivery: Delivery,
     ) -> Result<Self, BusOpenError> {
-        let service = port::open_service::<FrameMeta>(bus, &FRAMES)?;
-        let channel = crate::Channel {
-            initial_bytes: max_bytes.max(1),
-            ..FRAMES
-        };
-        let publisher = port::create_publisher(bus, &channel, &service, delivery)?;
-        port::wait_for_subscriber(bus, &FRAMES, &service)?;
         Ok(Self {
             bus,
-            _service: service,
-            publisher,
-            delivery,
+            outbox: Outbox::open(bus, &FRAMES, max_bytes, delivery)?,
             dropped: 0,
         })
     }
@@ -74,15 +60,7 @@ impl<'a> FramePublisher<'a> {
                 reason: format!("{} bytes for {}x{}", pixels.len(), meta.width, meta.height),
             });
         }
-        let delivered = port::send_bytes(
-            self.bus,
-            &FRAMES,
-            &self.publisher,
-            meta,
-            pixels,
-            self.delivery,
-        )?;
-        if delivered == 0 {
+        if self.outbox.send(self.bus, &FRAMES, meta, pixels)? == 0 {
             tracing::debug!(
                 frame_id = meta.frame_id,
                 "frame not delivered (consumer full)"
@@ -92,23 +70,31 @@ impl<'a> FramePublisher<'a> {
         Ok(())
     }
 
-    /// Sends the end-of-stream marker (lossless whatever the frame delivery mode).
+    /// Sends a frame whose pixels `fill` writes straight into shared memory (every byte of
+    /// the `width * height` slice), returning the header; no intermediate buffer. `fill` may
+    /// run more than once if the first sample reached no consumer (lossless start-up).
+    pub fn send_in_place(
+        &mut self,
+        len: usize,
+        fill: impl FnMut(&mut [std::mem::MaybeUninit<u8>]) -> FrameMeta,
+    ) -> Result<(), SendError> {
+        if self.outbox.send_in_place(self.bus, &FRAMES, len, fill)? == 0 {
+            self.dropped += 1;
+        }
+        Ok(())
+    }
+
+    /// Sends the end-of-stream marker, losslessly whatever the frame mode: a dropped marker
+    /// would leave the consumer waiting.
     pub fn finish(&mut self, last_frame_id: u64) -> Result<(), SendError> {
         let meta = FrameMeta {
             frame_id: last_frame_id,
             flags: FrameMeta::END_OF_STREAM,
             ..FrameMeta::default()
         };
-        // Lossless whatever the frame mode: a dropped marker would hang the consumer.
-        port::send_bytes(
-            self.bus,
-            &FRAMES,
-            &self.publisher,
-            meta,
-            &[],
-            Delivery::Lossless,
-        )
-        .map(|_| ())
+        self.outbox
+            .send_with(self.bus, &FRAMES, meta, &[], Delivery::Lossless)
+            .map(|_| ())
     }
 
     /// Frames dropped because the consumer was full (real-time mode only).
@@ -137,47 +123,24 @@ impl ReceivedFrame {
 /// Receives frames.
 pub struct FrameSubscriber<'a> {
     bus: &'a Bus,
-    service: Service<FrameMeta>,
-    subscriber: Subscriber<ipc::Service, [u8], FrameMeta>,
+    inbox: Inbox<FrameMeta>,
 }
 
 impl<'a> FrameSubscriber<'a> {
     /// Opens the frames channel as consumer.
     pub fn create(bus: &'a Bus) -> Result<Self, BusOpenError> {
-        let service = port::open_service::<FrameMeta>(bus, &FRAMES)?;
-        let subscriber = port::create_subscriber(bus, &FRAMES, &service)?;
         Ok(Self {
             bus,
-            service,
-            subscriber,
+            inbox: Inbox::open(bus, &FRAMES)?,
         })
     }
 
     /// Waits for the next frame. `Ok(None)` means the process was asked to stop.
     /// Fails with [`ReceiveError::ProducerGone`] if the producer dies mid-stream.
     pub fn receive(&self) -> Result<Option<ReceivedFrame>, ReceiveError> {
-        let mut last_liveness_check = Instant::now();
-        crate::poll_until(
-            self.bus,
-            None,
-            || {
-                let got = self.subscriber.receive().map_err(|e| ReceiveError::Port {
-                    service: self.bus.service_name(&FRAMES),
-                    reason: format!("{e:?}"),
-                })?;
-                if got.is_none() && last_liveness_check.elapsed() > Duration::from_secs(1) {
-                    last_liveness_check = Instant::now();
-                    if port::producers_gone(self.bus, &self.service)
-                        && !self.subscriber.has_samples().unwrap_or(false)
-                    {
-                        return Err(ReceiveError::ProducerGone {
-                            service: self.bus.service_name(&FRAMES),
-                        });
-                    }
-                }
-                Ok(got.map(|sample| ReceivedFrame { sample }))
-            },
-            || unreachable!("no timeout"),
-        )
+        Ok(self
+            .inbox
+            .next_sample(self.bus, &FRAMES)?
+            .map(|sample| ReceivedFrame { sample }))
     }
 }

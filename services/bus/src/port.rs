@@ -1,12 +1,13 @@
 //! Opening a channel's service and its ports with the channel's QoS.
 
-use crate::{Bus, BusOpenError, Channel, Delivery, SendError};
+use crate::{Bus, BusOpenError, Channel, Delivery, ReceiveError, SendError};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::BackpressureAction;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use std::fmt::Debug;
+use std::mem::MaybeUninit;
 use std::time::Duration;
 
 pub(crate) type Service<H> = PubSubFactory<ipc::Service, [u8], H>;
@@ -38,7 +39,7 @@ pub(crate) fn open_service<H: Debug + ZeroCopySend>(
         })
 }
 
-pub(crate) fn create_publisher<H: Debug + ZeroCopySend + Default>(
+fn create_publisher<H: Debug + ZeroCopySend + Default>(
     bus: &Bus,
     channel: &Channel,
     service: &Service<H>,
@@ -70,7 +71,7 @@ pub(crate) fn create_publisher<H: Debug + ZeroCopySend + Default>(
     })
 }
 
-pub(crate) fn create_subscriber<H: Debug + ZeroCopySend>(
+fn create_subscriber<H: Debug + ZeroCopySend>(
     bus: &Bus,
     channel: &Channel,
     service: &Service<H>,
@@ -86,7 +87,7 @@ pub(crate) fn create_subscriber<H: Debug + ZeroCopySend>(
 }
 
 /// Blocks until at least one subscriber is connected (so nothing is sent into the void).
-pub(crate) fn wait_for_subscriber<H: Debug + ZeroCopySend>(
+fn wait_for_subscriber<H: Debug + ZeroCopySend>(
     bus: &Bus,
     channel: &Channel,
     service: &Service<H>,
@@ -108,33 +109,38 @@ pub(crate) fn wait_for_subscriber<H: Debug + ZeroCopySend>(
     Ok(connected.is_some())
 }
 
-/// Loans, fills and sends one sample; returns the number of consumers reached.
+/// Loans `len` bytes, lets `fill` write the payload in place and return the header, sends;
+/// returns the number of consumers reached.
 ///
-/// With [`Delivery::Lossless`] a sample that reached no consumer is sent again until it
-/// does: iceoryx2 only blocks on a full buffer once the subscriber has connected its side,
-/// which it does on its first `receive`; samples sent before that would otherwise vanish.
-/// Fails after the delivery timeout (consumer hung or gone).
-pub(crate) fn send_bytes<H: Debug + ZeroCopySend + Default + Copy>(
+/// With [`Delivery::Lossless`] a sample that reached no consumer is filled and sent again
+/// until it does: iceoryx2 only blocks on a full buffer once the subscriber has connected its
+/// side, which it does on its first `receive`; samples sent before that would otherwise
+/// vanish. Fails after the delivery timeout (consumer hung or gone).
+fn send_filled<H: Debug + ZeroCopySend + Default + Copy>(
     bus: &Bus,
     channel: &Channel,
     publisher: &Publisher<ipc::Service, [u8], H>,
-    header: H,
-    bytes: &[u8],
+    notifier: &Notifier,
+    len: usize,
+    mut fill: impl FnMut(&mut [MaybeUninit<u8>]) -> H,
     delivery: Delivery,
 ) -> Result<usize, SendError> {
     let start = std::time::Instant::now();
     loop {
         let mut sample = publisher
-            .loan_slice_uninit(bytes.len())
+            .loan_slice_uninit(len)
             .map_err(|e| SendError::Loan {
                 service: bus.service_name(channel),
                 reason: format!("{e:?}"),
             })?;
+        let header = fill(sample.payload_mut());
         *sample.user_header_mut() = header;
-        let sample = sample.write_from_slice(bytes);
+        // SAFETY: `fill` initialised every byte of the payload (its contract).
+        let sample = unsafe { sample.assume_init() };
         let delivered = sample.send().map_err(|_| SendError::NotDelivered {
             service: bus.service_name(channel),
         })?;
+        let _ = notifier.notify();
         if delivered > 0 || delivery == Delivery::DropNewest {
             return Ok(delivered);
         }
@@ -147,9 +153,216 @@ pub(crate) fn send_bytes<H: Debug + ZeroCopySend + Default + Copy>(
     }
 }
 
+/// Copies `src` into a loaned payload.
+fn copy_into(dst: &mut [MaybeUninit<u8>], src: &[u8]) {
+    for (d, s) in dst.iter_mut().zip(src) {
+        d.write(*s);
+    }
+}
+
 /// Whether the producers of a service have all gone; cleans up dead nodes first, so a
 /// producer killed with SIGKILL is noticed.
-pub(crate) fn producers_gone<H: Debug + ZeroCopySend>(bus: &Bus, service: &Service<H>) -> bool {
+fn producers_gone<H: Debug + ZeroCopySend>(bus: &Bus, service: &Service<H>) -> bool {
     let _ = bus.node().try_cleanup_dead_nodes();
     service.dynamic_config().number_of_publishers() == 0
+}
+
+/// The wake-up event of a channel: producers notify after each send so that consumers can
+/// sleep in the kernel instead of polling (one-way frame latency stays in microseconds).
+fn open_wakeup(bus: &Bus, channel: &Channel) -> Result<EventService, BusOpenError> {
+    let name = format!("{}/wakeup", bus.service_name(channel));
+    let service_name: ServiceName = name
+        .as_str()
+        .try_into()
+        .map_err(|_| BusOpenError::BadName(name.clone()))?;
+    bus.node()
+        .service_builder(&service_name)
+        .event()
+        .max_notifiers(2)
+        .max_listeners(4)
+        .open_or_create()
+        .map_err(|e| BusOpenError::Service {
+            service: name,
+            reason: format!("{e:?}"),
+        })
+}
+
+pub(crate) type EventService = iceoryx2::service::port_factory::event::PortFactory<ipc::Service>;
+pub(crate) type Notifier = iceoryx2::port::notifier::Notifier<ipc::Service>;
+pub(crate) type Listener = iceoryx2::port::listener::Listener<ipc::Service>;
+
+fn create_notifier(
+    bus: &Bus,
+    channel: &Channel,
+    events: &EventService,
+) -> Result<Notifier, BusOpenError> {
+    events
+        .notifier_builder()
+        .create()
+        .map_err(|e| BusOpenError::Port {
+            service: bus.service_name(channel),
+            reason: format!("{e:?}"),
+        })
+}
+
+fn create_listener(
+    bus: &Bus,
+    channel: &Channel,
+    events: &EventService,
+) -> Result<Listener, BusOpenError> {
+    events
+        .listener_builder()
+        .create()
+        .map_err(|e| BusOpenError::Port {
+            service: bus.service_name(channel),
+            reason: format!("{e:?}"),
+        })
+}
+
+/// The consumer side of a channel: subscriber, wake-up listener and liveness check.
+pub(crate) struct Inbox<H: Debug + ZeroCopySend> {
+    pub(crate) service: Service<H>,
+    pub(crate) subscriber: Subscriber<ipc::Service, [u8], H>,
+    _events: EventService,
+    listener: Listener,
+}
+
+impl<H: Debug + ZeroCopySend> Inbox<H> {
+    pub(crate) fn open(bus: &Bus, channel: &Channel) -> Result<Self, BusOpenError> {
+        let service = open_service::<H>(bus, channel)?;
+        let subscriber = create_subscriber(bus, channel, &service)?;
+        let events = open_wakeup(bus, channel)?;
+        let listener = create_listener(bus, channel, &events)?;
+        Ok(Self {
+            service,
+            subscriber,
+            _events: events,
+            listener,
+        })
+    }
+
+    /// Waits for the next sample. `Ok(None)`: the process was asked to terminate.
+    /// Fails with [`ReceiveError::ProducerGone`] if the producer dies mid-stream.
+    pub(crate) fn next_sample(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+    ) -> Result<Option<iceoryx2::sample::Sample<ipc::Service, [u8], H>>, ReceiveError> {
+        let name = || bus.service_name(channel);
+        let mut last_liveness_check = std::time::Instant::now();
+        loop {
+            let got = self.subscriber.receive().map_err(|e| ReceiveError::Port {
+                service: name(),
+                reason: format!("{e:?}"),
+            })?;
+            if got.is_some() {
+                return Ok(got);
+            }
+            if last_liveness_check.elapsed() > Duration::from_secs(1) {
+                last_liveness_check = std::time::Instant::now();
+                if producers_gone(bus, &self.service)
+                    && !self.subscriber.has_samples().unwrap_or(false)
+                {
+                    return Err(ReceiveError::ProducerGone { service: name() });
+                }
+            }
+            if !bus.idle(Duration::ZERO) {
+                return Ok(None);
+            }
+            // Sleeps until a producer's notification (or 50 ms, for the checks above).
+            let _ = self.listener.timed_wait(|_| {}, Duration::from_millis(50));
+        }
+    }
+}
+
+/// The producer side of a channel: publisher with the channel's QoS and wake-up notifier.
+pub(crate) struct Outbox<H: Debug + ZeroCopySend> {
+    _service: Service<H>,
+    publisher: Publisher<ipc::Service, [u8], H>,
+    _events: EventService,
+    notifier: Notifier,
+    delivery: Delivery,
+}
+
+impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
+    /// Opens the channel as producer (first loan sized `initial_bytes`) and waits for a
+    /// consumer to connect.
+    pub(crate) fn open(
+        bus: &Bus,
+        channel: &Channel,
+        initial_bytes: usize,
+        delivery: Delivery,
+    ) -> Result<Self, BusOpenError> {
+        let service = open_service::<H>(bus, channel)?;
+        let sized = Channel {
+            initial_bytes: initial_bytes.max(1),
+            ..*channel
+        };
+        let publisher = create_publisher(bus, &sized, &service, delivery)?;
+        let events = open_wakeup(bus, channel)?;
+        let notifier = create_notifier(bus, channel, &events)?;
+        wait_for_subscriber(bus, channel, &service)?;
+        Ok(Self {
+            _service: service,
+            publisher,
+            _events: events,
+            notifier,
+            delivery,
+        })
+    }
+
+    /// Sends with the outbox's delivery mode (see [`send_filled`]).
+    pub(crate) fn send(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+        header: H,
+        bytes: &[u8],
+    ) -> Result<usize, SendError> {
+        self.send_with(bus, channel, header, bytes, self.delivery)
+    }
+
+    /// Sends with an explicit delivery mode (end-of-stream markers are always lossless).
+    pub(crate) fn send_with(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+        header: H,
+        bytes: &[u8],
+        delivery: Delivery,
+    ) -> Result<usize, SendError> {
+        let fill = |dst: &mut [MaybeUninit<u8>]| {
+            copy_into(dst, bytes);
+            header
+        };
+        send_filled(
+            bus,
+            channel,
+            &self.publisher,
+            &self.notifier,
+            bytes.len(),
+            fill,
+            delivery,
+        )
+    }
+
+    /// Sends `len` bytes written in place by `fill` (which must write all of them and returns
+    /// the header); see [`send_filled`].
+    pub(crate) fn send_in_place(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+        len: usize,
+        fill: impl FnMut(&mut [MaybeUninit<u8>]) -> H,
+    ) -> Result<usize, SendError> {
+        send_filled(
+            bus,
+            channel,
+            &self.publisher,
+            &self.notifier,
+            len,
+            fill,
+            self.delivery,
+        )
+    }
 }

@@ -22,7 +22,9 @@ fn bench(name: &str, path: &Path) {
     while let Some(f) = source.next_frame() {
         frames.push(f.expect("frame").image);
     }
-    let camera = calib.camera_for(frames[0].cols() as u32, frames[0].rows() as u32).expect("camera");
+    let camera = calib
+        .camera_for(frames[0].cols() as u32, frames[0].rows() as u32)
+        .expect("camera");
     let mut rates = Vec::new();
     let mut live = Vec::new();
     for _ in 0..5 {
@@ -52,8 +54,17 @@ fn bench(name: &str, path: &Path) {
 fn main() {
     opencv::core::set_num_threads(1).expect("one OpenCV thread");
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    bench("tum_fr1_rpy (in-repo JPEG clip)", &root.join("tests/data/tum_fr1_rpy_120"));
-    bench("tum_fr1_rpy (shared, PNG)", &root.join("../shared/data/tum_fr1_rpy"));
-    bench("kitti_odometry_00", &root.join("../shared/data/kitti_odometry_00"));
+    bench(
+        "tum_fr1_rpy (in-repo JPEG clip)",
+        &root.join("tests/data/tum_fr1_rpy_120"),
+    );
+    bench(
+        "tum_fr1_rpy (shared, PNG)",
+        &root.join("../shared/data/tum_fr1_rpy"),
+    );
+    bench(
+        "kitti_odometry_00",
+        &root.join("../shared/data/kitti_odometry_00"),
+    );
     bench("euroc_v1_01", &root.join("../shared/data/euroc_v1_01"));
 }

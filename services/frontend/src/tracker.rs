@@ -332,20 +332,40 @@ impl Tracker {
         (mean, surviving)
     }
 
-    fn replenish(&mut self, pyramid: &Vector<Mat>, frame_id: u64, below_fraction: f64) -> Result<(), TrackerError> {
+    fn replenish(
+        &mut self,
+        pyramid: &Vector<Mat>,
+        frame_id: u64,
+        below_fraction: f64,
+    ) -> Result<(), TrackerError> {
         let target = self.options.target_tracks;
-        if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target {
+        if self.tracks.len() as f64 >= below_fraction * target as f64 || self.tracks.len() >= target
+        {
             return Ok(());
         }
         let err = cv_err(frame_id);
         // Level 1 of the LK pyramid (entries alternate image, derivatives).
         let half = pyramid.get(2).map_err(&err)?;
-        let mut mask = Mat::new_rows_cols_with_default(half.rows(), half.cols(), CV_8UC1, Scalar::all(255.0)).map_err(&err)?;
+        let mut mask =
+            Mat::new_rows_cols_with_default(half.rows(), half.cols(), CV_8UC1, Scalar::all(255.0))
+                .map_err(&err)?;
         let min_distance = 0.5 * self.options.min_corner_distance_px;
         let radius = min_distance.round() as i32;
         for t in &self.tracks {
-            let c = Point::new((0.5 * t.pos.x).round() as i32, (0.5 * t.pos.y).round() as i32);
-            imgproc::circle(&mut mask, c, radius, Scalar::all(0.0), -1, imgproc::LINE_8, 0).map_err(&err)?;
+            let c = Point::new(
+                (0.5 * t.pos.x).round() as i32,
+                (0.5 * t.pos.y).round() as i32,
+            );
+            imgproc::circle(
+                &mut mask,
+                c,
+                radius,
+                Scalar::all(0.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )
+            .map_err(&err)?;
         }
         let mut corners = Vector::<Point2f>::new();
         imgproc::good_features_to_track(
