@@ -1,6 +1,11 @@
 //! The window solver (paper, sections 3-4). Keyframes are grouped into overlapping temporal
-//! windows ([`windowing`]); each window is solved as a global SfM problem.
+//! windows ([`windowing`]); each window is solved as a global SfM problem: relative poses on
+//! a view graph with local loop closures ([`view_graph`]), robust rotation averaging
+//! ([`rotation_averaging`]), translation averaging with camera-to-point constraints
+//! ([`translation_averaging`]), triangulation ([`triangulation`]) and bundle adjustment
+//! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
+pub mod rotation_averaging;
 pub mod windowing;
 
 pub use windowing::{WindowBuilder, WindowOptions};
