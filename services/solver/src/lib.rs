@@ -6,6 +6,7 @@
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
 pub mod rotation_averaging;
+pub mod schur;
 pub mod windowing;
 
 pub use windowing::{WindowBuilder, WindowOptions};

@@ -1,0 +1,178 @@
+//! Normal equations with point blocks eliminated by the Schur complement.
+//!
+//! Triggs et al., "Bundle Adjustment — A Modern Synthesis", 2000, section 6.1: in problems
+//! with cameras and points, each point's 3x3 block is inverted independently and the system
+//! reduces to the (small, dense for a window) camera block, solved here by Cholesky in faer.
+//! Used by bundle adjustment and by the direction refinement of translation averaging.
+
+use faer::linalg::solvers::Solve;
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+
+/// One point's block: `V = sum J_p^T W J_p`, `g = sum J_p^T W r`, and its coupling
+/// `W_k = sum J_r^T W J_p` to the reduced parameters, stored sparsely by reduced index.
+#[derive(Debug, Clone, Default)]
+struct PointBlock {
+    v: Matrix3<f64>,
+    g: Vector3<f64>,
+    coupling: Vec<(usize, Vector3<f64>)>,
+}
+
+impl PointBlock {
+    fn coupling_mut(&mut self, index: usize) -> &mut Vector3<f64> {
+        match self.coupling.iter().position(|(i, _)| *i == index) {
+            Some(p) => &mut self.coupling[p].1,
+            None => {
+                self.coupling.push((index, Vector3::zeros()));
+                let last = self.coupling.len() - 1;
+                &mut self.coupling[last].1
+            }
+        }
+    }
+}
+
+/// Accumulates `J^T W J` and `J^T W r` residual block by residual block.
+#[derive(Debug, Clone)]
+pub struct SchurSystem {
+    h: DMatrix<f64>,
+    g: DVector<f64>,
+    points: Vec<PointBlock>,
+}
+
+/// The step for reduced parameters and for each point.
+#[derive(Debug, Clone)]
+pub struct SchurStep {
+    pub reduced: DVector<f64>,
+    pub points: Vec<Vector3<f64>>,
+}
+
+impl SchurSystem {
+    /// A system with `reduced` camera-side parameters and `points` 3-D points.
+    pub fn new(reduced: usize, points: usize) -> Self {
+        Self {
+            h: DMatrix::zeros(reduced, reduced),
+            g: DVector::zeros(reduced),
+            points: vec![PointBlock::default(); points],
+        }
+    }
+
+    /// Adds one residual block of `m` rows: `jr` (m x idx.len()) on the reduced parameters
+    /// `idx`, `jp` (m x 3) on `point` if any, residual `r`, scalar weight `w` (robust loss).
+    pub fn add(&mut self, idx: &[usize], jr: &DMatrix<f64>, point: Option<(usize, &DMatrix<f64>)>, r: &DVector<f64>, w: f64) {
+        for (a, &ia) in idx.iter().enumerate() {
+            let ja = jr.column(a);
+            self.g[ia] += w * ja.dot(r);
+            for (b, &ib) in idx.iter().enumerate() {
+                self.h[(ia, ib)] += w * ja.dot(&jr.column(b));
+            }
+        }
+        if let Some((k, jp)) = point {
+            let block = &mut self.points[k];
+            let jpt = jp.transpose();
+            let v = &jpt * jp * w;
+            let g = &jpt * r * w;
+            block.v += Matrix3::from_iterator(v.iter().copied());
+            block.g += Vector3::new(g[0], g[1], g[2]);
+            for (a, &ia) in idx.iter().enumerate() {
+                let c = jp.transpose() * jr.column(a) * w;
+                *block.coupling_mut(ia) += Vector3::new(c[0], c[1], c[2]);
+            }
+        }
+    }
+
+    /// Solves `(H + lambda diag(H)) dx = -g` (Levenberg-Marquardt damping, Marquardt's scaled
+    /// form) with the points eliminated. `None` when the reduced system is not positive
+    /// definite (the caller raises lambda).
+    pub fn solve(&self, lambda: f64) -> Option<SchurStep> {
+        let n = self.g.len();
+        let mut s = self.h.clone();
+        for d in 0..n {
+            s[(d, d)] += lambda * self.h[(d, d)].max(1e-12) + 1e-12;
+        }
+        let mut rhs = -self.g.clone();
+        let mut v_inv = Vec::with_capacity(self.points.len());
+        for block in &self.points {
+            let mut v = block.v;
+            for d in 0..3 {
+                v[(d, d)] += lambda * block.v[(d, d)].max(1e-12) + 1e-12;
+            }
+            let inv = v.try_inverse().unwrap_or_else(Matrix3::zeros);
+            for (ia, wa) in &block.coupling {
+                let wa_vinv = wa.transpose() * inv;
+                rhs[*ia] += (wa_vinv * block.g)[0];
+                for (ib, wb) in &block.coupling {
+                    s[(*ia, *ib)] -= (wa_vinv * wb)[0];
+                }
+            }
+            v_inv.push(inv);
+        }
+        let reduced = if n > 0 {
+            let a = faer::Mat::<f64>::from_fn(n, n, |i, j| s[(i, j)]);
+            let llt = a.llt(faer::Side::Lower).ok()?;
+            let mut x = faer::Mat::<f64>::from_fn(n, 1, |i, _| rhs[i]);
+            llt.solve_in_place(x.as_mut());
+            let out = DVector::from_fn(n, |i, _| x[(i, 0)]);
+            if !out.iter().all(|v| v.is_finite()) {
+                return None;
+            }
+            out
+        } else {
+            DVector::zeros(0)
+        };
+        let points = self
+            .points
+            .iter()
+            .zip(&v_inv)
+            .map(|(block, inv)| {
+                let mut rhs_p = -block.g;
+                for (ia, wa) in &block.coupling {
+                    rhs_p -= wa * reduced[*ia];
+                }
+                inv * rhs_p
+            })
+            .collect();
+        Some(SchurStep { reduced, points })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn matches_a_dense_solve() {
+        // Two reduced parameters, two points, a few random-ish rows.
+        let mut sys = SchurSystem::new(2, 2);
+        let mut dense_h = DMatrix::<f64>::zeros(8, 8);
+        let mut dense_g = DVector::<f64>::zeros(8);
+        // Six rows per point (deterministic pseudo-random), so the full system has rank 8.
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
+        };
+        let rows: Vec<(usize, [f64; 2], [f64; 3], f64)> =
+            (0..12).map(|n| (n / 6, [next(), next()], [next(), next(), next()], next())).collect();
+        for (k, jr, jp, r) in rows {
+            let jr_m = DMatrix::from_row_slice(1, 2, &jr);
+            let jp_m = DMatrix::from_row_slice(1, 3, &jp);
+            sys.add(&[0, 1], &jr_m, Some((k, &jp_m)), &DVector::from_element(1, r), 2.0);
+            let mut full = DVector::<f64>::zeros(8);
+            full[0] = jr[0];
+            full[1] = jr[1];
+            for d in 0..3 {
+                full[2 + 3 * k + d] = jp[d];
+            }
+            dense_h += &full * full.transpose() * 2.0;
+            dense_g += &full * (r * 2.0);
+        }
+        let step = sys.solve(0.0).expect("solvable");
+        let dense = dense_h.cholesky().expect("spd").solve(&(-dense_g));
+        assert!((step.reduced[0] - dense[0]).abs() < 1e-9);
+        assert!((step.reduced[1] - dense[1]).abs() < 1e-9);
+        for k in 0..2 {
+            for d in 0..3 {
+                assert!((step.points[k][d] - dense[2 + 3 * k + d]).abs() < 1e-9);
+            }
+        }
+    }
+}
