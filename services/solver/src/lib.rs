@@ -8,6 +8,7 @@
 pub mod rotation_averaging;
 pub mod schur;
 pub mod translation_averaging;
+pub mod triangulation;
 pub mod windowing;
 
 pub use windowing::{WindowBuilder, WindowOptions};
