@@ -5,6 +5,7 @@
 //! ([`translation_averaging`]), triangulation ([`triangulation`]) and bundle adjustment
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
+pub mod bundle_adjustment;
 pub mod rotation_averaging;
 pub mod schur;
 pub mod translation_averaging;

@@ -1,0 +1,417 @@
+//! Window bundle adjustment: Levenberg-Marquardt over camera rotations, centres and points,
+//! points eliminated by the Schur complement, Huber loss, camera 0 fixed (gauge), optional
+//! refinement of a focal scale and one radial term (the paper's 7-parameter camera plus
+//! distortion, section 4).
+//!
+//! Triggs et al., "Bundle Adjustment — A Modern Synthesis", 2000; Lourakis and Argyros, SBA,
+//! 2009 (the damped Schur-complement scheme); Huber, "Robust Estimation of a Location
+//! Parameter", 1964. After convergence, observations whose error exceeds a threshold are
+//! removed, reported, and the problem is solved again without them.
+
+use crate::schur::SchurSystem;
+use crate::triangulation::CameraPose;
+use egoslam_geometry::PinholeRadtan;
+use nalgebra::{DMatrix, DVector, Matrix2x3, Point2, Rotation3, Vector2, Vector3};
+
+/// One observation of point `point` in camera `camera` at an undistorted pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation {
+    pub camera: usize,
+    pub point: usize,
+    pub pixel: Point2<f64>,
+}
+
+/// Options; defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BundleAdjustmentOptions {
+    /// LM iterations per solve (default 30; a window converges in 5-15 from averaging).
+    pub max_iterations: usize,
+    /// Huber threshold, pixels (default 2: about 2 sigma of LK tracks, so inliers are
+    /// treated quadratically).
+    pub huber_px: f64,
+    /// Observations above this error after the first solve are outliers (default 4 px,
+    /// COLMAP's `max_reproj_error`).
+    pub outlier_px: f64,
+    /// Refine a focal scale and a radial term k (default false: calibration is given).
+    pub refine_intrinsics: bool,
+    /// Stop when the relative cost decrease falls below this (default 1e-6).
+    pub tolerance: f64,
+}
+
+impl Default for BundleAdjustmentOptions {
+    fn default() -> Self {
+        Self {
+            max_iterations: 30,
+            huber_px: 2.0,
+            outlier_px: 4.0,
+            refine_intrinsics: false,
+            tolerance: 1e-6,
+        }
+    }
+}
+
+/// Errors of [`bundle_adjust`]; invalid input only: numerical trouble ends the iterations
+/// and hands back the best state reached (see [`BundleAdjustmentResult::converged`]).
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum BundleAdjustmentError {
+    /// An observation names a camera or point that does not exist.
+    #[error("observation {index} names camera {camera} / point {point} out of range")]
+    BadObservation { index: usize, camera: usize, point: usize },
+    /// Nothing to adjust.
+    #[error("need at least two cameras and one observation")]
+    Empty,
+}
+
+/// The adjusted problem.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BundleAdjustmentResult {
+    pub poses: Vec<CameraPose>,
+    pub points: Vec<Vector3<f64>>,
+    /// Focal scale (1 = as calibrated) and radial k on normalised coordinates.
+    pub focal_scale: f64,
+    pub radial_k: f64,
+    /// Indices of observations removed as outliers.
+    pub outliers: Vec<usize>,
+    /// sqrt(mean squared per-axis error) over inlier observations, pixels.
+    pub rmse_px: f64,
+    /// Whether the last solve met the tolerance before the iteration limit.
+    pub converged: bool,
+    pub iterations: usize,
+}
+
+struct State {
+    poses: Vec<CameraPose>,
+    points: Vec<Vector3<f64>>,
+    focal_scale: f64,
+    radial_k: f64,
+}
+
+/// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
+/// d(pixel)/d(focal_scale, k).
+fn project(camera: &PinholeRadtan, s: f64, k: f64, pc: &Vector3<f64>) -> Option<(Vector2<f64>, Matrix2x3<f64>, nalgebra::Matrix2<f64>)> {
+    if pc.z <= 1e-9 {
+        return None;
+    }
+    let (xn, yn) = (pc.x / pc.z, pc.y / pc.z);
+    let r2 = xn * xn + yn * yn;
+    let d = 1.0 + k * r2;
+    let (fx, fy) = (camera.fx * s, camera.fy * s);
+    let pixel = Vector2::new(fx * d * xn + camera.cx, fy * d * yn + camera.cy);
+    // d pixel / d (xn, yn)
+    let j_n = nalgebra::Matrix2::new(
+        fx * (d + 2.0 * k * xn * xn),
+        fx * 2.0 * k * xn * yn,
+        fy * 2.0 * k * xn * yn,
+        fy * (d + 2.0 * k * yn * yn),
+    );
+    let iz = 1.0 / pc.z;
+    let j_pc = Matrix2x3::new(iz, 0.0, -xn * iz, 0.0, iz, -yn * iz);
+    let j_intr = nalgebra::Matrix2::new(camera.fx * d * xn, fx * r2 * xn, camera.fy * d * yn, fy * r2 * yn);
+    Some((pixel, j_n * j_pc, j_intr))
+}
+
+fn huber_weight(r: f64, delta: f64) -> f64 {
+    if r <= delta {
+        1.0
+    } else {
+        delta / r
+    }
+}
+
+fn huber_cost(r: f64, delta: f64) -> f64 {
+    if r <= delta {
+        0.5 * r * r
+    } else {
+        delta * (r - 0.5 * delta)
+    }
+}
+
+/// Robust cost; observations behind a camera count as a large constant.
+fn cost(camera: &PinholeRadtan, st: &State, obs: &[Observation], active: &[bool], delta: f64) -> f64 {
+    obs.iter()
+        .zip(active)
+        .filter(|(_, a)| **a)
+        .map(|(o, _)| {
+            let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
+            match project(camera, st.focal_scale, st.radial_k, &pc) {
+                Some((p, _, _)) => huber_cost((p - o.pixel.coords).norm(), delta),
+                None => huber_cost(1e3, delta),
+            }
+        })
+        .sum()
+}
+
+/// LM iterations; returns (converged, iterations).
+fn levenberg_marquardt(camera: &PinholeRadtan, st: &mut State, obs: &[Observation], active: &[bool], options: &BundleAdjustmentOptions) -> (bool, usize) {
+    let cams = st.poses.len();
+    let globals = if options.refine_intrinsics { 2 } else { 0 };
+    let reduced = 6 * (cams - 1) + globals;
+    let g0 = 6 * (cams - 1);
+    let mut lambda = 1e-4;
+    let mut current = cost(camera, st, obs, active, options.huber_px);
+    for iteration in 0..options.max_iterations {
+        let mut sys = SchurSystem::new(reduced, st.points.len());
+        let mut idx = Vec::with_capacity(8);
+        for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
+            let pose = &st.poses[o.camera];
+            let pc = pose.to_camera(&st.points[o.point]);
+            let Some((p, j_pc, j_intr)) = project(camera, st.focal_scale, st.radial_k, &pc) else { continue };
+            let r = p - o.pixel.coords;
+            let w = huber_weight(r.norm(), options.huber_px);
+            let r_mat = pose.rotation.matrix();
+            // d pc / d rotation (left perturbation): -[pc]x ; d pc / d centre: -R ; d pc / d X: R
+            let j_rot = j_pc * -pc.cross_matrix();
+            let j_c = j_pc * -r_mat;
+            let j_x = j_pc * r_mat;
+            idx.clear();
+            let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
+            if o.camera != 0 {
+                let base = 6 * (o.camera - 1);
+                for d in 0..3 {
+                    idx.push(base + d);
+                    cols.push(j_rot.column(d).into_owned());
+                }
+                for d in 0..3 {
+                    idx.push(base + 3 + d);
+                    cols.push(j_c.column(d).into_owned());
+                }
+            }
+            for d in 0..globals {
+                idx.push(g0 + d);
+                cols.push(j_intr.column(d).into_owned());
+            }
+            let jr = DMatrix::from_fn(2, idx.len(), |row, col| cols[col][row]);
+            let jp = DMatrix::from_fn(2, 3, |row, col| j_x[(row, col)]);
+            sys.add(&idx, &jr, Some((o.point, &jp)), &DVector::from_column_slice(r.as_slice()), w);
+        }
+        let mut accepted = false;
+        for _ in 0..8 {
+            let Some(step) = sys.solve(lambda) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let mut trial = State {
+                poses: st.poses.clone(),
+                points: st.points.clone(),
+                focal_scale: st.focal_scale,
+                radial_k: st.radial_k,
+            };
+            for c in 1..cams {
+                let b = 6 * (c - 1);
+                let dr = Vector3::new(step.reduced[b], step.reduced[b + 1], step.reduced[b + 2]);
+                let dc = Vector3::new(step.reduced[b + 3], step.reduced[b + 4], step.reduced[b + 5]);
+                trial.poses[c].rotation = Rotation3::new(dr) * trial.poses[c].rotation;
+                trial.poses[c].centre += dc;
+            }
+            if globals == 2 {
+                trial.focal_scale += step.reduced[g0];
+                trial.radial_k += step.reduced[g0 + 1];
+            }
+            for (x, dx) in trial.points.iter_mut().zip(&step.points) {
+                *x += dx;
+            }
+            let new_cost = cost(camera, &trial, obs, active, options.huber_px);
+            if new_cost < current {
+                let decrease = (current - new_cost) / current.max(1e-18);
+                *st = trial;
+                current = new_cost;
+                lambda = (lambda / 3.0).max(1e-12);
+                accepted = true;
+                if decrease < options.tolerance {
+                    return (true, iteration + 1);
+                }
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !accepted {
+            // No decreasing step even with heavy damping: at a minimum (or stuck).
+            return (true, iteration + 1);
+        }
+    }
+    (false, options.max_iterations)
+}
+
+/// Bundle adjustment with outlier removal; see the module doc. `poses[0]` stays fixed.
+pub fn bundle_adjust(
+    camera: &PinholeRadtan,
+    poses: &[CameraPose],
+    points: &[Vector3<f64>],
+    observations: &[Observation],
+    options: &BundleAdjustmentOptions,
+) -> Result<BundleAdjustmentResult, BundleAdjustmentError> {
+    if poses.len() < 2 || observations.is_empty() {
+        return Err(BundleAdjustmentError::Empty);
+    }
+    for (index, o) in observations.iter().enumerate() {
+        if o.camera >= poses.len() || o.point >= points.len() {
+            return Err(BundleAdjustmentError::BadObservation {
+                index,
+                camera: o.camera,
+                point: o.point,
+            });
+        }
+    }
+    let mut st = State {
+        poses: poses.to_vec(),
+        points: points.to_vec(),
+        focal_scale: 1.0,
+        radial_k: 0.0,
+    };
+    let mut active = vec![true; observations.len()];
+    let (_, first_iterations) = levenberg_marquardt(camera, &mut st, observations, &active, options);
+    let mut outliers = Vec::new();
+    for (n, o) in observations.iter().enumerate() {
+        let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
+        let bad = project(camera, st.focal_scale, st.radial_k, &pc).is_none_or(|(p, _, _)| (p - o.pixel.coords).norm() > options.outlier_px);
+        if bad {
+            active[n] = false;
+            outliers.push(n);
+        }
+    }
+    let (converged, iterations) = if outliers.is_empty() {
+        (true, 0)
+    } else {
+        levenberg_marquardt(camera, &mut st, observations, &active, options)
+    };
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (o, _) in observations.iter().zip(&active).filter(|(_, a)| **a) {
+        let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
+        if let Some((p, _, _)) = project(camera, st.focal_scale, st.radial_k, &pc) {
+            sum += (p - o.pixel.coords).norm_squared();
+            count += 1;
+        }
+    }
+    Ok(BundleAdjustmentResult {
+        poses: st.poses,
+        points: st.points,
+        focal_scale: st.focal_scale,
+        radial_k: st.radial_k,
+        outliers,
+        rmse_px: (sum / (2.0 * count.max(1) as f64)).sqrt(),
+        converged,
+        iterations: first_iterations + iterations,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+    use rand_distr_free::gaussian;
+
+    fn small_rotation(axis: Vector3<f64>, angle: f64) -> Rotation3<f64> {
+        Rotation3::new(axis.normalize() * angle)
+    }
+
+    mod rand_distr_free {
+        use rand::Rng;
+        /// Box-Muller normal sample (keeps the dev-dependencies to `rand`).
+        pub fn gaussian(rng: &mut impl Rng) -> f64 {
+            let u1: f64 = rng.random_range(1e-12..1.0);
+            let u2: f64 = rng.random_range(0.0..1.0);
+            (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+        }
+    }
+
+    #[test]
+    fn recovers_from_perturbed_start_and_flags_outliers() {
+        let mut rng = StdRng::seed_from_u64(11);
+        let camera = PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        // 20 cameras walking and turning, 300 points in front.
+        let truth_poses: Vec<CameraPose> = (0..20)
+            .map(|i| CameraPose {
+                rotation: Rotation3::from_euler_angles(0.02 * i as f64, 0.03 * i as f64, 0.0),
+                centre: Vector3::new(0.1 * i as f64, 0.02 * i as f64, 0.05 * i as f64),
+            })
+            .collect();
+        let truth_points: Vec<Vector3<f64>> = (0..300)
+            .map(|_| Vector3::new(rng.random_range(-3.0..5.0), rng.random_range(-2.0..2.0), rng.random_range(5.0..10.0)))
+            .collect();
+        let mut observations = Vec::new();
+        let mut injected = Vec::new();
+        for (k, x) in truth_points.iter().enumerate() {
+            for (c, pose) in truth_poses.iter().enumerate() {
+                if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
+                    if !camera.contains(p) {
+                        continue;
+                    }
+                    let mut px = Point2::new(p.x + gaussian(&mut rng), p.y + gaussian(&mut rng));
+                    if rng.random_range(0.0..1.0) < 0.05 {
+                        px.x += rng.random_range(15.0..40.0) * if rng.random_range(0.0..1.0) < 0.5 { -1.0 } else { 1.0 };
+                        injected.push(observations.len());
+                    }
+                    observations.push(Observation { camera: c, point: k, pixel: px });
+                }
+            }
+        }
+        // Start: poses perturbed by 2 deg and 5 % of the path, points by 10 %.
+        let start_poses: Vec<CameraPose> = truth_poses
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                if i == 0 {
+                    return *p;
+                }
+                let axis = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+                let dir = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize();
+                CameraPose {
+                    rotation: small_rotation(axis, 2f64.to_radians()) * p.rotation,
+                    centre: p.centre + dir * 0.05 * 2.0,
+                }
+            })
+            .collect();
+        let start_points: Vec<Vector3<f64>> = truth_points
+            .iter()
+            .map(|x| x + Vector3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng)) * 0.1 * x.norm() / 3f64.sqrt())
+            .collect();
+        let result = bundle_adjust(&camera, &start_poses, &start_points, &observations, &BundleAdjustmentOptions::default()).expect("ran");
+        assert!((result.rmse_px - 1.0).abs() < 0.1, "rmse {} px for 1 px noise", result.rmse_px);
+        let flagged = injected.iter().filter(|i| result.outliers.contains(i)).count();
+        assert!(flagged as f64 >= 0.95 * injected.len() as f64, "{flagged} of {} outliers flagged", injected.len());
+        let false_alarms = result.outliers.len() - flagged;
+        assert!((false_alarms as f64) < 0.01 * observations.len() as f64, "{false_alarms} inliers flagged");
+        // Poses back near the truth (camera 0 fixes the gauge; scale is free: compare after
+        // Umeyama on the centres).
+        let est: Vec<_> = result.poses.iter().map(|p| p.centre).collect();
+        let tru: Vec<_> = truth_poses.iter().map(|p| p.centre).collect();
+        let sim = egoslam_geometry::umeyama(&est, &tru).expect("aligned");
+        let worst = est.iter().zip(&tru).map(|(e, t)| (sim.apply(e) - t).norm()).fold(0.0, f64::max);
+        assert!(worst < 0.02, "worst centre error {worst}");
+    }
+
+    #[test]
+    fn refines_focal_length() {
+        let mut rng = StdRng::seed_from_u64(12);
+        let camera = PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let true_camera = PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let poses: Vec<CameraPose> = (0..10)
+            .map(|i| CameraPose {
+                rotation: Rotation3::from_euler_angles(0.0, 0.08 * i as f64, 0.0),
+                centre: Vector3::new(0.3 * i as f64, 0.0, 0.0),
+            })
+            .collect();
+        let points: Vec<Vector3<f64>> = (0..200)
+            .map(|_| Vector3::new(rng.random_range(-2.0..6.0), rng.random_range(-2.0..2.0), rng.random_range(4.0..9.0)))
+            .collect();
+        let mut observations = Vec::new();
+        for (k, x) in points.iter().enumerate() {
+            for (c, pose) in poses.iter().enumerate() {
+                if let Some(p) = true_camera.project_undistorted(&pose.to_camera(x)) {
+                    if true_camera.contains(p) {
+                        observations.push(Observation { camera: c, point: k, pixel: Point2::new(p.x + 0.3 * gaussian(&mut rng), p.y + 0.3 * gaussian(&mut rng)) });
+                    }
+                }
+            }
+        }
+        let options = BundleAdjustmentOptions {
+            refine_intrinsics: true,
+            max_iterations: 60,
+            ..BundleAdjustmentOptions::default()
+        };
+        let result = bundle_adjust(&camera, &poses, &points, &observations, &options).expect("ran");
+        assert!((result.focal_scale - 1.04).abs() < 0.01, "focal scale {}", result.focal_scale);
+        assert!(result.rmse_px < 0.4, "rmse {}", result.rmse_px);
+    }
+}
