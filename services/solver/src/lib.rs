@@ -7,6 +7,7 @@
 
 pub mod bundle_adjustment;
 pub mod rotation_averaging;
+pub mod relative_pose;
 pub mod schur;
 pub mod translation_averaging;
 pub mod triangulation;

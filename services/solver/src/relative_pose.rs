@@ -1,0 +1,237 @@
+//! Relative pose of two keyframes from their shared tracks.
+//!
+//! Nistér, "An Efficient Solution to the Five-Point Relative Pose Problem", TPAMI 2004, in
+//! RANSAC (OpenCV `findEssentialMat` + `recoverPose`) on normalised, undistorted
+//! coordinates. Egocentric video often turns the head without moving it; then the essential
+//! matrix is degenerate (its rotation unreliable, its translation noise). Each edge is
+//! therefore also fitted with a rotation-only model (Kabsch on bearings, trimmed), and the
+//! median residual of that model (the parallax no rotation can explain; model selection in
+//! the spirit of Torr's GRIC and ORB-SLAM's homography/fundamental test) decides:
+//! - residual >= `min_parallax_px`: the five-point rotation and translation direction are
+//!   used, weighted by the inlier count;
+//! - below: the rotation-only estimate is used and the edge carries no translation
+//!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use opencv::core::{Mat, Point2d, Vector};
+use opencv::prelude::*;
+
+/// Options; defaults with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelativePoseOptions {
+    /// Fewest shared tracks to attempt an edge (default 30: the five-point RANSAC needs a
+    /// margin over 5, and fewer matches between keyframes mean the view is mostly lost).
+    pub min_matches: usize,
+    /// RANSAC inlier threshold, pixels (default 1.0: LK tracks are sub-pixel accurate).
+    pub ransac_threshold_px: f64,
+    /// RANSAC confidence (default 0.999, OpenCV's).
+    pub ransac_confidence: f64,
+    /// Median residual of the best rotation-only fit below which the translation direction
+    /// is not trusted, pixels (default 2.0: twice the LK track noise; below it a pure
+    /// rotation explains the matches and the five-point translation is noise).
+    pub min_parallax_px: f64,
+    /// Fewest RANSAC inliers for a usable edge (default 20).
+    pub min_inliers: usize,
+}
+
+impl Default for RelativePoseOptions {
+    fn default() -> Self {
+        Self {
+            min_matches: 30,
+            ransac_threshold_px: 1.0,
+            ransac_confidence: 0.999,
+            min_parallax_px: 2.0,
+            min_inliers: 20,
+        }
+    }
+}
+
+/// A measured edge `x_j = R x_i + t` (camera i to camera j).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelativePose {
+    pub rotation: Rotation3<f64>,
+    /// Unit translation direction in camera j; meaningful only when `has_translation`.
+    pub translation: Vector3<f64>,
+    pub has_translation: bool,
+    pub inliers: usize,
+    pub matches: usize,
+    /// Median residual of the rotation-only fit, pixels (the parallax).
+    pub parallax_px: f64,
+}
+
+/// Why an edge was not made.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RelativePoseError {
+    #[error("only {0} shared tracks")]
+    TooFewMatches(usize),
+    #[error("only {0} inliers")]
+    TooFewInliers(usize),
+    #[error("OpenCV: {0}")]
+    OpenCv(String),
+}
+
+/// Rotation R minimising sum |b_j - R b_i|^2 (Kabsch/Wahba by SVD).
+fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
+    let mut m = Matrix3::zeros();
+    for (bi, bj) in pairs {
+        m += bj * bi.transpose();
+    }
+    let svd = m.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut d = Matrix3::identity();
+            if (u * v_t).determinant() < 0.0 {
+                d[(2, 2)] = -1.0;
+            }
+            Rotation3::from_matrix_unchecked(u * d * v_t)
+        }
+        _ => Rotation3::identity(),
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.normalize().dot(&b.normalize()).clamp(-1.0, 1.0).acos()
+}
+
+/// Rotation-only fit, trimmed twice to the matches within 3x the median residual.
+fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64) {
+    let mut kept: Vec<(Vector3<f64>, Vector3<f64>)> = pairs.to_vec();
+    let mut r = kabsch(&kept);
+    for _ in 0..2 {
+        let res: Vec<f64> = pairs.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
+        let cut = 3.0 * median(res.clone()).max(1e-6);
+        kept = pairs.iter().zip(&res).filter(|(_, e)| **e <= cut).map(|(p, _)| *p).collect();
+        if kept.len() < 3 {
+            break;
+        }
+        r = kabsch(&kept);
+    }
+    let res: Vec<f64> = kept.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
+    (r, median(res))
+}
+
+/// Estimates the edge from normalised coordinates `(x/z, y/z)` of the shared tracks in
+/// keyframes i and j; `focal_px` converts the pixel threshold.
+pub fn estimate_relative_pose(
+    points_i: &[(f64, f64)],
+    points_j: &[(f64, f64)],
+    focal_px: f64,
+    options: &RelativePoseOptions,
+) -> Result<RelativePose, RelativePoseError> {
+    let n = points_i.len().min(points_j.len());
+    if n < options.min_matches {
+        return Err(RelativePoseError::TooFewMatches(n));
+    }
+    let cv = |e: opencv::Error| RelativePoseError::OpenCv(e.to_string());
+    let p1: Vector<Point2d> = points_i[..n].iter().map(|&(x, y)| Point2d::new(x, y)).collect();
+    let p2: Vector<Point2d> = points_j[..n].iter().map(|&(x, y)| Point2d::new(x, y)).collect();
+    let k = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]).map_err(cv)?;
+    let mut mask = Mat::default();
+    let e = opencv::calib3d::find_essential_mat(
+        &p1,
+        &p2,
+        &k,
+        opencv::calib3d::RANSAC,
+        options.ransac_confidence,
+        options.ransac_threshold_px / focal_px,
+        1000,
+        &mut mask,
+    )
+    .map_err(cv)?;
+    if e.rows() < 3 {
+        return Err(RelativePoseError::TooFewInliers(0));
+    }
+    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3)).map_err(cv)?.try_clone().map_err(cv)?;
+    let (mut r_cv, mut t_cv) = (Mat::default(), Mat::default());
+    let inliers = opencv::calib3d::recover_pose_estimated(&e3, &p1, &p2, &k, &mut r_cv, &mut t_cv, &mut mask).map_err(cv)? as usize;
+    let rotation_e = {
+        let m = Matrix3::from_fn(|r, c| r_cv.at_2d::<f64>(r as i32, c as i32).copied().unwrap_or(0.0));
+        Rotation3::from_matrix(&m)
+    };
+    let t = Vector3::from_fn(|r, _| t_cv.at_2d::<f64>(r as i32, 0).copied().unwrap_or(0.0));
+
+    let bearing = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0).normalize();
+    let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n).map(|m| (bearing(&points_i[m]), bearing(&points_j[m]))).collect();
+    let (rotation_r, parallax) = rotation_only(&all_pairs);
+    let parallax_px = parallax * focal_px;
+    if parallax_px < options.min_parallax_px || inliers < options.min_inliers {
+        // Rotation only: count the matches the rotation explains within the threshold.
+        let thr = options.ransac_threshold_px / focal_px * 2.0;
+        let agree = all_pairs.iter().filter(|(bi, bj)| angle(&(rotation_r * bi), bj) < thr.max(parallax * 3.0)).count();
+        if parallax_px >= options.min_parallax_px || agree < options.min_inliers {
+            return Err(RelativePoseError::TooFewInliers(inliers.max(agree)));
+        }
+        return Ok(RelativePose {
+            rotation: rotation_r,
+            translation: Vector3::zeros(),
+            has_translation: false,
+            inliers: agree,
+            matches: n,
+            parallax_px,
+        });
+    }
+    Ok(RelativePose {
+        rotation: rotation_e,
+        translation: if t.norm() > 0.0 { t.normalize() } else { t },
+        has_translation: true,
+        inliers,
+        matches: n,
+        parallax_px,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene() -> Vec<Vector3<f64>> {
+        (0..200)
+            .map(|k| {
+                let a = k as f64;
+                Vector3::new((a * 0.37).sin() * 3.0, (a * 0.11).cos() * 2.0, 4.0 + (a * 0.53).sin().abs() * 6.0)
+            })
+            .collect()
+    }
+
+    fn normalised(r: &Rotation3<f64>, t: &Vector3<f64>, x: &Vector3<f64>) -> (f64, f64) {
+        let p = r * x + t;
+        (p.x / p.z, p.y / p.z)
+    }
+
+    #[test]
+    fn translating_pair_gives_rotation_and_direction() {
+        let pts = scene();
+        let r = Rotation3::from_euler_angles(0.02, -0.05, 0.01);
+        let t = Vector3::new(0.3, 0.0, 0.1);
+        let a: Vec<_> = pts.iter().map(|x| (x.x / x.z, x.y / x.z)).collect();
+        let b: Vec<_> = pts.iter().map(|x| normalised(&r, &t, x)).collect();
+        let e = estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
+        assert!(e.has_translation, "{e:?}");
+        assert!(e.rotation.angle_to(&r) < 1e-4);
+        assert!(angle(&e.translation, &t) < 1e-3, "{:?}", e.translation);
+        assert!(e.parallax_px > 2.0);
+    }
+
+    #[test]
+    fn pure_rotation_keeps_rotation_without_direction() {
+        let pts = scene();
+        let r = Rotation3::from_euler_angles(0.1, 0.05, -0.08);
+        let a: Vec<_> = pts.iter().map(|x| (x.x / x.z, x.y / x.z)).collect();
+        let b: Vec<_> = pts.iter().map(|x| normalised(&r, &Vector3::zeros(), x)).collect();
+        let e = estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
+        assert!(!e.has_translation);
+        assert!(e.rotation.angle_to(&r) < 1e-6);
+        assert!(matches!(
+            estimate_relative_pose(&a[..10], &b[..10], 500.0, &RelativePoseOptions::default()),
+            Err(RelativePoseError::TooFewMatches(10))
+        ));
+    }
+}
