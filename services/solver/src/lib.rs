@@ -11,6 +11,8 @@ pub mod relative_pose;
 pub mod schur;
 pub mod translation_averaging;
 pub mod triangulation;
+pub mod view_graph;
+pub mod window_solver;
 pub mod windowing;
 
 pub use windowing::{WindowBuilder, WindowOptions};

@@ -1,0 +1,380 @@
+//! One temporal window solved as a global SfM problem (paper, section 4): view graph ->
+//! rotation averaging -> translation averaging (with camera-point constraints) ->
+//! triangulation -> bundle adjustment. Pure: keyframe tracks in, poses and points out.
+
+use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions, Observation};
+use crate::rotation_averaging::{average_rotations, RelativeRotation, RotationAveragingOptions};
+use crate::translation_averaging::{average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions};
+use crate::triangulation::{triangulate_track, CameraPose, TriangulationOptions};
+use crate::view_graph::{build_view_graph, EdgeCache, KeyframeObservations, ViewGraphOptions};
+use egoslam_geometry::PinholeRadtan;
+use nalgebra::{Point2, Rotation3, Vector3};
+use std::collections::HashMap;
+use std::time::Instant;
+
+/// All estimator options of a window solve.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WindowSolverOptions {
+    pub view_graph: ViewGraphOptions,
+    pub rotation: RotationAveragingOptions,
+    pub translation: TranslationAveragingOptions,
+    pub triangulation: TriangulationOptions,
+    pub bundle_adjustment: BundleAdjustmentOptions,
+    /// Edges whose measured rotation disagrees with the averaged one by more than this are
+    /// dropped before translation averaging, degrees (default 5: the robust scale of the
+    /// rotation IRLS, so only edges it already down-weighted are removed).
+    pub max_edge_rotation_residual_deg: f64,
+    /// Tracks used as camera-point constraints in translation averaging: those seen by at
+    /// least this many keyframes (default 3: two views give a direction but no scale link).
+    pub min_track_views: usize,
+    /// At most this many tracks (the longest) feed translation averaging (default 800).
+    pub max_averaging_tracks: usize,
+    /// A window with fewer triangulated points is not bundle-adjusted (default 20).
+    pub min_points: usize,
+}
+
+impl Default for WindowSolverOptions {
+    fn default() -> Self {
+        Self {
+            view_graph: ViewGraphOptions::default(),
+            rotation: RotationAveragingOptions::default(),
+            translation: TranslationAveragingOptions::default(),
+            triangulation: TriangulationOptions::default(),
+            bundle_adjustment: BundleAdjustmentOptions::default(),
+            max_edge_rotation_residual_deg: 5.0,
+            min_track_views: 3,
+            max_averaging_tracks: 800,
+            min_points: 20,
+        }
+    }
+}
+
+/// Outcome class of a window.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WindowStatus {
+    /// Full solve: poses, points, bundle adjustment.
+    Solved,
+    /// No pair had usable parallax: rotations are solved, all centres coincide (the head
+    /// turned in place), no points. Poses are still valid.
+    RotationOnly,
+    /// The window could not be solved; the reason says why.
+    Failed(String),
+}
+
+/// A triangulated, adjusted point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolvedPoint {
+    pub track_id: u64,
+    pub position: Vector3<f64>,
+    pub observations: u32,
+}
+
+/// The window's result, in the frame of its first keyframe (identity rotation, origin).
+#[derive(Debug, Clone, PartialEq)]
+pub struct WindowSolution {
+    pub status: WindowStatus,
+    /// One per keyframe, in window order (empty when failed).
+    pub poses: Vec<CameraPose>,
+    pub points: Vec<SolvedPoint>,
+    /// Inlier observations kept by bundle adjustment: (keyframe index, track id, pixel).
+    pub observations: Vec<(usize, u64, Point2<f64>)>,
+    pub outlier_observations: usize,
+    pub rmse_px: f64,
+    pub edges: usize,
+    pub translation_edges: usize,
+    /// (stage, milliseconds) in execution order.
+    pub timings_ms: Vec<(&'static str, f64)>,
+}
+
+impl WindowSolution {
+    fn failed(reason: String, timings_ms: Vec<(&'static str, f64)>, edges: usize) -> Self {
+        Self {
+            status: WindowStatus::Failed(reason),
+            poses: Vec::new(),
+            points: Vec::new(),
+            observations: Vec::new(),
+            outlier_observations: 0,
+            rmse_px: 0.0,
+            edges,
+            translation_edges: 0,
+            timings_ms,
+        }
+    }
+}
+
+fn timed<T>(timings: &mut Vec<(&'static str, f64)>, stage: &'static str, f: impl FnOnce() -> T) -> T {
+    let _span = tracing::debug_span!("window_stage", stage).entered();
+    let start = Instant::now();
+    let out = f();
+    timings.push((stage, start.elapsed().as_secs_f64() * 1e3));
+    out
+}
+
+fn bearing(camera: &PinholeRadtan, p: &Point2<f64>) -> Vector3<f64> {
+    camera.bearing_from_undistorted(*p)
+}
+
+/// Solves one window; never panics on data, reports failure in the status instead.
+pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], options: &WindowSolverOptions, cache: &mut EdgeCache) -> WindowSolution {
+    let mut timings = Vec::new();
+    let n = keyframes.len();
+    if n < 2 {
+        return WindowSolution::failed(format!("{n} keyframe(s): nothing to solve"), timings, 0);
+    }
+    let (edges, failures) = timed(&mut timings, "relative_poses", || build_view_graph(camera, keyframes, &options.view_graph, cache));
+    for (i, j, e) in &failures {
+        tracing::debug!(i, j, %e, "no edge");
+    }
+    let rel: Vec<RelativeRotation> = edges
+        .iter()
+        .map(|e| RelativeRotation {
+            i: e.i,
+            j: e.j,
+            rotation: e.pose.rotation,
+            weight: e.pose.inliers as f64,
+        })
+        .collect();
+    let rotations = match timed(&mut timings, "rotation_averaging", || average_rotations(n, &rel, &options.rotation)) {
+        Ok(r) => r,
+        Err(e) => return WindowSolution::failed(format!("rotation averaging: {e}"), timings, edges.len()),
+    };
+    let max_residual = options.max_edge_rotation_residual_deg.to_radians();
+    let translation_edges: Vec<_> = edges
+        .iter()
+        .zip(&rotations.edge_residuals)
+        .filter(|(e, r)| e.pose.has_translation && **r < max_residual)
+        .map(|(e, _)| e)
+        .collect();
+    let rot = &rotations.rotations;
+    if translation_edges.is_empty() {
+        let poses = rot.iter().map(|r| CameraPose { rotation: *r, centre: Vector3::zeros() }).collect();
+        return WindowSolution {
+            status: WindowStatus::RotationOnly,
+            poses,
+            points: Vec::new(),
+            observations: Vec::new(),
+            outlier_observations: 0,
+            rmse_px: 0.0,
+            edges: edges.len(),
+            translation_edges: 0,
+            timings_ms: timings,
+        };
+    }
+
+    // Tracks of the window: track id -> [(keyframe index, pixel)].
+    let mut tracks: HashMap<u64, Vec<(usize, Point2<f64>)>> = HashMap::new();
+    for (k, kf) in keyframes.iter().enumerate() {
+        for (id, p) in &kf.tracks {
+            tracks.entry(*id).or_default().push((k, *p));
+        }
+    }
+    let mut long: Vec<(&u64, &Vec<(usize, Point2<f64>)>)> = tracks.iter().filter(|(_, o)| o.len() >= options.min_track_views).collect();
+    long.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(b.0)));
+    long.truncate(options.max_averaging_tracks);
+
+    let mut constraints: Vec<DirectionConstraint> = translation_edges
+        .iter()
+        .map(|e| DirectionConstraint {
+            endpoints: Endpoints::Cameras { i: e.i, j: e.j },
+            direction: -(rot[e.j].inverse() * e.pose.translation),
+            weight: 1.0,
+        })
+        .collect();
+    for (point, (_, obs)) in long.iter().enumerate() {
+        for (k, p) in obs.iter() {
+            constraints.push(DirectionConstraint {
+                endpoints: Endpoints::CameraPoint { i: *k, point },
+                direction: rot[*k].inverse() * bearing(camera, p),
+                weight: 1.0,
+            });
+        }
+    }
+    let averaged = match timed(&mut timings, "translation_averaging", || average_translations(n, long.len(), &constraints, &options.translation)) {
+        Ok(r) => r,
+        Err(e) => return WindowSolution::failed(format!("translation averaging: {e}"), timings, edges.len()),
+    };
+    let poses: Vec<CameraPose> = rot.iter().zip(&averaged.centres).map(|(r, c)| CameraPose { rotation: *r, centre: *c }).collect();
+
+    // Triangulate every track seen twice or more.
+    let mut ids: Vec<u64> = tracks.iter().filter(|(_, o)| o.len() >= 2).map(|(id, _)| *id).collect();
+    ids.sort_unstable();
+    let (points, observations) = timed(&mut timings, "triangulation", || {
+        let mut points: Vec<(u64, Vector3<f64>)> = Vec::new();
+        let mut observations: Vec<Observation> = Vec::new();
+        for id in &ids {
+            let obs = &tracks[id];
+            if let Ok(p) = triangulate_track(camera, &poses, obs, &options.triangulation) {
+                let index = points.len();
+                points.push((*id, p.position));
+                for o in p.inliers {
+                    observations.push(Observation {
+                        camera: obs[o].0,
+                        point: index,
+                        pixel: obs[o].1,
+                    });
+                }
+            }
+        }
+        (points, observations)
+    });
+    if points.len() < options.min_points {
+        return WindowSolution {
+            status: WindowStatus::Solved,
+            poses,
+            points: Vec::new(),
+            observations: Vec::new(),
+            outlier_observations: 0,
+            rmse_px: 0.0,
+            edges: edges.len(),
+            translation_edges: translation_edges.len(),
+            timings_ms: timings,
+        };
+    }
+    let positions: Vec<Vector3<f64>> = points.iter().map(|p| p.1).collect();
+    let adjusted = match timed(&mut timings, "bundle_adjustment", || bundle_adjust(camera, &poses, &positions, &observations, &options.bundle_adjustment)) {
+        Ok(r) => r,
+        Err(e) => return WindowSolution::failed(format!("bundle adjustment: {e}"), timings, edges.len()),
+    };
+    let mut counts = vec![0u32; points.len()];
+    let mut kept = Vec::with_capacity(observations.len());
+    for (n_obs, o) in observations.iter().enumerate() {
+        if !adjusted.outliers.contains(&n_obs) {
+            counts[o.point] += 1;
+            kept.push((o.camera, points[o.point].0, o.pixel));
+        }
+    }
+    let solved_points = points
+        .iter()
+        .zip(&adjusted.points)
+        .zip(&counts)
+        .filter(|(_, c)| **c >= 2)
+        .map(|(((id, _), x), c)| SolvedPoint {
+            track_id: *id,
+            position: *x,
+            observations: *c,
+        })
+        .collect();
+    WindowSolution {
+        status: WindowStatus::Solved,
+        poses: adjusted.poses,
+        points: solved_points,
+        observations: kept,
+        outlier_observations: adjusted.outliers.len(),
+        rmse_px: adjusted.rmse_px,
+        edges: edges.len(),
+        translation_edges: translation_edges.len(),
+        timings_ms: timings,
+    }
+}
+
+/// Rotation helper for callers converting to world_from_camera.
+pub fn world_from_camera(pose: &CameraPose) -> (Rotation3<f64>, Vector3<f64>) {
+    (pose.rotation.inverse(), pose.centre)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use egoslam_geometry::umeyama;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    fn gaussian(rng: &mut StdRng) -> f64 {
+        let u1: f64 = rng.random_range(1e-12..1.0);
+        let u2: f64 = rng.random_range(0.0..1.0);
+        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    }
+
+    /// A head walking forward and looking around, 20 keyframes, tracks with 1 px noise.
+    fn synthetic_window(rng: &mut StdRng) -> (PinholeRadtan, Vec<CameraPose>, Vec<KeyframeObservations>) {
+        let camera = PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let poses: Vec<CameraPose> = (0..20)
+            .map(|i| {
+                let t = i as f64;
+                CameraPose {
+                    rotation: Rotation3::from_euler_angles(0.03 * (0.7 * t).sin(), 0.12 * (0.3 * t).sin(), 0.02 * t.cos()),
+                    centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
+                }
+            })
+            .collect();
+        let points: Vec<Vector3<f64>> = (0..1500)
+            .map(|_| Vector3::new(rng.random_range(-6.0..6.0), rng.random_range(-3.0..3.0), rng.random_range(3.0..15.0)))
+            .collect();
+        let keyframes = poses
+            .iter()
+            .enumerate()
+            .map(|(k, pose)| {
+                let mut tracks = HashMap::new();
+                for (id, x) in points.iter().enumerate() {
+                    if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
+                        if camera.contains(p) {
+                            tracks.insert(id as u64, Point2::new(p.x + gaussian(rng), p.y + gaussian(rng)));
+                        }
+                    }
+                }
+                KeyframeObservations {
+                    id: k as u64,
+                    timestamp: k as f64 * 0.2,
+                    tracks,
+                }
+            })
+            .collect();
+        (camera, poses, keyframes)
+    }
+
+    #[test]
+    fn whole_window_from_noisy_tracks_is_accurate() {
+        let mut rng = StdRng::seed_from_u64(21);
+        let (camera, truth, keyframes) = synthetic_window(&mut rng);
+        let solution = solve_window(&camera, &keyframes, &WindowSolverOptions::default(), &mut EdgeCache::new());
+        assert_eq!(solution.status, WindowStatus::Solved);
+        let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
+        let tru: Vec<_> = truth.iter().map(|p| p.centre).collect();
+        let sim = umeyama(&est, &tru).expect("aligned");
+        let rmse = (est.iter().zip(&tru).map(|(e, t)| (sim.apply(e) - t).norm_squared()).sum::<f64>() / est.len() as f64).sqrt();
+        let path: f64 = tru.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+        assert!(rmse < 0.005 * path, "keyframe ATE {rmse} over a {path} path");
+        assert!(solution.rmse_px < 1.1, "reprojection {} px", solution.rmse_px);
+        assert!(solution.points.len() > 500);
+        let stages: Vec<_> = solution.timings_ms.iter().map(|t| t.0).collect();
+        assert_eq!(stages, ["relative_poses", "rotation_averaging", "translation_averaging", "triangulation", "bundle_adjustment"]);
+    }
+
+    #[test]
+    fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
+        let mut rng = StdRng::seed_from_u64(22);
+        let (camera, mut truth, _) = synthetic_window(&mut rng);
+        for p in &mut truth {
+            p.centre = Vector3::zeros();
+        }
+        let points: Vec<Vector3<f64>> = (0..800)
+            .map(|_| Vector3::new(rng.random_range(-6.0..6.0), rng.random_range(-3.0..3.0), rng.random_range(3.0..15.0)))
+            .collect();
+        let keyframes: Vec<KeyframeObservations> = truth
+            .iter()
+            .enumerate()
+            .map(|(k, pose)| KeyframeObservations {
+                id: k as u64,
+                timestamp: k as f64,
+                tracks: points
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(id, x)| {
+                        let p = camera.project_undistorted(&pose.to_camera(x))?;
+                        camera.contains(p).then(|| (id as u64, Point2::new(p.x + 0.5 * gaussian(&mut rng), p.y + 0.5 * gaussian(&mut rng))))
+                    })
+                    .collect(),
+            })
+            .collect();
+        let solution = solve_window(&camera, &keyframes, &WindowSolverOptions::default(), &mut EdgeCache::new());
+        assert_eq!(solution.status, WindowStatus::RotationOnly);
+        for (est, tru) in solution.poses.iter().zip(&truth) {
+            // Camera 0 is the identity in the window frame.
+            let expected = tru.rotation * truth[0].rotation.inverse();
+            assert!(est.rotation.angle_to(&expected) < 0.2f64.to_radians());
+            assert_eq!(est.centre, Vector3::zeros());
+        }
+        let one = solve_window(&camera, &keyframes[..1], &WindowSolverOptions::default(), &mut EdgeCache::new());
+        assert!(matches!(one.status, WindowStatus::Failed(_)));
+    }
+}
