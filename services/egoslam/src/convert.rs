@@ -22,3 +22,27 @@ pub fn pose_from_pb(p: &pb::Pose) -> StampedPose {
         rotation: UnitQuaternion::from_quaternion(q),
     }
 }
+
+pub fn vec3_to_pb(v: &Vector3<f64>) -> pb::Vec3 {
+    pb::Vec3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    }
+}
+
+pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
+    let q = p.rotation.quaternion();
+    pb::Pose {
+        frame_id,
+        timestamp_s: p.timestamp,
+        position: Some(vec3_to_pb(&p.position)),
+        orientation: Some(pb::Quaternion {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        }),
+        segment_id,
+    }
+}

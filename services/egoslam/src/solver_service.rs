@@ -1,12 +1,18 @@
 //! The window solver service: keyframes from the bus -> windows -> solutions on the bus.
+//! The geometry is `egoslam_solver::window_solver`; this file only converts and publishes.
 
 use crate::cli::ServiceArgs;
+use crate::convert::{pose_to_pb, vec3_to_pb};
 use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
+use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
+use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
+use egoslam_solver::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
 use egoslam_solver::windowing::Window;
 use egoslam_solver::{WindowBuilder, WindowOptions};
+use nalgebra::{Point2, UnitQuaternion};
 
 /// Timing facts of a keyframe, for the merger's per-frame trajectory.
 fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
@@ -23,24 +29,146 @@ fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
     }
 }
 
-/// Solves one window. Until the estimators land this forwards the keyframes only.
+/// The ideal pinhole camera of the undistorted track positions.
+fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
+    let Some(i) = &k.intrinsics else {
+        bail!("keyframe {} has no intrinsics", k.keyframe_id)
+    };
+    Ok(PinholeRadtan::new(
+        i.width,
+        i.height,
+        [i.fx, i.fy, i.cx, i.cy],
+        [0.0; 5],
+    )?)
+}
+
+fn observations(k: &pb::Keyframe) -> KeyframeObservations {
+    KeyframeObservations {
+        id: k.keyframe_id,
+        timestamp: k.timestamp_s,
+        tracks: k
+            .tracks
+            .iter()
+            .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+            .collect(),
+    }
+}
+
+/// Solves one window and builds its message.
 fn solve(
     window_id: u64,
     window: &Window<pb::Keyframe>,
+    cache: &mut EdgeCache,
+    options: &WindowSolverOptions,
     stats: &mut ServiceStats,
-) -> pb::WindowSolution {
-    stats.time("window", || pb::WindowSolution {
+) -> anyhow::Result<pb::WindowSolution> {
+    let kfs = &window.keyframes;
+    let camera = pinhole(&kfs[0])?;
+    let obs: Vec<KeyframeObservations> = kfs.iter().map(observations).collect();
+    let first_id = kfs[0].keyframe_id;
+    cache.retain(|(a, _), _| *a >= first_id);
+    let solution = stats.time("window", || solve_window(&camera, &obs, options, cache));
+    for (stage, ms) in &solution.timings_ms {
+        stats.add_time(stage, *ms);
+    }
+    let (status, reason) = match &solution.status {
+        WindowStatus::Solved => (pb::SolveStatus::Solved, String::new()),
+        WindowStatus::RotationOnly => (
+            pb::SolveStatus::Solved,
+            "rotation only: no pair in the window has parallax".to_string(),
+        ),
+        WindowStatus::Failed(r) => (pb::SolveStatus::Failed, r.clone()),
+    };
+    tracing::info!(
+        window = window_id,
+        keyframes = kfs.len(),
+        edges = solution.edges,
+        translation_edges = solution.translation_edges,
+        points = solution.points.len(),
+        rmse_px = solution.rmse_px,
+        ?status,
+        %reason,
+        "window solved"
+    );
+    if status == pb::SolveStatus::Failed {
+        stats.count("failed_windows", 1);
+    }
+    let poses = kfs
+        .iter()
+        .zip(&solution.poses)
+        .map(|(k, p)| pb::KeyframePose {
+            keyframe_id: k.keyframe_id,
+            pose: Some(pose_to_pb(
+                k.frame_id,
+                0,
+                &StampedPose {
+                    timestamp: k.timestamp_s,
+                    position: p.centre,
+                    rotation: UnitQuaternion::from_rotation_matrix(&p.rotation.inverse()),
+                },
+            )),
+        })
+        .collect();
+    Ok(pb::WindowSolution {
         window_id,
-        keyframe_ids: window.keyframes.iter().map(|k| k.keyframe_id).collect(),
+        keyframe_ids: kfs.iter().map(|k| k.keyframe_id).collect(),
         overlap: window.overlap as u32,
-        keyframes: window.keyframes.iter().map(stamp).collect(),
+        poses,
+        points: solution
+            .points
+            .iter()
+            .map(|p| pb::MapPoint {
+                track_id: p.track_id,
+                position: Some(vec3_to_pb(&p.position)),
+                observations: p.observations,
+            })
+            .collect(),
+        observations: solution
+            .observations
+            .iter()
+            .map(|(k, track, px)| pb::Observation {
+                keyframe_id: kfs[*k].keyframe_id,
+                track_id: *track,
+                x: px.x as f32,
+                y: px.y as f32,
+            })
+            .collect(),
         quality: Some(pb::SolutionQuality {
-            status: pb::SolveStatus::PassThrough as i32,
-            reason: "pass-through: no window estimator in this build".into(),
-            ..Default::default()
+            status: status as i32,
+            reason,
+            reprojection_rmse_px: solution.rmse_px,
+            inlier_observations: solution.observations.len() as u32,
+            outlier_observations: solution.outlier_observations as u32,
         }),
-        ..Default::default()
+        timings: solution
+            .timings_ms
+            .iter()
+            .map(|(stage, ms)| pb::StageTiming {
+                stage: stage.to_string(),
+                milliseconds: *ms,
+            })
+            .collect(),
+        keyframes: kfs.iter().map(stamp).collect(),
+        end_of_stream: false,
+        trailing_frames: Vec::new(),
     })
+}
+
+/// Debugging aid: writes a window's keyframes (length-delimited protobuf) so that
+/// `cargo run --example solve_window` can replay the solve offline.
+fn dump_window(
+    dir: &std::path::Path,
+    window_id: u64,
+    window: &Window<pb::Keyframe>,
+) -> anyhow::Result<()> {
+    use prost::Message;
+    std::fs::create_dir_all(dir)?;
+    let mut bytes = Vec::new();
+    for k in &window.keyframes {
+        k.encode_length_delimited(&mut bytes)?;
+    }
+    std::fs::write(dir.join(format!("window_{window_id:04}.pb")), bytes)?;
+    Ok(())
 }
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
@@ -49,6 +177,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         size: args.pipeline.window,
         overlap: args.pipeline.overlap,
     })?;
+    let options = WindowSolverOptions::default();
+    let mut cache = EdgeCache::new();
     let bus = Bus::open(
         "solver",
         BusOptions {
@@ -72,7 +202,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             builder.push(k)
         };
         if let Some(window) = window {
-            let solution = solve(stats.windows, &window, &mut stats);
+            if let Some(dir) = std::env::var_os("EGOSLAM_DUMP_WINDOWS") {
+                dump_window(std::path::Path::new(&dir), stats.windows, &window)?;
+            }
+            let solution = solve(stats.windows, &window, &mut cache, &options, &mut stats)?;
             windows.send(&solution)?;
             stats.windows += 1;
         }
@@ -80,7 +213,6 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             break;
         }
     }
-    // The end-of-stream message carries the frames after the last keyframe (normally none).
     windows.send(&pb::WindowSolution {
         end_of_stream: true,
         trailing_frames: trailing,

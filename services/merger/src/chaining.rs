@@ -249,3 +249,60 @@ mod tests {
         assert_eq!(map.segments(), 2);
     }
 }
+
+#[cfg(test)]
+mod rotation_only_tests {
+    use super::*;
+
+    #[test]
+    fn a_rotation_only_window_after_a_moving_one_stays_finite() {
+        let mut map = MapBuilder::new();
+        let moving = WindowInput {
+            poses: (0..10u64)
+                .map(|i| {
+                    (
+                        i,
+                        StampedPose {
+                            timestamp: i as f64,
+                            position: Vector3::new(0.1 * i as f64, 0.0, 0.0),
+                            rotation: UnitQuaternion::from_euler_angles(0.0, 0.1 * i as f64, 0.0),
+                        },
+                    )
+                })
+                .collect(),
+            points: vec![],
+        };
+        map.add_window(&moving);
+        let still = WindowInput {
+            poses: (5..15u64)
+                .map(|i| {
+                    (
+                        i,
+                        StampedPose {
+                            timestamp: i as f64,
+                            position: Vector3::zeros(),
+                            rotation: UnitQuaternion::from_euler_angles(
+                                0.0,
+                                0.1 * (i - 5) as f64,
+                                0.0,
+                            ),
+                        },
+                    )
+                })
+                .collect(),
+            points: vec![],
+        };
+        map.add_window(&still);
+        map.add_window(&WindowInput {
+            poses: still.poses.iter().map(|(i, p)| (i + 5, *p)).collect(),
+            points: vec![],
+        });
+        for (id, _, p) in map.keyframes() {
+            assert!(p.position.iter().all(|v| v.is_finite()), "kf {id} {p:?}");
+            assert!(
+                p.rotation.coords.iter().all(|v| v.is_finite()),
+                "kf {id} {p:?}"
+            );
+        }
+    }
+}

@@ -56,7 +56,11 @@ impl Default for BundleAdjustmentOptions {
 pub enum BundleAdjustmentError {
     /// An observation names a camera or point that does not exist.
     #[error("observation {index} names camera {camera} / point {point} out of range")]
-    BadObservation { index: usize, camera: usize, point: usize },
+    BadObservation {
+        index: usize,
+        camera: usize,
+        point: usize,
+    },
     /// Nothing to adjust.
     #[error("need at least two cameras and one observation")]
     Empty,
@@ -88,7 +92,12 @@ struct State {
 
 /// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
 /// d(pixel)/d(focal_scale, k).
-fn project(camera: &PinholeRadtan, s: f64, k: f64, pc: &Vector3<f64>) -> Option<(Vector2<f64>, Matrix2x3<f64>, nalgebra::Matrix2<f64>)> {
+fn project(
+    camera: &PinholeRadtan,
+    s: f64,
+    k: f64,
+    pc: &Vector3<f64>,
+) -> Option<(Vector2<f64>, Matrix2x3<f64>, nalgebra::Matrix2<f64>)> {
     if pc.z <= 1e-9 {
         return None;
     }
@@ -106,7 +115,12 @@ fn project(camera: &PinholeRadtan, s: f64, k: f64, pc: &Vector3<f64>) -> Option<
     );
     let iz = 1.0 / pc.z;
     let j_pc = Matrix2x3::new(iz, 0.0, -xn * iz, 0.0, iz, -yn * iz);
-    let j_intr = nalgebra::Matrix2::new(camera.fx * d * xn, fx * r2 * xn, camera.fy * d * yn, fy * r2 * yn);
+    let j_intr = nalgebra::Matrix2::new(
+        camera.fx * d * xn,
+        fx * r2 * xn,
+        camera.fy * d * yn,
+        fy * r2 * yn,
+    );
     Some((pixel, j_n * j_pc, j_intr))
 }
 
@@ -127,7 +141,13 @@ fn huber_cost(r: f64, delta: f64) -> f64 {
 }
 
 /// Robust cost; observations behind a camera count as a large constant.
-fn cost(camera: &PinholeRadtan, st: &State, obs: &[Observation], active: &[bool], delta: f64) -> f64 {
+fn cost(
+    camera: &PinholeRadtan,
+    st: &State,
+    obs: &[Observation],
+    active: &[bool],
+    delta: f64,
+) -> f64 {
     obs.iter()
         .zip(active)
         .filter(|(_, a)| **a)
@@ -142,7 +162,13 @@ fn cost(camera: &PinholeRadtan, st: &State, obs: &[Observation], active: &[bool]
 }
 
 /// LM iterations; returns (converged, iterations).
-fn levenberg_marquardt(camera: &PinholeRadtan, st: &mut State, obs: &[Observation], active: &[bool], options: &BundleAdjustmentOptions) -> (bool, usize) {
+fn levenberg_marquardt(
+    camera: &PinholeRadtan,
+    st: &mut State,
+    obs: &[Observation],
+    active: &[bool],
+    options: &BundleAdjustmentOptions,
+) -> (bool, usize) {
     let cams = st.poses.len();
     let globals = if options.refine_intrinsics { 2 } else { 0 };
     let reduced = 6 * (cams - 1) + globals;
@@ -155,7 +181,9 @@ fn levenberg_marquardt(camera: &PinholeRadtan, st: &mut State, obs: &[Observatio
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
             let pose = &st.poses[o.camera];
             let pc = pose.to_camera(&st.points[o.point]);
-            let Some((p, j_pc, j_intr)) = project(camera, st.focal_scale, st.radial_k, &pc) else { continue };
+            let Some((p, j_pc, j_intr)) = project(camera, st.focal_scale, st.radial_k, &pc) else {
+                continue;
+            };
             let r = p - o.pixel.coords;
             let w = huber_weight(r.norm(), options.huber_px);
             let r_mat = pose.rotation.matrix();
@@ -182,7 +210,13 @@ fn levenberg_marquardt(camera: &PinholeRadtan, st: &mut State, obs: &[Observatio
             }
             let jr = DMatrix::from_fn(2, idx.len(), |row, col| cols[col][row]);
             let jp = DMatrix::from_fn(2, 3, |row, col| j_x[(row, col)]);
-            sys.add(&idx, &jr, Some((o.point, &jp)), &DVector::from_column_slice(r.as_slice()), w);
+            sys.add(
+                &idx,
+                &jr,
+                Some((o.point, &jp)),
+                &DVector::from_column_slice(r.as_slice()),
+                w,
+            );
         }
         let mut accepted = false;
         for _ in 0..8 {
@@ -199,7 +233,11 @@ fn levenberg_marquardt(camera: &PinholeRadtan, st: &mut State, obs: &[Observatio
             for c in 1..cams {
                 let b = 6 * (c - 1);
                 let dr = Vector3::new(step.reduced[b], step.reduced[b + 1], step.reduced[b + 2]);
-                let dc = Vector3::new(step.reduced[b + 3], step.reduced[b + 4], step.reduced[b + 5]);
+                let dc = Vector3::new(
+                    step.reduced[b + 3],
+                    step.reduced[b + 4],
+                    step.reduced[b + 5],
+                );
                 trial.poses[c].rotation = Rotation3::new(dr) * trial.poses[c].rotation;
                 trial.poses[c].centre += dc;
             }
@@ -259,11 +297,13 @@ pub fn bundle_adjust(
         radial_k: 0.0,
     };
     let mut active = vec![true; observations.len()];
-    let (_, first_iterations) = levenberg_marquardt(camera, &mut st, observations, &active, options);
+    let (_, first_iterations) =
+        levenberg_marquardt(camera, &mut st, observations, &active, options);
     let mut outliers = Vec::new();
     for (n, o) in observations.iter().enumerate() {
         let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
-        let bad = project(camera, st.focal_scale, st.radial_k, &pc).is_none_or(|(p, _, _)| (p - o.pixel.coords).norm() > options.outlier_px);
+        let bad = project(camera, st.focal_scale, st.radial_k, &pc)
+            .is_none_or(|(p, _, _)| (p - o.pixel.coords).norm() > options.outlier_px);
         if bad {
             active[n] = false;
             outliers.push(n);
@@ -318,7 +358,8 @@ mod tests {
     #[test]
     fn recovers_from_perturbed_start_and_flags_outliers() {
         let mut rng = StdRng::seed_from_u64(11);
-        let camera = PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let camera =
+            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
         // 20 cameras walking and turning, 300 points in front.
         let truth_poses: Vec<CameraPose> = (0..20)
             .map(|i| CameraPose {
@@ -327,7 +368,13 @@ mod tests {
             })
             .collect();
         let truth_points: Vec<Vector3<f64>> = (0..300)
-            .map(|_| Vector3::new(rng.random_range(-3.0..5.0), rng.random_range(-2.0..2.0), rng.random_range(5.0..10.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-3.0..5.0),
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(5.0..10.0),
+                )
+            })
             .collect();
         let mut observations = Vec::new();
         let mut injected = Vec::new();
@@ -339,10 +386,19 @@ mod tests {
                     }
                     let mut px = Point2::new(p.x + gaussian(&mut rng), p.y + gaussian(&mut rng));
                     if rng.random_range(0.0..1.0) < 0.05 {
-                        px.x += rng.random_range(15.0..40.0) * if rng.random_range(0.0..1.0) < 0.5 { -1.0 } else { 1.0 };
+                        px.x += rng.random_range(15.0..40.0)
+                            * if rng.random_range(0.0..1.0) < 0.5 {
+                                -1.0
+                            } else {
+                                1.0
+                            };
                         injected.push(observations.len());
                     }
-                    observations.push(Observation { camera: c, point: k, pixel: px });
+                    observations.push(Observation {
+                        camera: c,
+                        point: k,
+                        pixel: px,
+                    });
                 }
             }
         }
@@ -354,8 +410,17 @@ mod tests {
                 if i == 0 {
                     return *p;
                 }
-                let axis = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
-                let dir = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize();
+                let axis = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                );
+                let dir = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                )
+                .normalize();
                 CameraPose {
                     rotation: small_rotation(axis, 2f64.to_radians()) * p.rotation,
                     centre: p.centre + dir * 0.05 * 2.0,
@@ -364,28 +429,60 @@ mod tests {
             .collect();
         let start_points: Vec<Vector3<f64>> = truth_points
             .iter()
-            .map(|x| x + Vector3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng)) * 0.1 * x.norm() / 3f64.sqrt())
+            .map(|x| {
+                x + Vector3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng))
+                    * 0.1
+                    * x.norm()
+                    / 3f64.sqrt()
+            })
             .collect();
-        let result = bundle_adjust(&camera, &start_poses, &start_points, &observations, &BundleAdjustmentOptions::default()).expect("ran");
-        assert!((result.rmse_px - 1.0).abs() < 0.1, "rmse {} px for 1 px noise", result.rmse_px);
-        let flagged = injected.iter().filter(|i| result.outliers.contains(i)).count();
-        assert!(flagged as f64 >= 0.95 * injected.len() as f64, "{flagged} of {} outliers flagged", injected.len());
+        let result = bundle_adjust(
+            &camera,
+            &start_poses,
+            &start_points,
+            &observations,
+            &BundleAdjustmentOptions::default(),
+        )
+        .expect("ran");
+        assert!(
+            (result.rmse_px - 1.0).abs() < 0.1,
+            "rmse {} px for 1 px noise",
+            result.rmse_px
+        );
+        let flagged = injected
+            .iter()
+            .filter(|i| result.outliers.contains(i))
+            .count();
+        assert!(
+            flagged as f64 >= 0.95 * injected.len() as f64,
+            "{flagged} of {} outliers flagged",
+            injected.len()
+        );
         let false_alarms = result.outliers.len() - flagged;
-        assert!((false_alarms as f64) < 0.01 * observations.len() as f64, "{false_alarms} inliers flagged");
+        assert!(
+            (false_alarms as f64) < 0.01 * observations.len() as f64,
+            "{false_alarms} inliers flagged"
+        );
         // Poses back near the truth (camera 0 fixes the gauge; scale is free: compare after
         // Umeyama on the centres).
         let est: Vec<_> = result.poses.iter().map(|p| p.centre).collect();
         let tru: Vec<_> = truth_poses.iter().map(|p| p.centre).collect();
         let sim = egoslam_geometry::umeyama(&est, &tru).expect("aligned");
-        let worst = est.iter().zip(&tru).map(|(e, t)| (sim.apply(e) - t).norm()).fold(0.0, f64::max);
+        let worst = est
+            .iter()
+            .zip(&tru)
+            .map(|(e, t)| (sim.apply(e) - t).norm())
+            .fold(0.0, f64::max);
         assert!(worst < 0.02, "worst centre error {worst}");
     }
 
     #[test]
     fn refines_focal_length() {
         let mut rng = StdRng::seed_from_u64(12);
-        let camera = PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
-        let true_camera = PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let camera =
+            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let true_camera =
+            PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
         let poses: Vec<CameraPose> = (0..10)
             .map(|i| CameraPose {
                 rotation: Rotation3::from_euler_angles(0.0, 0.08 * i as f64, 0.0),
@@ -393,14 +490,27 @@ mod tests {
             })
             .collect();
         let points: Vec<Vector3<f64>> = (0..200)
-            .map(|_| Vector3::new(rng.random_range(-2.0..6.0), rng.random_range(-2.0..2.0), rng.random_range(4.0..9.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-2.0..6.0),
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(4.0..9.0),
+                )
+            })
             .collect();
         let mut observations = Vec::new();
         for (k, x) in points.iter().enumerate() {
             for (c, pose) in poses.iter().enumerate() {
                 if let Some(p) = true_camera.project_undistorted(&pose.to_camera(x)) {
                     if true_camera.contains(p) {
-                        observations.push(Observation { camera: c, point: k, pixel: Point2::new(p.x + 0.3 * gaussian(&mut rng), p.y + 0.3 * gaussian(&mut rng)) });
+                        observations.push(Observation {
+                            camera: c,
+                            point: k,
+                            pixel: Point2::new(
+                                p.x + 0.3 * gaussian(&mut rng),
+                                p.y + 0.3 * gaussian(&mut rng),
+                            ),
+                        });
                     }
                 }
             }
@@ -411,7 +521,11 @@ mod tests {
             ..BundleAdjustmentOptions::default()
         };
         let result = bundle_adjust(&camera, &poses, &points, &observations, &options).expect("ran");
-        assert!((result.focal_scale - 1.04).abs() < 0.01, "focal scale {}", result.focal_scale);
+        assert!(
+            (result.focal_scale - 1.04).abs() < 0.01,
+            "focal scale {}",
+            result.focal_scale
+        );
         assert!(result.rmse_px < 0.4, "rmse {}", result.rmse_px);
     }
 }

@@ -6,8 +6,8 @@
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
 pub mod bundle_adjustment;
-pub mod rotation_averaging;
 pub mod relative_pose;
+pub mod rotation_averaging;
 pub mod schur;
 pub mod translation_averaging;
 pub mod triangulation;

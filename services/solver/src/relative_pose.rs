@@ -108,7 +108,12 @@ fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64
     for _ in 0..2 {
         let res: Vec<f64> = pairs.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
         let cut = 3.0 * median(res.clone()).max(1e-6);
-        kept = pairs.iter().zip(&res).filter(|(_, e)| **e <= cut).map(|(p, _)| *p).collect();
+        kept = pairs
+            .iter()
+            .zip(&res)
+            .filter(|(_, e)| **e <= cut)
+            .map(|(p, _)| *p)
+            .collect();
         if kept.len() < 3 {
             break;
         }
@@ -131,9 +136,16 @@ pub fn estimate_relative_pose(
         return Err(RelativePoseError::TooFewMatches(n));
     }
     let cv = |e: opencv::Error| RelativePoseError::OpenCv(e.to_string());
-    let p1: Vector<Point2d> = points_i[..n].iter().map(|&(x, y)| Point2d::new(x, y)).collect();
-    let p2: Vector<Point2d> = points_j[..n].iter().map(|&(x, y)| Point2d::new(x, y)).collect();
-    let k = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]).map_err(cv)?;
+    let p1: Vector<Point2d> = points_i[..n]
+        .iter()
+        .map(|&(x, y)| Point2d::new(x, y))
+        .collect();
+    let p2: Vector<Point2d> = points_j[..n]
+        .iter()
+        .map(|&(x, y)| Point2d::new(x, y))
+        .collect();
+    let k =
+        Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]).map_err(cv)?;
     let mut mask = Mat::default();
     let e = opencv::calib3d::find_essential_mat(
         &p1,
@@ -149,23 +161,42 @@ pub fn estimate_relative_pose(
     if e.rows() < 3 {
         return Err(RelativePoseError::TooFewInliers(0));
     }
-    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3)).map_err(cv)?.try_clone().map_err(cv)?;
+    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))
+        .map_err(cv)?
+        .try_clone()
+        .map_err(cv)?;
     let (mut r_cv, mut t_cv) = (Mat::default(), Mat::default());
-    let inliers = opencv::calib3d::recover_pose_estimated(&e3, &p1, &p2, &k, &mut r_cv, &mut t_cv, &mut mask).map_err(cv)? as usize;
+    let inliers =
+        opencv::calib3d::recover_pose_estimated(&e3, &p1, &p2, &k, &mut r_cv, &mut t_cv, &mut mask)
+            .map_err(cv)? as usize;
     let rotation_e = {
-        let m = Matrix3::from_fn(|r, c| r_cv.at_2d::<f64>(r as i32, c as i32).copied().unwrap_or(0.0));
-        Rotation3::from_matrix(&m)
+        let m = Matrix3::from_fn(|r, c| {
+            r_cv.at_2d::<f64>(r as i32, c as i32)
+                .copied()
+                .unwrap_or(f64::NAN)
+        });
+        if !m.iter().all(|v| v.is_finite()) || (m.determinant() - 1.0).abs() > 1e-3 {
+            return Err(RelativePoseError::OpenCv(
+                "recoverPose returned no rotation".into(),
+            ));
+        }
+        Rotation3::from_matrix_unchecked(m)
     };
     let t = Vector3::from_fn(|r, _| t_cv.at_2d::<f64>(r as i32, 0).copied().unwrap_or(0.0));
 
     let bearing = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0).normalize();
-    let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n).map(|m| (bearing(&points_i[m]), bearing(&points_j[m]))).collect();
+    let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n)
+        .map(|m| (bearing(&points_i[m]), bearing(&points_j[m])))
+        .collect();
     let (rotation_r, parallax) = rotation_only(&all_pairs);
     let parallax_px = parallax * focal_px;
     if parallax_px < options.min_parallax_px || inliers < options.min_inliers {
         // Rotation only: count the matches the rotation explains within the threshold.
         let thr = options.ransac_threshold_px / focal_px * 2.0;
-        let agree = all_pairs.iter().filter(|(bi, bj)| angle(&(rotation_r * bi), bj) < thr.max(parallax * 3.0)).count();
+        let agree = all_pairs
+            .iter()
+            .filter(|(bi, bj)| angle(&(rotation_r * bi), bj) < thr.max(parallax * 3.0))
+            .count();
         if parallax_px >= options.min_parallax_px || agree < options.min_inliers {
             return Err(RelativePoseError::TooFewInliers(inliers.max(agree)));
         }
@@ -196,7 +227,11 @@ mod tests {
         (0..200)
             .map(|k| {
                 let a = k as f64;
-                Vector3::new((a * 0.37).sin() * 3.0, (a * 0.11).cos() * 2.0, 4.0 + (a * 0.53).sin().abs() * 6.0)
+                Vector3::new(
+                    (a * 0.37).sin() * 3.0,
+                    (a * 0.11).cos() * 2.0,
+                    4.0 + (a * 0.53).sin().abs() * 6.0,
+                )
             })
             .collect()
     }
@@ -213,7 +248,8 @@ mod tests {
         let t = Vector3::new(0.3, 0.0, 0.1);
         let a: Vec<_> = pts.iter().map(|x| (x.x / x.z, x.y / x.z)).collect();
         let b: Vec<_> = pts.iter().map(|x| normalised(&r, &t, x)).collect();
-        let e = estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
+        let e =
+            estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
         assert!(e.has_translation, "{e:?}");
         assert!(e.rotation.angle_to(&r) < 1e-4);
         assert!(angle(&e.translation, &t) < 1e-3, "{:?}", e.translation);
@@ -225,8 +261,12 @@ mod tests {
         let pts = scene();
         let r = Rotation3::from_euler_angles(0.1, 0.05, -0.08);
         let a: Vec<_> = pts.iter().map(|x| (x.x / x.z, x.y / x.z)).collect();
-        let b: Vec<_> = pts.iter().map(|x| normalised(&r, &Vector3::zeros(), x)).collect();
-        let e = estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
+        let b: Vec<_> = pts
+            .iter()
+            .map(|x| normalised(&r, &Vector3::zeros(), x))
+            .collect();
+        let e =
+            estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
         assert!(!e.has_translation);
         assert!(e.rotation.angle_to(&r) < 1e-6);
         assert!(matches!(

@@ -51,9 +51,11 @@ impl Default for RotationAveragingOptions {
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum RotationAveragingError {
     /// Some cameras are not connected to camera 0 by any edge.
-    #[error("view graph is disconnected: {unreached} of {cameras} cameras unreachable from camera 0")]
+    #[error(
+        "view graph is disconnected: {unreached} of {cameras} cameras unreachable from camera 0"
+    )]
     Disconnected { unreached: usize, cameras: usize },
-    /// An edge names a camera index out of range or a self loop.
+    /// An edge names a camera index out of range, is a self loop, or is not finite.
     #[error("edge ({i}, {j}) invalid for {cameras} cameras")]
     BadEdge { i: usize, j: usize, cameras: usize },
 }
@@ -70,7 +72,10 @@ pub struct RotationAveragingResult {
 /// Breadth-first spanning tree over the heaviest edges first (a maximum spanning tree would
 /// be marginally better; BFS from camera 0 visiting heavy edges first is what GLOMAP's
 /// initialiser does in spirit and is deterministic).
-fn spanning_tree_init(n: usize, edges: &[RelativeRotation]) -> Result<Vec<Rotation3<f64>>, RotationAveragingError> {
+fn spanning_tree_init(
+    n: usize,
+    edges: &[RelativeRotation],
+) -> Result<Vec<Rotation3<f64>>, RotationAveragingError> {
     let mut adjacency: Vec<Vec<usize>> = vec![Vec::new(); n];
     for (e, edge) in edges.iter().enumerate() {
         adjacency[edge.i].push(e);
@@ -99,9 +104,15 @@ fn spanning_tree_init(n: usize, edges: &[RelativeRotation]) -> Result<Vec<Rotati
     }
     let unreached = rotations.iter().filter(|r| r.is_none()).count();
     if unreached > 0 {
-        return Err(RotationAveragingError::Disconnected { unreached, cameras: n });
+        return Err(RotationAveragingError::Disconnected {
+            unreached,
+            cameras: n,
+        });
     }
-    Ok(rotations.into_iter().map(|r| r.unwrap_or_else(Rotation3::identity)).collect())
+    Ok(rotations
+        .into_iter()
+        .map(|r| r.unwrap_or_else(Rotation3::identity))
+        .collect())
 }
 
 /// Residual of an edge in the tangent space: `log(R_j^T R_ij R_i)`.
@@ -112,11 +123,19 @@ fn edge_residual(edge: &RelativeRotation, rotations: &[Rotation3<f64>]) -> Vecto
 /// One relinearised weighted least-squares step: solves for tangent updates `w` (camera 0
 /// fixed) minimising `sum_e weight_e |r_e - (w_j - w_i)|^2`, applies `R_k <- R_k exp(w_k)`,
 /// returns the largest update.
-fn weighted_step(rotations: &mut [Rotation3<f64>], edges: &[RelativeRotation], weights: &[f64]) -> f64 {
+fn weighted_step(
+    rotations: &mut [Rotation3<f64>],
+    edges: &[RelativeRotation],
+    weights: &[f64],
+) -> f64 {
     let n = rotations.len();
     let m = n - 1; // camera 0 is the gauge
     let mut h = DMatrix::<f64>::zeros(m, m);
-    let mut b = [DVector::<f64>::zeros(m), DVector::<f64>::zeros(m), DVector::<f64>::zeros(m)];
+    let mut b = [
+        DVector::<f64>::zeros(m),
+        DVector::<f64>::zeros(m),
+        DVector::<f64>::zeros(m),
+    ];
     for (edge, &w) in edges.iter().zip(weights) {
         let r = edge_residual(edge, rotations);
         // Row: +1 at j, -1 at i.
@@ -142,9 +161,16 @@ fn weighted_step(rotations: &mut [Rotation3<f64>], edges: &[RelativeRotation], w
     }
     let Some(chol) = h.cholesky() else { return 0.0 };
     let solutions: Vec<DVector<f64>> = b.iter().map(|rhs| chol.solve(rhs)).collect();
+    if solutions.iter().any(|s| s.iter().any(|v| !v.is_finite())) {
+        return 0.0;
+    }
     let mut largest: f64 = 0.0;
     for k in 1..n {
-        let w = Vector3::new(solutions[0][k - 1], solutions[1][k - 1], solutions[2][k - 1]);
+        let w = Vector3::new(
+            solutions[0][k - 1],
+            solutions[1][k - 1],
+            solutions[2][k - 1],
+        );
         largest = largest.max(w.norm());
         rotations[k] *= Rotation3::new(w);
     }
@@ -158,7 +184,11 @@ pub fn average_rotations(
     options: &RotationAveragingOptions,
 ) -> Result<RotationAveragingResult, RotationAveragingError> {
     for e in edges {
-        if e.i >= cameras || e.j >= cameras || e.i == e.j {
+        if e.i >= cameras
+            || e.j >= cameras
+            || e.i == e.j
+            || !e.rotation.matrix().iter().all(|v| v.is_finite())
+        {
             return Err(RotationAveragingError::BadEdge {
                 i: e.i,
                 j: e.j,
@@ -170,7 +200,10 @@ pub fn average_rotations(
     if cameras > 1 {
         // L1 stage: IRLS weights 1/|r| minimise sum |r| (Chatterjee-Govindu 2013, eq. 8).
         for _ in 0..options.l1_iterations {
-            let weights: Vec<f64> = edges.iter().map(|e| 1.0 / edge_residual(e, &rotations).norm().max(1e-4)).collect();
+            let weights: Vec<f64> = edges
+                .iter()
+                .map(|e| 1.0 / edge_residual(e, &rotations).norm().max(1e-4))
+                .collect();
             if weighted_step(&mut rotations, edges, &weights) < options.tolerance {
                 break;
             }
@@ -195,7 +228,10 @@ pub fn average_rotations(
     for r in &mut rotations {
         *r *= anchor;
     }
-    let edge_residuals = edges.iter().map(|e| edge_residual(e, &rotations).norm()).collect();
+    let edge_residuals = edges
+        .iter()
+        .map(|e| edge_residual(e, &rotations).norm())
+        .collect();
     Ok(RotationAveragingResult {
         rotations,
         edge_residuals,
@@ -209,13 +245,23 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     fn random_rotation(rng: &mut StdRng, max_angle: f64) -> Rotation3<f64> {
-        let axis = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize();
+        let axis = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize();
         Rotation3::new(axis * rng.random_range(0.0..max_angle))
     }
 
     /// Noise of exactly `angle` about a random axis.
     fn noise(rng: &mut StdRng, angle: f64) -> Rotation3<f64> {
-        let axis = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize();
+        let axis = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize();
         Rotation3::new(axis * angle)
     }
 
@@ -223,7 +269,9 @@ mod tests {
     fn thirty_cameras_three_degree_noise_twenty_percent_outliers() {
         let mut rng = StdRng::seed_from_u64(42);
         let n = 30;
-        let truth: Vec<Rotation3<f64>> = (0..n).map(|_| random_rotation(&mut rng, std::f64::consts::PI)).collect();
+        let truth: Vec<Rotation3<f64>> = (0..n)
+            .map(|_| random_rotation(&mut rng, std::f64::consts::PI))
+            .collect();
         // Each camera sees the next 8: a window-like banded graph.
         let mut edges = Vec::new();
         for i in 0..n {
@@ -248,10 +296,17 @@ mod tests {
                 picked += 1;
             }
         }
-        let result = average_rotations(n, &edges, &RotationAveragingOptions::default()).expect("connected");
+        let result =
+            average_rotations(n, &edges, &RotationAveragingOptions::default()).expect("connected");
         // Compare up to the global gauge: align camera 0.
         let g = truth[0].inverse();
-        let errors: Vec<f64> = (0..n).map(|k| (result.rotations[k].inverse() * truth[k] * g).angle().to_degrees()).collect();
+        let errors: Vec<f64> = (0..n)
+            .map(|k| {
+                (result.rotations[k].inverse() * truth[k] * g)
+                    .angle()
+                    .to_degrees()
+            })
+            .collect();
         let mean = errors.iter().sum::<f64>() / n as f64;
         assert!(mean < 1.0, "mean rotation error {mean} deg");
         // The outliers stand out in the residuals.
@@ -260,7 +315,10 @@ mod tests {
             .zip(&result.edge_residuals)
             .filter(|(e, r)| e.weight < 1.0 && **r > 15f64.to_radians())
             .count();
-        assert!(flagged as f64 > 0.9 * outliers as f64, "{flagged} of {outliers} outliers flagged");
+        assert!(
+            flagged as f64 > 0.9 * outliers as f64,
+            "{flagged} of {outliers} outliers flagged"
+        );
     }
 
     #[test]
@@ -273,7 +331,10 @@ mod tests {
         };
         assert_eq!(
             average_rotations(3, &[e], &RotationAveragingOptions::default()),
-            Err(RotationAveragingError::Disconnected { unreached: 1, cameras: 3 })
+            Err(RotationAveragingError::Disconnected {
+                unreached: 1,
+                cameras: 3
+            })
         );
     }
 }

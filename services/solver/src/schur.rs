@@ -57,7 +57,14 @@ impl SchurSystem {
 
     /// Adds one residual block of `m` rows: `jr` (m x idx.len()) on the reduced parameters
     /// `idx`, `jp` (m x 3) on `point` if any, residual `r`, scalar weight `w` (robust loss).
-    pub fn add(&mut self, idx: &[usize], jr: &DMatrix<f64>, point: Option<(usize, &DMatrix<f64>)>, r: &DVector<f64>, w: f64) {
+    pub fn add(
+        &mut self,
+        idx: &[usize],
+        jr: &DMatrix<f64>,
+        point: Option<(usize, &DMatrix<f64>)>,
+        r: &DVector<f64>,
+        w: f64,
+    ) {
         for (a, &ia) in idx.iter().enumerate() {
             let ja = jr.column(a);
             self.g[ia] += w * ja.dot(r);
@@ -147,15 +154,24 @@ mod tests {
         // Six rows per point (deterministic pseudo-random), so the full system has rank 8.
         let mut seed = 7u64;
         let mut next = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
         };
-        let rows: Vec<(usize, [f64; 2], [f64; 3], f64)> =
-            (0..12).map(|n| (n / 6, [next(), next()], [next(), next(), next()], next())).collect();
+        let rows: Vec<(usize, [f64; 2], [f64; 3], f64)> = (0..12)
+            .map(|n| (n / 6, [next(), next()], [next(), next(), next()], next()))
+            .collect();
         for (k, jr, jp, r) in rows {
             let jr_m = DMatrix::from_row_slice(1, 2, &jr);
             let jp_m = DMatrix::from_row_slice(1, 3, &jp);
-            sys.add(&[0, 1], &jr_m, Some((k, &jp_m)), &DVector::from_element(1, r), 2.0);
+            sys.add(
+                &[0, 1],
+                &jr_m,
+                Some((k, &jp_m)),
+                &DVector::from_element(1, r),
+                2.0,
+            );
             let mut full = DVector::<f64>::zeros(8);
             full[0] = jr[0];
             full[1] = jr[1];

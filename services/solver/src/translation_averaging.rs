@@ -152,8 +152,12 @@ fn weighted_positions(
             }
         }
     }
+    // A weak pull towards the origin (1e-6 of the mean diagonal) keeps a camera that no
+    // constraint reaches solvable instead of failing the window; constrained cameras are
+    // unaffected at this weight.
+    let ridge = 1e-6 * (0..m).map(|d| h[(d, d)]).sum::<f64>() / m.max(1) as f64;
     for d in 0..m {
-        h[(d, d)] += 1e-12;
+        h[(d, d)] += ridge.max(1e-12);
     }
     let chol = h.cholesky()?;
     let sol = chol.solve(&rhs);
@@ -170,11 +174,18 @@ fn weighted_positions(
             x[cams + k] = acc / point_diag[k];
         }
     }
-    x.iter().all(|p| p.iter().all(|v| v.is_finite())).then_some(x)
+    x.iter()
+        .all(|p| p.iter().all(|v| v.is_finite()))
+        .then_some(x)
 }
 
 /// LUD by IRLS: alternate `d = max(1, v.(x_b - x_a))`, weights `1/|e|`, weighted solve.
-fn lud(cams: usize, pts: usize, constraints: &[DirectionConstraint], options: &TranslationAveragingOptions) -> Option<Vec<Vector3<f64>>> {
+fn lud(
+    cams: usize,
+    pts: usize,
+    constraints: &[DirectionConstraint],
+    options: &TranslationAveragingOptions,
+) -> Option<Vec<Vector3<f64>>> {
     let mut weights: Vec<f64> = constraints.iter().map(|c| c.weight).collect();
     let mut scales = vec![1.0; constraints.len()];
     let mut x = weighted_positions(cams, pts, constraints, &weights, &scales)?;
@@ -210,7 +221,13 @@ fn huber_weight(r: f64, k: f64) -> f64 {
 
 /// 1DSfM-style refinement by Levenberg-Marquardt; positions rescaled to their initial
 /// spread after each step (the objective is scale-free).
-fn refine(cams: usize, pts: usize, constraints: &[DirectionConstraint], x: &mut [Vector3<f64>], options: &TranslationAveragingOptions) {
+fn refine(
+    cams: usize,
+    pts: usize,
+    constraints: &[DirectionConstraint],
+    x: &mut [Vector3<f64>],
+    options: &TranslationAveragingOptions,
+) {
     let cost = |x: &[Vector3<f64>]| -> f64 {
         constraints
             .iter()
@@ -218,7 +235,12 @@ fn refine(cams: usize, pts: usize, constraints: &[DirectionConstraint], x: &mut 
                 let (a, b) = endpoints_of(c, cams);
                 let r = direction_residual(&c.direction, &(x[b] - x[a])).0.norm();
                 let k = options.huber;
-                c.weight * if r <= k { 0.5 * r * r } else { k * (r - 0.5 * k) }
+                c.weight
+                    * if r <= k {
+                        0.5 * r * r
+                    } else {
+                        k * (r - 0.5 * k)
+                    }
             })
             .sum()
     };
@@ -260,7 +282,11 @@ fn refine(cams: usize, pts: usize, constraints: &[DirectionConstraint], x: &mut 
         };
         let mut trial = x.to_vec();
         for i in 1..cams {
-            trial[i] += Vector3::new(step.reduced[3 * (i - 1)], step.reduced[3 * (i - 1) + 1], step.reduced[3 * (i - 1) + 2]);
+            trial[i] += Vector3::new(
+                step.reduced[3 * (i - 1)],
+                step.reduced[3 * (i - 1) + 1],
+                step.reduced[3 * (i - 1) + 2],
+            );
         }
         for k in 0..pts {
             trial[cams + k] += step.points[k];
@@ -298,13 +324,17 @@ pub fn average_translations(
             Endpoints::CameraPoint { i, point } => i >= cameras || point >= points,
         };
         if bad {
-            return Err(TranslationAveragingError::BadIndex { camera: a, point: b.saturating_sub(cameras) });
+            return Err(TranslationAveragingError::BadIndex {
+                camera: a,
+                point: b.saturating_sub(cameras),
+            });
         }
     }
     if cameras < 2 {
         return Err(TranslationAveragingError::Underdetermined);
     }
-    let mut x = lud(cameras, points, constraints, options).ok_or(TranslationAveragingError::Underdetermined)?;
+    let mut x = lud(cameras, points, constraints, options)
+        .ok_or(TranslationAveragingError::Underdetermined)?;
     refine(cameras, points, constraints, &mut x, options);
     let residuals = constraints
         .iter()
@@ -330,15 +360,27 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     fn perturb(rng: &mut StdRng, v: Vector3<f64>, sigma: f64) -> Vector3<f64> {
-        let n = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+        let n = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        );
         (v + n * sigma).normalize()
     }
 
     /// Cameras walking straight ahead (z) with a little sway, points in front on both sides.
     fn forward_scene(rng: &mut StdRng) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
-        let centres: Vec<_> = (0..20).map(|i| Vector3::new(0.0, 0.0, 0.25 * i as f64)).collect();
+        let centres: Vec<_> = (0..20)
+            .map(|i| Vector3::new(0.0, 0.0, 0.25 * i as f64))
+            .collect();
         let points: Vec<_> = (0..300)
-            .map(|_| Vector3::new(rng.random_range(-4.0..4.0), rng.random_range(-2.0..2.0), rng.random_range(6.0..20.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-4.0..4.0),
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(6.0..20.0),
+                )
+            })
             .collect();
         (centres, points)
     }
@@ -368,18 +410,38 @@ mod tests {
                 }
             }
         }
-        let result = average_translations(n, points.len(), &constraints, &TranslationAveragingOptions::default()).expect("solved");
+        let result = average_translations(
+            n,
+            points.len(),
+            &constraints,
+            &TranslationAveragingOptions::default(),
+        )
+        .expect("solved");
         let sim = umeyama(&result.centres, &centres).expect("aligned");
         let path = 0.25 * (n - 1) as f64;
-        let worst = result.centres.iter().zip(&centres).map(|(e, t)| (sim.apply(e) - t).norm()).fold(0.0, f64::max);
-        assert!(worst < 0.01 * path, "worst position error {worst} over a {path} path");
+        let worst = result
+            .centres
+            .iter()
+            .zip(&centres)
+            .map(|(e, t)| (sim.apply(e) - t).norm())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 0.01 * path,
+            "worst position error {worst} over a {path} path"
+        );
     }
 
     #[test]
     fn pair_constraints_alone_fix_a_generic_configuration_and_reject_a_wrong_edge() {
         let mut rng = StdRng::seed_from_u64(5);
         let centres: Vec<Vector3<f64>> = (0..8)
-            .map(|_| Vector3::new(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                )
+            })
             .collect();
         let mut constraints = Vec::new();
         for i in 0..8 {
@@ -392,11 +454,16 @@ mod tests {
             }
         }
         constraints[3].direction = -constraints[3].direction; // one flipped edge
-        let result = average_translations(8, 0, &constraints, &TranslationAveragingOptions::default()).expect("solved");
+        let result =
+            average_translations(8, 0, &constraints, &TranslationAveragingOptions::default())
+                .expect("solved");
         let sim = umeyama(&result.centres, &centres).expect("aligned");
         for (e, t) in result.centres.iter().zip(&centres) {
             assert!((sim.apply(e) - t).norm() < 1e-3, "{e:?} vs {t:?}");
         }
-        assert!(result.residuals[3] > 3.0, "the flipped edge stays inconsistent");
+        assert!(
+            result.residuals[3] > 3.0,
+            "the flipped edge stays inconsistent"
+        );
     }
 }

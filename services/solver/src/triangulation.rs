@@ -64,27 +64,45 @@ pub struct TriangulatedPoint {
 }
 
 /// DLT on normalised coordinates.
-fn dlt(camera: &PinholeRadtan, poses: &[CameraPose], observations: &[(usize, Point2<f64>)]) -> Option<Vector3<f64>> {
+fn dlt(
+    camera: &PinholeRadtan,
+    poses: &[CameraPose],
+    observations: &[(usize, Point2<f64>)],
+) -> Option<Vector3<f64>> {
     let mut ata = Matrix4::<f64>::zeros();
     for (cam, px) in observations {
         let pose = &poses[*cam];
         let r = pose.rotation.matrix();
         let t = -(pose.rotation * pose.centre);
         let p = |row: usize| Vector4::new(r[(row, 0)], r[(row, 1)], r[(row, 2)], t[row]);
-        let (x, y) = ((px.x - camera.cx) / camera.fx, (px.y - camera.cy) / camera.fy);
+        let (x, y) = (
+            (px.x - camera.cx) / camera.fx,
+            (px.y - camera.cy) / camera.fy,
+        );
         for row in [x * p(2) - p(0), y * p(2) - p(1)] {
             ata += row * row.transpose();
         }
     }
     let eig = ata.symmetric_eigen();
-    let (idx, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let (idx, _) = eig
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))?;
     let h = eig.eigenvectors.column(idx);
     (h[3].abs() > 1e-12).then(|| Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]))
 }
 
 /// Reprojection error of `x` in an observation, pixels; `None` behind the camera.
-pub fn reprojection_error(camera: &PinholeRadtan, pose: &CameraPose, x: &Vector3<f64>, px: &Point2<f64>) -> Option<f64> {
-    camera.project_undistorted(&pose.to_camera(x)).map(|p| (p - px).norm())
+pub fn reprojection_error(
+    camera: &PinholeRadtan,
+    pose: &CameraPose,
+    x: &Vector3<f64>,
+    px: &Point2<f64>,
+) -> Option<f64> {
+    camera
+        .project_undistorted(&pose.to_camera(x))
+        .map(|p| (p - px).norm())
 }
 
 /// Triangulates one track from `(camera index, undistorted pixel)` observations, dropping
@@ -119,26 +137,43 @@ pub fn triangulate_track(
             break;
         }
         if kept.len() <= 2 {
-            return Err(if kept.iter().any(|&o| poses[observations[o].0].to_camera(&x).z <= 0.0) {
-                TriangulationFailure::Cheirality
-            } else {
-                TriangulationFailure::TooFewViews
-            });
+            return Err(
+                if kept
+                    .iter()
+                    .any(|&o| poses[observations[o].0].to_camera(&x).z <= 0.0)
+                {
+                    TriangulationFailure::Cheirality
+                } else {
+                    TriangulationFailure::TooFewViews
+                },
+            );
         }
         kept.remove(worst);
         let subset: Vec<_> = kept.iter().map(|&o| observations[o]).collect();
         x = dlt(camera, poses, &subset).ok_or(TriangulationFailure::Degenerate)?;
     }
-    if kept.iter().any(|&o| poses[observations[o].0].to_camera(&x).z <= 0.0) {
+    if kept
+        .iter()
+        .any(|&o| poses[observations[o].0].to_camera(&x).z <= 0.0)
+    {
         return Err(TriangulationFailure::Cheirality);
     }
     let min_cos = options.min_angle_deg.to_radians().cos();
-    let rays: Vec<Vector3<f64>> = kept.iter().map(|&o| (x - poses[observations[o].0].centre).normalize()).collect();
-    let wide_enough = rays.iter().enumerate().any(|(a, ra)| rays[a + 1..].iter().any(|rb| ra.dot(rb) < min_cos));
+    let rays: Vec<Vector3<f64>> = kept
+        .iter()
+        .map(|&o| (x - poses[observations[o].0].centre).normalize())
+        .collect();
+    let wide_enough = rays
+        .iter()
+        .enumerate()
+        .any(|(a, ra)| rays[a + 1..].iter().any(|rb| ra.dot(rb) < min_cos));
     if !wide_enough {
         return Err(TriangulationFailure::LowAngle);
     }
-    Ok(TriangulatedPoint { position: x, inliers: kept })
+    Ok(TriangulatedPoint {
+        position: x,
+        inliers: kept,
+    })
 }
 
 #[cfg(test)]
@@ -163,7 +198,12 @@ mod tests {
         poses()
             .iter()
             .enumerate()
-            .map(|(i, p)| (i, cam.project_undistorted(&p.to_camera(x)).expect("in front")))
+            .map(|(i, p)| {
+                (
+                    i,
+                    cam.project_undistorted(&p.to_camera(x)).expect("in front"),
+                )
+            })
             .collect()
     }
 
@@ -171,10 +211,12 @@ mod tests {
     fn exact_point_and_outlier_observation_removed() {
         let x = Vector3::new(0.5, -0.2, 5.0);
         let mut obs = observe(&x);
-        let p = triangulate_track(&camera(), &poses(), &obs, &TriangulationOptions::default()).expect("ok");
+        let p = triangulate_track(&camera(), &poses(), &obs, &TriangulationOptions::default())
+            .expect("ok");
         assert!((p.position - x).norm() < 1e-9);
         obs[2].1.x += 30.0;
-        let p = triangulate_track(&camera(), &poses(), &obs, &TriangulationOptions::default()).expect("ok");
+        let p = triangulate_track(&camera(), &poses(), &obs, &TriangulationOptions::default())
+            .expect("ok");
         assert_eq!(p.inliers, vec![0, 1, 3]);
         assert!((p.position - x).norm() < 1e-6);
     }
@@ -188,7 +230,12 @@ mod tests {
             Err(TriangulationFailure::LowAngle)
         );
         assert_eq!(
-            triangulate_track(&camera(), &poses(), &obs[..1], &TriangulationOptions::default()),
+            triangulate_track(
+                &camera(),
+                &poses(),
+                &obs[..1],
+                &TriangulationOptions::default()
+            ),
             Err(TriangulationFailure::TooFewViews)
         );
     }

@@ -4,17 +4,20 @@
 //! the last L keyframes that still share enough tracks tie the window together, so that a
 //! single bad pairwise estimate cannot bend the whole window.
 
-use crate::relative_pose::{estimate_relative_pose, RelativePose, RelativePoseError, RelativePoseOptions};
+use crate::relative_pose::{
+    estimate_relative_pose, RelativePose, RelativePoseError, RelativePoseOptions,
+};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::Point2;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
-/// The tracks of one keyframe: track id -> undistorted pixel.
+/// The tracks of one keyframe: track id -> undistorted pixel (ordered, so that RANSAC sees
+/// the same correspondences in the same order on every run).
 #[derive(Debug, Clone, PartialEq)]
 pub struct KeyframeObservations {
     pub id: u64,
     pub timestamp: f64,
-    pub tracks: HashMap<u64, Point2<f64>>,
+    pub tracks: BTreeMap<u64, Point2<f64>>,
 }
 
 /// Options of the graph.

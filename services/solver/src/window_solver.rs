@@ -4,12 +4,14 @@
 
 use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions, Observation};
 use crate::rotation_averaging::{average_rotations, RelativeRotation, RotationAveragingOptions};
-use crate::translation_averaging::{average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions};
+use crate::translation_averaging::{
+    average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions,
+};
 use crate::triangulation::{triangulate_track, CameraPose, TriangulationOptions};
 use crate::view_graph::{build_view_graph, EdgeCache, KeyframeObservations, ViewGraphOptions};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Point2, Rotation3, Vector3};
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 /// All estimator options of a window solve.
@@ -102,7 +104,11 @@ impl WindowSolution {
     }
 }
 
-fn timed<T>(timings: &mut Vec<(&'static str, f64)>, stage: &'static str, f: impl FnOnce() -> T) -> T {
+fn timed<T>(
+    timings: &mut Vec<(&'static str, f64)>,
+    stage: &'static str,
+    f: impl FnOnce() -> T,
+) -> T {
     let _span = tracing::debug_span!("window_stage", stage).entered();
     let start = Instant::now();
     let out = f();
@@ -110,18 +116,58 @@ fn timed<T>(timings: &mut Vec<(&'static str, f64)>, stage: &'static str, f: impl
     out
 }
 
+/// Tracks for translation averaging: the longest first, but every keyframe gets at least a
+/// share of its own (a keyframe no selected track reaches would be left unconstrained).
+fn select_averaging_tracks<'t>(
+    tracks: &'t BTreeMap<u64, Vec<(usize, Point2<f64>)>>,
+    keyframes: usize,
+    options: &WindowSolverOptions,
+) -> Vec<(&'t u64, &'t Vec<(usize, Point2<f64>)>)> {
+    let mut long: Vec<(&u64, &Vec<(usize, Point2<f64>)>)> = tracks
+        .iter()
+        .filter(|(_, o)| o.len() >= options.min_track_views)
+        .collect();
+    long.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(b.0)));
+    let per_keyframe = options.max_averaging_tracks / keyframes.max(1) / 2;
+    let mut coverage = vec![0usize; keyframes];
+    let mut chosen = Vec::new();
+    let mut rest = Vec::new();
+    for t in long {
+        if chosen.len() < options.max_averaging_tracks / 2
+            || t.1.iter().any(|(k, _)| coverage[*k] < per_keyframe)
+        {
+            for (k, _) in t.1 {
+                coverage[*k] += 1;
+            }
+            chosen.push(t);
+        } else {
+            rest.push(t);
+        }
+    }
+    let room = options.max_averaging_tracks.saturating_sub(chosen.len());
+    chosen.extend(rest.into_iter().take(room));
+    chosen
+}
+
 fn bearing(camera: &PinholeRadtan, p: &Point2<f64>) -> Vector3<f64> {
     camera.bearing_from_undistorted(*p)
 }
 
 /// Solves one window; never panics on data, reports failure in the status instead.
-pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], options: &WindowSolverOptions, cache: &mut EdgeCache) -> WindowSolution {
+pub fn solve_window(
+    camera: &PinholeRadtan,
+    keyframes: &[KeyframeObservations],
+    options: &WindowSolverOptions,
+    cache: &mut EdgeCache,
+) -> WindowSolution {
     let mut timings = Vec::new();
     let n = keyframes.len();
     if n < 2 {
         return WindowSolution::failed(format!("{n} keyframe(s): nothing to solve"), timings, 0);
     }
-    let (edges, failures) = timed(&mut timings, "relative_poses", || build_view_graph(camera, keyframes, &options.view_graph, cache));
+    let (edges, failures) = timed(&mut timings, "relative_poses", || {
+        build_view_graph(camera, keyframes, &options.view_graph, cache)
+    });
     for (i, j, e) in &failures {
         tracing::debug!(i, j, %e, "no edge");
     }
@@ -134,9 +180,13 @@ pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], 
             weight: e.pose.inliers as f64,
         })
         .collect();
-    let rotations = match timed(&mut timings, "rotation_averaging", || average_rotations(n, &rel, &options.rotation)) {
+    let rotations = match timed(&mut timings, "rotation_averaging", || {
+        average_rotations(n, &rel, &options.rotation)
+    }) {
         Ok(r) => r,
-        Err(e) => return WindowSolution::failed(format!("rotation averaging: {e}"), timings, edges.len()),
+        Err(e) => {
+            return WindowSolution::failed(format!("rotation averaging: {e}"), timings, edges.len())
+        }
     };
     let max_residual = options.max_edge_rotation_residual_deg.to_radians();
     let translation_edges: Vec<_> = edges
@@ -147,7 +197,13 @@ pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], 
         .collect();
     let rot = &rotations.rotations;
     if translation_edges.is_empty() {
-        let poses = rot.iter().map(|r| CameraPose { rotation: *r, centre: Vector3::zeros() }).collect();
+        let poses = rot
+            .iter()
+            .map(|r| CameraPose {
+                rotation: *r,
+                centre: Vector3::zeros(),
+            })
+            .collect();
         return WindowSolution {
             status: WindowStatus::RotationOnly,
             poses,
@@ -162,15 +218,13 @@ pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], 
     }
 
     // Tracks of the window: track id -> [(keyframe index, pixel)].
-    let mut tracks: HashMap<u64, Vec<(usize, Point2<f64>)>> = HashMap::new();
+    let mut tracks: BTreeMap<u64, Vec<(usize, Point2<f64>)>> = BTreeMap::new();
     for (k, kf) in keyframes.iter().enumerate() {
         for (id, p) in &kf.tracks {
             tracks.entry(*id).or_default().push((k, *p));
         }
     }
-    let mut long: Vec<(&u64, &Vec<(usize, Point2<f64>)>)> = tracks.iter().filter(|(_, o)| o.len() >= options.min_track_views).collect();
-    long.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(b.0)));
-    long.truncate(options.max_averaging_tracks);
+    let long = select_averaging_tracks(&tracks, n, options);
 
     let mut constraints: Vec<DirectionConstraint> = translation_edges
         .iter()
@@ -189,14 +243,48 @@ pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], 
             });
         }
     }
-    let averaged = match timed(&mut timings, "translation_averaging", || average_translations(n, long.len(), &constraints, &options.translation)) {
+    let averaged = match timed(&mut timings, "translation_averaging", || {
+        average_translations(n, long.len(), &constraints, &options.translation)
+    }) {
         Ok(r) => r,
-        Err(e) => return WindowSolution::failed(format!("translation averaging: {e}"), timings, edges.len()),
+        Err(e) => {
+            // The rotations are still good: keep them rather than break the map.
+            tracing::warn!(%e, "translation averaging failed; window kept as rotation only");
+            let poses = rot
+                .iter()
+                .map(|r| CameraPose {
+                    rotation: *r,
+                    centre: Vector3::zeros(),
+                })
+                .collect();
+            return WindowSolution {
+                status: WindowStatus::RotationOnly,
+                poses,
+                points: Vec::new(),
+                observations: Vec::new(),
+                outlier_observations: 0,
+                rmse_px: 0.0,
+                edges: edges.len(),
+                translation_edges: translation_edges.len(),
+                timings_ms: timings,
+            };
+        }
     };
-    let poses: Vec<CameraPose> = rot.iter().zip(&averaged.centres).map(|(r, c)| CameraPose { rotation: *r, centre: *c }).collect();
+    let poses: Vec<CameraPose> = rot
+        .iter()
+        .zip(&averaged.centres)
+        .map(|(r, c)| CameraPose {
+            rotation: *r,
+            centre: *c,
+        })
+        .collect();
 
     // Triangulate every track seen twice or more.
-    let mut ids: Vec<u64> = tracks.iter().filter(|(_, o)| o.len() >= 2).map(|(id, _)| *id).collect();
+    let mut ids: Vec<u64> = tracks
+        .iter()
+        .filter(|(_, o)| o.len() >= 2)
+        .map(|(id, _)| *id)
+        .collect();
     ids.sort_unstable();
     let (points, observations) = timed(&mut timings, "triangulation", || {
         let mut points: Vec<(u64, Vector3<f64>)> = Vec::new();
@@ -231,9 +319,19 @@ pub fn solve_window(camera: &PinholeRadtan, keyframes: &[KeyframeObservations], 
         };
     }
     let positions: Vec<Vector3<f64>> = points.iter().map(|p| p.1).collect();
-    let adjusted = match timed(&mut timings, "bundle_adjustment", || bundle_adjust(camera, &poses, &positions, &observations, &options.bundle_adjustment)) {
+    let adjusted = match timed(&mut timings, "bundle_adjustment", || {
+        bundle_adjust(
+            camera,
+            &poses,
+            &positions,
+            &observations,
+            &options.bundle_adjustment,
+        )
+    }) {
         Ok(r) => r,
-        Err(e) => return WindowSolution::failed(format!("bundle adjustment: {e}"), timings, edges.len()),
+        Err(e) => {
+            return WindowSolution::failed(format!("bundle adjustment: {e}"), timings, edges.len())
+        }
     };
     let mut counts = vec![0u32; points.len()];
     let mut kept = Vec::with_capacity(observations.len());
@@ -286,29 +384,45 @@ mod tests {
     }
 
     /// A head walking forward and looking around, 20 keyframes, tracks with 1 px noise.
-    fn synthetic_window(rng: &mut StdRng) -> (PinholeRadtan, Vec<CameraPose>, Vec<KeyframeObservations>) {
-        let camera = PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+    fn synthetic_window(
+        rng: &mut StdRng,
+    ) -> (PinholeRadtan, Vec<CameraPose>, Vec<KeyframeObservations>) {
+        let camera =
+            PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
         let poses: Vec<CameraPose> = (0..20)
             .map(|i| {
                 let t = i as f64;
                 CameraPose {
-                    rotation: Rotation3::from_euler_angles(0.03 * (0.7 * t).sin(), 0.12 * (0.3 * t).sin(), 0.02 * t.cos()),
+                    rotation: Rotation3::from_euler_angles(
+                        0.03 * (0.7 * t).sin(),
+                        0.12 * (0.3 * t).sin(),
+                        0.02 * t.cos(),
+                    ),
                     centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
                 }
             })
             .collect();
         let points: Vec<Vector3<f64>> = (0..1500)
-            .map(|_| Vector3::new(rng.random_range(-6.0..6.0), rng.random_range(-3.0..3.0), rng.random_range(3.0..15.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-6.0..6.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(3.0..15.0),
+                )
+            })
             .collect();
         let keyframes = poses
             .iter()
             .enumerate()
             .map(|(k, pose)| {
-                let mut tracks = HashMap::new();
+                let mut tracks = BTreeMap::new();
                 for (id, x) in points.iter().enumerate() {
                     if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
                         if camera.contains(p) {
-                            tracks.insert(id as u64, Point2::new(p.x + gaussian(rng), p.y + gaussian(rng)));
+                            tracks.insert(
+                                id as u64,
+                                Point2::new(p.x + gaussian(rng), p.y + gaussian(rng)),
+                            );
                         }
                     }
                 }
@@ -326,18 +440,45 @@ mod tests {
     fn whole_window_from_noisy_tracks_is_accurate() {
         let mut rng = StdRng::seed_from_u64(21);
         let (camera, truth, keyframes) = synthetic_window(&mut rng);
-        let solution = solve_window(&camera, &keyframes, &WindowSolverOptions::default(), &mut EdgeCache::new());
+        let solution = solve_window(
+            &camera,
+            &keyframes,
+            &WindowSolverOptions::default(),
+            &mut EdgeCache::new(),
+        );
         assert_eq!(solution.status, WindowStatus::Solved);
         let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
         let tru: Vec<_> = truth.iter().map(|p| p.centre).collect();
         let sim = umeyama(&est, &tru).expect("aligned");
-        let rmse = (est.iter().zip(&tru).map(|(e, t)| (sim.apply(e) - t).norm_squared()).sum::<f64>() / est.len() as f64).sqrt();
+        let rmse = (est
+            .iter()
+            .zip(&tru)
+            .map(|(e, t)| (sim.apply(e) - t).norm_squared())
+            .sum::<f64>()
+            / est.len() as f64)
+            .sqrt();
         let path: f64 = tru.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
-        assert!(rmse < 0.005 * path, "keyframe ATE {rmse} over a {path} path");
-        assert!(solution.rmse_px < 1.1, "reprojection {} px", solution.rmse_px);
+        assert!(
+            rmse < 0.005 * path,
+            "keyframe ATE {rmse} over a {path} path"
+        );
+        assert!(
+            solution.rmse_px < 1.1,
+            "reprojection {} px",
+            solution.rmse_px
+        );
         assert!(solution.points.len() > 500);
         let stages: Vec<_> = solution.timings_ms.iter().map(|t| t.0).collect();
-        assert_eq!(stages, ["relative_poses", "rotation_averaging", "translation_averaging", "triangulation", "bundle_adjustment"]);
+        assert_eq!(
+            stages,
+            [
+                "relative_poses",
+                "rotation_averaging",
+                "translation_averaging",
+                "triangulation",
+                "bundle_adjustment"
+            ]
+        );
     }
 
     #[test]
@@ -348,7 +489,13 @@ mod tests {
             p.centre = Vector3::zeros();
         }
         let points: Vec<Vector3<f64>> = (0..800)
-            .map(|_| Vector3::new(rng.random_range(-6.0..6.0), rng.random_range(-3.0..3.0), rng.random_range(3.0..15.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-6.0..6.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(3.0..15.0),
+                )
+            })
             .collect();
         let keyframes: Vec<KeyframeObservations> = truth
             .iter()
@@ -361,12 +508,25 @@ mod tests {
                     .enumerate()
                     .filter_map(|(id, x)| {
                         let p = camera.project_undistorted(&pose.to_camera(x))?;
-                        camera.contains(p).then(|| (id as u64, Point2::new(p.x + 0.5 * gaussian(&mut rng), p.y + 0.5 * gaussian(&mut rng))))
+                        camera.contains(p).then(|| {
+                            (
+                                id as u64,
+                                Point2::new(
+                                    p.x + 0.5 * gaussian(&mut rng),
+                                    p.y + 0.5 * gaussian(&mut rng),
+                                ),
+                            )
+                        })
                     })
                     .collect(),
             })
             .collect();
-        let solution = solve_window(&camera, &keyframes, &WindowSolverOptions::default(), &mut EdgeCache::new());
+        let solution = solve_window(
+            &camera,
+            &keyframes,
+            &WindowSolverOptions::default(),
+            &mut EdgeCache::new(),
+        );
         assert_eq!(solution.status, WindowStatus::RotationOnly);
         for (est, tru) in solution.poses.iter().zip(&truth) {
             // Camera 0 is the identity in the window frame.
@@ -374,7 +534,12 @@ mod tests {
             assert!(est.rotation.angle_to(&expected) < 0.2f64.to_radians());
             assert_eq!(est.centre, Vector3::zeros());
         }
-        let one = solve_window(&camera, &keyframes[..1], &WindowSolverOptions::default(), &mut EdgeCache::new());
+        let one = solve_window(
+            &camera,
+            &keyframes[..1],
+            &WindowSolverOptions::default(),
+            &mut EdgeCache::new(),
+        );
         assert!(matches!(one.status, WindowStatus::Failed(_)));
     }
 }

@@ -1,0 +1,88 @@
+//! Developer tool: re-solves windows dumped by the solver service
+//! (`EGOSLAM_DUMP_WINDOWS=DIR egoslam run ...`) and prints each window's keyframe accuracy
+//! against ground truth, so estimator changes can be judged without the whole pipeline.
+//!
+//! `cargo run --example solve_window -- DIR GROUND_TRUTH`
+
+use egoslam_geometry::{absolute_trajectory_error, PinholeRadtan, StampedPose};
+use egoslam_messages::v1 as pb;
+use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
+use egoslam_solver::window_solver::{solve_window, WindowSolverOptions};
+use nalgebra::{Point2, UnitQuaternion};
+use prost::Message;
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    anyhow::ensure!(args.len() == 3, "usage: solve_window DUMP_DIR GROUND_TRUTH");
+    let gt = egoslam_sources::load_ground_truth(std::path::Path::new(&args[2]))?;
+    let mut files: Vec<_> = std::fs::read_dir(&args[1])?
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .collect();
+    files.sort();
+    let mut cache = EdgeCache::new();
+    for file in files {
+        let bytes = std::fs::read(&file)?;
+        let mut buf = bytes.as_slice();
+        let mut kfs = Vec::new();
+        while !buf.is_empty() {
+            kfs.push(pb::Keyframe::decode_length_delimited(&mut buf)?);
+        }
+        let i = kfs[0].intrinsics.clone().unwrap_or_default();
+        let camera = PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5])?;
+        let obs: Vec<KeyframeObservations> = kfs
+            .iter()
+            .map(|k| KeyframeObservations {
+                id: k.keyframe_id,
+                timestamp: k.timestamp_s,
+                tracks: k
+                    .tracks
+                    .iter()
+                    .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+                    .collect(),
+            })
+            .collect();
+        let s = solve_window(&camera, &obs, &WindowSolverOptions::default(), &mut cache);
+        let finite = s.poses.iter().all(|p| {
+            p.centre
+                .iter()
+                .chain(p.rotation.matrix().iter())
+                .all(|v| v.is_finite())
+        });
+        if !finite {
+            println!("{}: non-finite poses", file.display());
+        }
+        let est: Vec<StampedPose> = kfs
+            .iter()
+            .zip(&s.poses)
+            .map(|(k, p)| StampedPose {
+                timestamp: k.timestamp_s,
+                position: p.centre,
+                rotation: UnitQuaternion::from_rotation_matrix(&p.rotation.inverse()),
+            })
+            .collect();
+        let ate = absolute_trajectory_error(&est, &gt.poses, 0.02);
+        let timings: Vec<String> = s
+            .timings_ms
+            .iter()
+            .map(|(st, ms)| format!("{st} {ms:.0}"))
+            .collect();
+        match ate {
+            Ok(r) => println!(
+                "{}: {:?} edges {} (t {}) points {} rmse {:.2}px | ATE {:.4} m of {:.3} m path ({:.1}%) | {}",
+                file.display(),
+                s.status,
+                s.edges,
+                s.translation_edges,
+                s.points.len(),
+                s.rmse_px,
+                r.rmse,
+                r.gt_path_length,
+                100.0 * r.rmse / r.gt_path_length.max(1e-9),
+                timings.join(", ")
+            ),
+            Err(e) => println!("{}: {:?} ({e})", file.display(), s.status),
+        }
+    }
+    Ok(())
+}
