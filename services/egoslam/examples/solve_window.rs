@@ -28,6 +28,9 @@ fn main() -> anyhow::Result<()> {
         while !buf.is_empty() {
             kfs.push(pb::Keyframe::decode_length_delimited(&mut buf)?);
         }
+        if std::env::var_os("SKIP_FIRST").is_some() {
+            kfs.remove(0);
+        }
         let i = kfs[0].intrinsics.clone().unwrap_or_default();
         let camera = PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5])?;
         let obs: Vec<KeyframeObservations> = kfs
@@ -67,6 +70,28 @@ fn main() -> anyhow::Result<()> {
             .iter()
             .map(|(st, ms)| format!("{st} {ms:.0}"))
             .collect();
+        if std::env::var_os("PER_KEYFRAME").is_some() {
+            if let Ok(r) = &ate {
+                for (k, e) in est.iter().enumerate() {
+                    let g = gt.poses.iter().min_by(|a, b| {
+                        (a.timestamp - e.timestamp)
+                            .abs()
+                            .total_cmp(&(b.timestamp - e.timestamp).abs())
+                    });
+                    if let Some(g) = g {
+                        let err = (r.alignment.apply(&e.position) - g.position).norm();
+                        let kf = &kfs[k];
+                        println!(
+                            "  kf {} t {:.2} tracks {} err {:.3}",
+                            kf.keyframe_id,
+                            kf.timestamp_s,
+                            kf.tracks.len(),
+                            err
+                        );
+                    }
+                }
+            }
+        }
         match ate {
             Ok(r) => println!(
                 "{}: {:?} edges {} (t {}) points {} rmse {:.2}px | ATE {:.4} m of {:.3} m path ({:.1}%) | {}",

@@ -51,6 +51,11 @@ pub struct PipelineArgs {
     /// O: keyframes shared by consecutive windows.
     #[arg(long, default_value_t = 5)]
     pub overlap: usize,
+    /// Keyframes the merger refines jointly after each window (0: off, the default: on
+    /// tum_fr1_rpy it changes nothing, on kitti_odometry_00 it made ATE worse, see
+    /// docs/benchmarks.md).
+    #[arg(long, default_value_t = 0)]
+    pub refine_keyframes: usize,
 }
 
 #[derive(Args, Debug)]

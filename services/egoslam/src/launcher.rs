@@ -29,6 +29,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--tracks={}", p.tracks),
         format!("--window={}", p.window),
         format!("--overlap={}", p.overlap),
+        format!("--refine-keyframes={}", p.refine_keyframes),
     ]
 }
 

@@ -9,9 +9,12 @@ use crate::output::{ply_text, tum_text, write_atomically};
 use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
-use egoslam_geometry::StampedPose;
-use egoslam_merger::{interpolate_frames, MapBuilder, WindowInput, WindowOutcome};
+use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_merger::{
+    interpolate_frames, MapBuilder, RefinementOptions, WindowInput, WindowOutcome,
+};
 use egoslam_messages::v1 as pb;
+use nalgebra::Point2;
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -110,6 +113,17 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                     .iter()
                     .map(|p| (p.track_id, vec3_from_pb(&p.position)))
                     .collect(),
+                observations: w
+                    .observations
+                    .iter()
+                    .map(|o| {
+                        (
+                            o.keyframe_id,
+                            o.track_id,
+                            Point2::new(f64::from(o.x), f64::from(o.y)),
+                        )
+                    })
+                    .collect(),
             };
             let outcome = stats.time("align", || map.add_window(&input));
             match outcome {
@@ -126,7 +140,28 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                         residual,
                         scale = transform.scale,
                         "window aligned"
-                    )
+                    );
+                    let camera = w.intrinsics.as_ref().and_then(|i| {
+                        PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5])
+                            .ok()
+                    });
+                    let refine = RefinementOptions {
+                        keyframes: args.pipeline.refine_keyframes,
+                        ..RefinementOptions::default()
+                    };
+                    if let (Some(camera), true) = (camera, refine.keyframes > 0) {
+                        let refined = stats.time("refine", || map.refine_recent(&camera, &refine));
+                        if let Some(r) = refined {
+                            tracing::info!(
+                                window = w.window_id,
+                                keyframes = r.keyframes,
+                                points = r.points,
+                                rmse_px = r.rmse_px,
+                                outliers = r.outliers,
+                                "recent keyframes refined"
+                            );
+                        }
+                    }
                 }
             }
         } else {

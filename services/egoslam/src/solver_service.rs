@@ -151,6 +151,10 @@ fn solve(
         keyframes: kfs.iter().map(stamp).collect(),
         end_of_stream: false,
         trailing_frames: Vec::new(),
+        intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
+            distortion: Vec::new(),
+            ..i
+        }),
     })
 }
 

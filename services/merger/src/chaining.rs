@@ -11,6 +11,8 @@ pub struct WindowInput {
     pub poses: Vec<(u64, StampedPose)>,
     /// `(track id, position in the window's frame)`.
     pub points: Vec<(u64, Vector3<f64>)>,
+    /// Inlier observations `(keyframe id, track id, undistorted pixel)`.
+    pub observations: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
 /// What happened to a window.
@@ -31,10 +33,13 @@ pub enum WindowOutcome {
 #[derive(Debug, Default)]
 pub struct MapBuilder {
     /// keyframe id -> (segment, pose in the segment's frame).
-    keyframes: BTreeMap<u64, (u32, StampedPose)>,
+    pub(crate) keyframes: BTreeMap<u64, (u32, StampedPose)>,
     /// track id -> (segment, position).
-    points: BTreeMap<u64, (u32, Vector3<f64>)>,
-    current_segment: Option<u32>,
+    pub(crate) points: BTreeMap<u64, (u32, Vector3<f64>)>,
+    /// (keyframe id, track id) -> undistorted pixel: every inlier observation of the
+    /// windows, kept for the joint refinement of recent keyframes.
+    pub(crate) observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
+    pub(crate) current_segment: Option<u32>,
     segments: u32,
 }
 
@@ -55,12 +60,24 @@ fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
     }
 }
 
-/// Similarity mapping window poses onto map poses of the same keyframes. The rotation comes
-/// from the camera orientations (well determined even under pure rotation, the egocentric
-/// case where the centres barely move); scale and translation from the centres given that
-/// rotation (Umeyama 1991 with the rotation fixed). With no spread in the centres, the scale
-/// is kept at 1.
-pub fn align_shared(window: &[StampedPose], map: &[StampedPose]) -> (Similarity, f64) {
+/// Fewest shared points for the point-based scale (below, the centres are used).
+const MIN_SHARED_POINTS: usize = 10;
+
+/// Similarity mapping a window onto the map from what they share.
+///
+/// The rotation comes from the shared keyframes' orientations (well determined even under
+/// pure rotation, the egocentric case where the centres barely move). The scale comes from
+/// the shared points when there are enough: the median over points and shared keyframes of
+/// the ratio of camera-to-point distances, map over window; points sit metres away while a
+/// window's baselines are centimetres, so this ratio is far better conditioned than one from
+/// the centres. Otherwise (rotation-only windows have no points) the scale comes from the
+/// centres given the rotation (Umeyama 1991 with the rotation fixed), or stays 1 when they
+/// have no spread. The translation then maps the centroid of the shared centres.
+pub fn align_shared(
+    window: &[StampedPose],
+    map: &[StampedPose],
+    shared_points: &[(Vector3<f64>, Vector3<f64>)],
+) -> (Similarity, f64) {
     let rel: Vec<Rotation3<f64>> = window
         .iter()
         .zip(map)
@@ -70,17 +87,33 @@ pub fn align_shared(window: &[StampedPose], map: &[StampedPose]) -> (Similarity,
     let n = window.len() as f64;
     let mu_w = window.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
     let mu_m = map.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
-    let (mut num, mut den, mut map_spread) = (0.0, 0.0, 0.0);
-    for (w, m) in window.iter().zip(map) {
-        let rw = rotation * (w.position - mu_w);
-        num += (m.position - mu_m).dot(&rw);
-        den += rw.norm_squared();
-        map_spread += (m.position - mu_m).norm_squared();
+    let mut ratios: Vec<f64> = Vec::new();
+    if shared_points.len() >= MIN_SHARED_POINTS {
+        for (w, m) in window.iter().zip(map) {
+            for (xw, xm) in shared_points {
+                let (dw, dm) = ((xw - w.position).norm(), (xm - m.position).norm());
+                if dw > 1e-12 && dm > 1e-12 {
+                    ratios.push(dm / dw);
+                }
+            }
+        }
     }
-    let scale = if den > 1e-18 && map_spread > 1e-18 && num > 0.0 {
-        num / den
+    let scale = if !ratios.is_empty() {
+        let mid = ratios.len() / 2;
+        *ratios.select_nth_unstable_by(mid, f64::total_cmp).1
     } else {
-        1.0
+        let (mut num, mut den, mut map_spread) = (0.0, 0.0, 0.0);
+        for (w, m) in window.iter().zip(map) {
+            let rw = rotation * (w.position - mu_w);
+            num += (m.position - mu_m).dot(&rw);
+            den += rw.norm_squared();
+            map_spread += (m.position - mu_m).norm_squared();
+        }
+        if den > 1e-18 && map_spread > 1e-18 && num > 0.0 {
+            num / den
+        } else {
+            1.0
+        }
     };
     let translation = mu_m - scale * (rotation * mu_w);
     let transform = Similarity {
@@ -132,7 +165,15 @@ impl MapBuilder {
         let (segment, transform, outcome) = match segment {
             Some(seg) if shared.len() >= 2 => {
                 let (w, m): (Vec<_>, Vec<_>) = shared.into_iter().unzip();
-                let (transform, residual) = align_shared(&w, &m);
+                let shared_points: Vec<(Vector3<f64>, Vector3<f64>)> = window
+                    .points
+                    .iter()
+                    .filter_map(|(track, x)| match self.points.get(track) {
+                        Some((s, xm)) if *s == seg => Some((*x, *xm)),
+                        _ => None,
+                    })
+                    .collect();
+                let (transform, residual) = align_shared(&w, &m, &shared_points);
                 (
                     seg,
                     transform,
@@ -164,7 +205,14 @@ impl MapBuilder {
             }
         }
         for (track, x) in &window.points {
-            self.points.insert(*track, (segment, transform.apply(x)));
+            // Points already in the map keep their (refined) position; new ones come in.
+            let known = matches!(self.points.get(track), Some((s, _)) if *s == segment);
+            if !known {
+                self.points.insert(*track, (segment, transform.apply(x)));
+            }
+        }
+        for (kf, track, px) in &window.observations {
+            self.observations.insert((*kf, *track), *px);
         }
         outcome
     }
@@ -212,6 +260,7 @@ mod tests {
         let first = WindowInput {
             poses: (0..10).map(|i| (i as u64, truth[i])).collect(),
             points: vec![(7, Vector3::new(1.0, 2.0, 3.0))],
+            observations: vec![],
         };
         assert_eq!(
             map.add_window(&first),
@@ -228,6 +277,7 @@ mod tests {
                 .map(|i| (i as u64, transform_pose(&g, &truth[i])))
                 .collect(),
             points: vec![(8, g.apply(&Vector3::new(-1.0, 0.5, 4.0)))],
+            observations: vec![],
         };
         match map.add_window(&second) {
             WindowOutcome::Aligned { residual, .. } => assert!(residual < 1e-9),
@@ -271,6 +321,7 @@ mod rotation_only_tests {
                 })
                 .collect(),
             points: vec![],
+            observations: vec![],
         };
         map.add_window(&moving);
         let still = WindowInput {
@@ -291,11 +342,13 @@ mod rotation_only_tests {
                 })
                 .collect(),
             points: vec![],
+            observations: vec![],
         };
         map.add_window(&still);
         map.add_window(&WindowInput {
             poses: still.poses.iter().map(|(i, p)| (i + 5, *p)).collect(),
             points: vec![],
+            observations: vec![],
         });
         for (id, _, p) in map.keyframes() {
             assert!(p.position.iter().all(|v| v.is_finite()), "kf {id} {p:?}");

@@ -4,6 +4,8 @@
 
 pub mod chaining;
 pub mod interpolation;
+pub mod refinement;
 
 pub use chaining::{MapBuilder, WindowInput, WindowOutcome};
 pub use interpolation::interpolate_frames;
+pub use refinement::{RefinementOptions, RefinementReport};

@@ -36,16 +36,20 @@ pub struct BundleAdjustmentOptions {
     pub refine_intrinsics: bool,
     /// Stop when the relative cost decrease falls below this (default 1e-6).
     pub tolerance: f64,
+    /// Leading cameras held fixed (default 1: camera 0 fixes rotation and translation; the
+    /// merger fixes the keyframes it shares with the settled map, which also fixes scale).
+    pub fixed_cameras: usize,
 }
 
 impl Default for BundleAdjustmentOptions {
     fn default() -> Self {
         Self {
-            max_iterations: 30,
+            max_iterations: 100,
             huber_px: 2.0,
             outlier_px: 4.0,
             refine_intrinsics: false,
             tolerance: 1e-6,
+            fixed_cameras: 1,
         }
     }
 }
@@ -171,8 +175,9 @@ fn levenberg_marquardt(
 ) -> (bool, usize) {
     let cams = st.poses.len();
     let globals = if options.refine_intrinsics { 2 } else { 0 };
-    let reduced = 6 * (cams - 1) + globals;
-    let g0 = 6 * (cams - 1);
+    let fixed = options.fixed_cameras.clamp(1, cams);
+    let reduced = 6 * (cams - fixed) + globals;
+    let g0 = 6 * (cams - fixed);
     let mut lambda = 1e-4;
     let mut current = cost(camera, st, obs, active, options.huber_px);
     for iteration in 0..options.max_iterations {
@@ -193,8 +198,8 @@ fn levenberg_marquardt(
             let j_x = j_pc * r_mat;
             idx.clear();
             let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
-            if o.camera != 0 {
-                let base = 6 * (o.camera - 1);
+            if o.camera >= fixed {
+                let base = 6 * (o.camera - fixed);
                 for d in 0..3 {
                     idx.push(base + d);
                     cols.push(j_rot.column(d).into_owned());
@@ -230,8 +235,8 @@ fn levenberg_marquardt(
                 focal_scale: st.focal_scale,
                 radial_k: st.radial_k,
             };
-            for c in 1..cams {
-                let b = 6 * (c - 1);
+            for c in fixed..cams {
+                let b = 6 * (c - fixed);
                 let dr = Vector3::new(step.reduced[b], step.reduced[b + 1], step.reduced[b + 2]);
                 let dc = Vector3::new(
                     step.reduced[b + 3],
@@ -270,7 +275,8 @@ fn levenberg_marquardt(
     (false, options.max_iterations)
 }
 
-/// Bundle adjustment with outlier removal; see the module doc. `poses[0]` stays fixed.
+/// Bundle adjustment with outlier removal; see the module doc. The first
+/// `options.fixed_cameras` poses stay fixed.
 pub fn bundle_adjust(
     camera: &PinholeRadtan,
     poses: &[CameraPose],
