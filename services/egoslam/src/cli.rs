@@ -45,6 +45,9 @@ pub struct PipelineArgs {
     /// Tracks kept alive by the frontend.
     #[arg(long, default_value_t = 1000)]
     pub tracks: usize,
+    /// Lucas-Kanade window side, pixels (odd; larger is slower and smoother).
+    #[arg(long, default_value_t = 9)]
+    pub lk_window: i32,
     /// K: keyframes per window (10-30).
     #[arg(long, default_value_t = 20)]
     pub window: usize,

@@ -27,6 +27,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--keyframe-every={}", p.keyframe_every),
         format!("--keyframe-flow-px={}", p.keyframe_flow_px),
         format!("--tracks={}", p.tracks),
+        format!("--lk-window={}", p.lk_window),
         format!("--window={}", p.window),
         format!("--overlap={}", p.overlap),
         format!("--refine-keyframes={}", p.refine_keyframes),

@@ -32,6 +32,9 @@ pub struct RelativePoseOptions {
     pub min_parallax_px: f64,
     /// Fewest RANSAC inliers for a usable edge (default 20).
     pub min_inliers: usize,
+    /// Matches given to the five-point RANSAC, evenly strided (default 200); inliers are
+    /// then counted over all matches.
+    pub ransac_points: usize,
 }
 
 impl Default for RelativePoseOptions {
@@ -42,6 +45,7 @@ impl Default for RelativePoseOptions {
             ransac_confidence: 0.999,
             min_parallax_px: 2.0,
             min_inliers: 20,
+            ransac_points: 200,
         }
     }
 }
@@ -123,6 +127,60 @@ fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64
     (r, median(res))
 }
 
+/// Squared Sampson distance of a correspondence to the epipolar constraint `x_j^T E x_i = 0`
+/// (normalised coordinates).
+fn sampson_distance(e: &Matrix3<f64>, (xi, yi): (f64, f64), (xj, yj): (f64, f64)) -> f64 {
+    let a = Vector3::new(xi, yi, 1.0);
+    let b = Vector3::new(xj, yj, 1.0);
+    let ea = e * a;
+    let etb = e.transpose() * b;
+    let num = b.dot(&ea);
+    num * num / (ea.x * ea.x + ea.y * ea.y + etb.x * etb.x + etb.y * etb.y).max(1e-300)
+}
+
+/// The (R, t) of the four decompositions of `E` (Hartley-Zisserman, result 9.19) that puts
+/// the most inliers in front of both cameras (midpoint triangulation, up to 200 points).
+fn decompose_essential(e: &Matrix3<f64>, pi: &[(f64, f64)], pj: &[(f64, f64)], inliers: &[usize]) -> Option<(Rotation3<f64>, Vector3<f64>)> {
+    let svd = e.svd(true, true);
+    let (mut u, mut v_t) = (svd.u?, svd.v_t?);
+    if u.determinant() < 0.0 {
+        u = -u;
+    }
+    if v_t.determinant() < 0.0 {
+        v_t = -v_t;
+    }
+    let w = Matrix3::new(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+    let t = u.column(2).into_owned();
+    let candidates = [(u * w * v_t, t), (u * w * v_t, -t), (u * w.transpose() * v_t, t), (u * w.transpose() * v_t, -t)];
+    let stride = inliers.len().div_ceil(200).max(1);
+    let mut best: Option<(usize, Rotation3<f64>, Vector3<f64>)> = None;
+    for (r, t) in candidates {
+        let mut front = 0;
+        for &m in inliers.iter().step_by(stride) {
+            // Rays x_i (camera i) and x_j (camera j); camera j centre in frame i is -R^T t.
+            let a = Vector3::new(pi[m].0, pi[m].1, 1.0);
+            let b = r.transpose() * Vector3::new(pj[m].0, pj[m].1, 1.0);
+            let cj = -(r.transpose() * t);
+            // Solve s a - u b = cj in least squares (midpoint method).
+            let (aa, ab, bb) = (a.dot(&a), a.dot(&b), b.dot(&b));
+            let (ac, bc) = (a.dot(&cj), b.dot(&cj));
+            let det = aa * bb - ab * ab;
+            if det.abs() < 1e-15 {
+                continue;
+            }
+            let s = (ac * bb - ab * bc) / det;
+            let u_ = (ab * ac - aa * bc) / det;
+            if s > 0.0 && u_ > 0.0 {
+                front += 1;
+            }
+        }
+        if best.as_ref().is_none_or(|(f, _, _)| front > *f) {
+            best = Some((front, Rotation3::from_matrix(&r), t));
+        }
+    }
+    best.map(|(_, r, t)| (r, t))
+}
+
 /// Estimates the edge from normalised coordinates `(x/z, y/z)` of the shared tracks in
 /// keyframes i and j; `focal_px` converts the pixel threshold.
 pub fn estimate_relative_pose(
@@ -136,24 +194,23 @@ pub fn estimate_relative_pose(
         return Err(RelativePoseError::TooFewMatches(n));
     }
     let cv = |e: opencv::Error| RelativePoseError::OpenCv(e.to_string());
-    let p1: Vector<Point2d> = points_i[..n]
-        .iter()
-        .map(|&(x, y)| Point2d::new(x, y))
-        .collect();
-    let p2: Vector<Point2d> = points_j[..n]
-        .iter()
-        .map(|&(x, y)| Point2d::new(x, y))
-        .collect();
-    let k =
-        Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]).map_err(cv)?;
+    // RANSAC on at most `ransac_points` evenly strided matches: the five-point hypotheses
+    // are as good, and scoring cost is linear in the points (measured 1.3-5 ms per edge on
+    // 300-700 KITTI matches, a third of that on 200).
+    let stride = n.div_ceil(options.ransac_points.max(8));
+    let sample: Vec<usize> = (0..n).step_by(stride.max(1)).collect();
+    let p1: Vector<Point2d> = sample.iter().map(|&m| Point2d::new(points_i[m].0, points_i[m].1)).collect();
+    let p2: Vector<Point2d> = sample.iter().map(|&m| Point2d::new(points_j[m].0, points_j[m].1)).collect();
+    let k = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]).map_err(cv)?;
     let mut mask = Mat::default();
+    let threshold = options.ransac_threshold_px / focal_px;
     let e = opencv::calib3d::find_essential_mat(
         &p1,
         &p2,
         &k,
         opencv::calib3d::RANSAC,
         options.ransac_confidence,
-        options.ransac_threshold_px / focal_px,
+        threshold,
         1000,
         &mut mask,
     )
@@ -161,29 +218,16 @@ pub fn estimate_relative_pose(
     if e.rows() < 3 {
         return Err(RelativePoseError::TooFewInliers(0));
     }
-    let e3 = Mat::roi(&e, opencv::core::Rect::new(0, 0, 3, 3))
-        .map_err(cv)?
-        .try_clone()
-        .map_err(cv)?;
-    let (mut r_cv, mut t_cv) = (Mat::default(), Mat::default());
-    let inliers =
-        opencv::calib3d::recover_pose_estimated(&e3, &p1, &p2, &k, &mut r_cv, &mut t_cv, &mut mask)
-            .map_err(cv)? as usize;
-    let rotation_e = {
-        let m = Matrix3::from_fn(|r, c| {
-            r_cv.at_2d::<f64>(r as i32, c as i32)
-                .copied()
-                .unwrap_or(f64::NAN)
-        });
-        if !m.iter().all(|v| v.is_finite()) || (m.determinant() - 1.0).abs() > 1e-3 {
-            return Err(RelativePoseError::OpenCv(
-                "recoverPose returned no rotation".into(),
-            ));
-        }
-        Rotation3::from_matrix_unchecked(m)
-    };
-    let t = Vector3::from_fn(|r, _| t_cv.at_2d::<f64>(r as i32, 0).copied().unwrap_or(0.0));
-
+    let essential = Matrix3::from_fn(|r, c| e.at_2d::<f64>(r as i32, c as i32).copied().unwrap_or(f64::NAN));
+    if !essential.iter().all(|v| v.is_finite()) {
+        return Err(RelativePoseError::OpenCv("findEssentialMat returned no matrix".into()));
+    }
+    let inlier_idx: Vec<usize> = (0..n)
+        .filter(|&m| sampson_distance(&essential, points_i[m], points_j[m]) < threshold * threshold)
+        .collect();
+    let inliers = inlier_idx.len();
+    let (rotation_e, t) = decompose_essential(&essential, points_i, points_j, &inlier_idx)
+        .ok_or_else(|| RelativePoseError::OpenCv("essential matrix has no valid decomposition".into()))?;
     let bearing = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0).normalize();
     let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n)
         .map(|m| (bearing(&points_i[m]), bearing(&points_j[m])))
@@ -251,7 +295,7 @@ mod tests {
         let e =
             estimate_relative_pose(&a, &b, 500.0, &RelativePoseOptions::default()).expect("edge");
         assert!(e.has_translation, "{e:?}");
-        assert!(e.rotation.angle_to(&r) < 1e-4);
+        assert!(e.rotation.angle_to(&r) < 1e-4, "rotation error {} rad", e.rotation.angle_to(&r));
         assert!(angle(&e.translation, &t) < 1e-3, "{:?}", e.translation);
         assert!(e.parallax_px > 2.0);
     }
