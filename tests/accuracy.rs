@@ -11,9 +11,16 @@ use egoslam_sources::load_ground_truth;
 use std::path::Path;
 
 fn run(input: &Path, out: &Path) -> serde_json::Value {
-    let status = egoslam().args(["run", "--input"]).arg(input).arg("--out").arg(out).status().expect("run");
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(input)
+        .arg("--out")
+        .arg(out)
+        .status()
+        .expect("run");
     assert!(status.success());
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report")).expect("json")
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
+        .expect("json")
 }
 
 /// Keyframe ATE (m) and its ground-truth path length.
@@ -37,7 +44,9 @@ fn tum_fixture_every_frame_posed_one_segment() {
 
 #[test]
 fn kitti_every_frame_posed_one_segment() {
-    let Some(input) = shared("kitti_odometry_00") else { return };
+    let Some(input) = shared("kitti_odometry_00") else {
+        return;
+    };
     let out = tempfile::tempdir().expect("tempdir");
     let report = run(&input, out.path());
     assert_eq!(report["posed_frames"], 150);
@@ -49,14 +58,22 @@ fn kitti_every_frame_posed_one_segment() {
 
 #[test]
 fn euroc_standing_still_invents_no_motion_and_gets_rotations_right() {
-    let Some(input) = shared("euroc_v1_01") else { return };
+    let Some(input) = shared("euroc_v1_01") else {
+        return;
+    };
     let out = tempfile::tempdir().expect("tempdir");
     let report = run(&input, out.path());
     assert_eq!(report["posed_frames"], 95);
     assert_eq!(report["segments"], 1);
     let est = read_tum_file(&out.path().join("keyframes.tum")).expect("keyframes");
-    let path: f64 = est.windows(2).map(|w| (w[1].position - w[0].position).norm()).sum();
-    let reach = est.iter().map(|p| (p.position - est[0].position).norm()).fold(0.0, f64::max);
+    let path: f64 = est
+        .windows(2)
+        .map(|w| (w[1].position - w[0].position).norm())
+        .sum();
+    let reach = est
+        .iter()
+        .map(|p| (p.position - est[0].position).norm())
+        .fold(0.0, f64::max);
     // Scale is free, so compare the path with the farthest excursion: no back-and-forth
     // jitter bigger than the motion itself (measured: both exactly 0, rotation-only windows).
     assert!(path <= 3.0 * reach + 1e-9, "path {path} vs reach {reach}");

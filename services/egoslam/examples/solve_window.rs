@@ -46,15 +46,36 @@ fn main() -> anyhow::Result<()> {
             })
             .collect();
         if std::env::var_os("EDGES").is_some() {
-            let near = |t: f64| gt.poses.iter().min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs())).copied();
-            let (edges, _) = egoslam_solver::view_graph::build_view_graph(&camera, &obs, &Default::default(), &mut EdgeCache::new());
+            let near = |t: f64| {
+                gt.poses
+                    .iter()
+                    .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))
+                    .copied()
+            };
+            let (edges, _) = egoslam_solver::view_graph::build_view_graph(
+                &camera,
+                &obs,
+                &Default::default(),
+                &mut EdgeCache::new(),
+            );
             for e in edges.iter().filter(|e| e.i < 3) {
-                let (Some(gi), Some(gj)) = (near(obs[e.i].timestamp), near(obs[e.j].timestamp)) else { continue };
+                let (Some(gi), Some(gj)) = (near(obs[e.i].timestamp), near(obs[e.j].timestamp))
+                else {
+                    continue;
+                };
                 let (ri, rj) = (gi.rotation.inverse(), gj.rotation.inverse());
                 let r_gt = rj * ri.inverse();
                 let t_gt = (rj * (gi.position - gj.position)).normalize();
-                let r_err = UnitQuaternion::from_rotation_matrix(&e.pose.rotation).angle_to(&r_gt).to_degrees();
-                let t_err = e.pose.translation.dot(&t_gt).clamp(-1.0, 1.0).acos().to_degrees();
+                let r_err = UnitQuaternion::from_rotation_matrix(&e.pose.rotation)
+                    .angle_to(&r_gt)
+                    .to_degrees();
+                let t_err = e
+                    .pose
+                    .translation
+                    .dot(&t_gt)
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees();
                 println!("  edge {}-{}: rot err {r_err:.3} deg, dir err {t_err:.2} deg, inliers {}/{}, parallax {:.1}px", e.i, e.j, e.pose.inliers, e.pose.matches, e.pose.parallax_px);
             }
         }

@@ -14,6 +14,13 @@ pub fn evaluate(
     if estimate.is_empty() {
         anyhow::bail!("the estimate has no poses");
     }
+    let spread = estimate
+        .iter()
+        .map(|p| (p.position - estimate[0].position).norm())
+        .fold(0.0, f64::max);
+    if spread == 0.0 {
+        anyhow::bail!("the estimate does not move (every window was rotation-only): a position error is undefined; the rotations can still be compared");
+    }
     absolute_trajectory_error(estimate, ground_truth, max_dt).map_err(|e| {
         anyhow::anyhow!(
             "cannot align estimate and ground truth ({e}); are the timestamps on the same clock?"

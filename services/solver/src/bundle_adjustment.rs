@@ -34,7 +34,9 @@ pub struct BundleAdjustmentOptions {
     pub outlier_px: f64,
     /// Refine a focal scale and a radial term k (default false: calibration is given).
     pub refine_intrinsics: bool,
-    /// Stop when the relative cost decrease falls below this (default 1e-6).
+    /// Stop when the relative cost decrease falls below this (default 1e-4: from an
+    /// averaging start, 1e-6 took twice the iterations for ATE changes below 1 mm on the
+    /// KITTI and TUM windows).
     pub tolerance: f64,
     /// Leading cameras held fixed (default 1: camera 0 fixes rotation and translation; the
     /// merger fixes the keyframes it shares with the settled map, which also fixes scale).
@@ -48,7 +50,7 @@ impl Default for BundleAdjustmentOptions {
             huber_px: 2.0,
             outlier_px: 4.0,
             refine_intrinsics: false,
-            tolerance: 1e-6,
+            tolerance: 1e-4,
             fixed_cameras: 1,
         }
     }
