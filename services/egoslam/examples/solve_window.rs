@@ -21,6 +21,21 @@ fn main() -> anyhow::Result<()> {
         .collect();
     files.sort();
     let mut cache = EdgeCache::new();
+    // Tuning knobs (environment), so estimator defaults can be compared on dumped windows.
+    let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
+    let mut options = WindowSolverOptions::default();
+    if let Some(v) = env("MIN_ANGLE_DEG") {
+        options.triangulation.min_angle_deg = v;
+    }
+    if let Some(v) = env("MIN_PARALLAX_PX") {
+        options.view_graph.relative_pose.min_parallax_px = v;
+    }
+    if let Some(v) = env("RANSAC_PX") {
+        options.view_graph.relative_pose.ransac_threshold_px = v;
+    }
+    if let Some(v) = env("MIN_TRACK_VIEWS") {
+        options.min_track_views = v as usize;
+    }
     for file in files {
         let bytes = std::fs::read(&file)?;
         let mut buf = bytes.as_slice();
@@ -79,7 +94,7 @@ fn main() -> anyhow::Result<()> {
                 println!("  edge {}-{}: rot err {r_err:.3} deg, dir err {t_err:.2} deg, inliers {}/{}, parallax {:.1}px", e.i, e.j, e.pose.inliers, e.pose.matches, e.pose.parallax_px);
             }
         }
-        let s = solve_window(&camera, &obs, &WindowSolverOptions::default(), &mut cache);
+        let s = solve_window(&camera, &obs, &options, &mut cache);
         let finite = s.poses.iter().all(|p| {
             p.centre
                 .iter()

@@ -219,6 +219,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "windows": solver.windows,
         "unsolved_windows": counter(merger, "unsolved_windows"),
         "segments": counter(merger, "segments"),
+        "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
         "timings_ms": timings,
         "accuracy": accuracy,

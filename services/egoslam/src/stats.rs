@@ -18,6 +18,11 @@ pub struct ServiceStats {
     pub timings_ms: BTreeMap<String, f64>,
     /// Free counters (dropped frames, rejected tracks, failed windows...).
     pub counters: BTreeMap<String, u64>,
+    /// Solver only: per window, the largest keyframe displacement from the window's first
+    /// keyframe divided by the median point depth (scale-free; 0 for a rotation-only
+    /// window). Shows whether motion was invented where the camera stood still.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub window_translations: Vec<f64>,
 }
 
 impl ServiceStats {
