@@ -58,9 +58,20 @@ fn observations(k: &pb::Keyframe) -> KeyframeObservations {
 /// seen from the first keyframe (scale-free); 0 when nothing moved or nothing was
 /// triangulated.
 fn relative_translation(solution: &egoslam_solver::window_solver::WindowSolution) -> f64 {
-    let Some(first) = solution.poses.first() else { return 0.0 };
-    let reach = solution.poses.iter().map(|p| (p.centre - first.centre).norm()).fold(0.0, f64::max);
-    let mut depths: Vec<f64> = solution.points.iter().map(|p| first.to_camera(&p.position).z).filter(|z| *z > 0.0).collect();
+    let Some(first) = solution.poses.first() else {
+        return 0.0;
+    };
+    let reach = solution
+        .poses
+        .iter()
+        .map(|p| (p.centre - first.centre).norm())
+        .fold(0.0, f64::max);
+    let mut depths: Vec<f64> = solution
+        .points
+        .iter()
+        .map(|p| first.to_camera(&p.position).z)
+        .filter(|z| *z > 0.0)
+        .collect();
     if reach == 0.0 || depths.is_empty() {
         return 0.0;
     }
@@ -107,7 +118,9 @@ fn solve(
     if status == pb::SolveStatus::Failed {
         stats.count("failed_windows", 1);
     }
-    stats.window_translations.push(relative_translation(&solution));
+    stats
+        .window_translations
+        .push(relative_translation(&solution));
     let poses = kfs
         .iter()
         .zip(&solution.poses)

@@ -55,7 +55,10 @@ fn synthetic() -> (PinholeRadtan, Vec<KeyframeObservations>) {
                     if camera.contains(p) && tracks.len() < 1000 {
                         let (a, b) = (rng.next().max(1e-12), rng.next());
                         let r = (-2.0 * a.ln()).sqrt();
-                        let (nx, ny) = (r * (6.283 * b).cos(), r * (6.283 * b).sin());
+                        let (nx, ny) = (
+                            r * (std::f64::consts::TAU * b).cos(),
+                            r * (std::f64::consts::TAU * b).sin(),
+                        );
                         tracks.insert(id as u64, Point2::new(p.x + nx, p.y + ny));
                     }
                 }

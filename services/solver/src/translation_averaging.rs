@@ -281,12 +281,11 @@ fn refine(
             continue;
         };
         let mut trial = x.to_vec();
-        for i in 1..cams {
-            trial[i] += Vector3::new(
-                step.reduced[3 * (i - 1)],
-                step.reduced[3 * (i - 1) + 1],
-                step.reduced[3 * (i - 1) + 2],
-            );
+        for (centre, d) in trial[1..cams]
+            .iter_mut()
+            .zip(step.reduced.as_slice().chunks_exact(3))
+        {
+            *centre += Vector3::new(d[0], d[1], d[2]);
         }
         for k in 0..pts {
             trial[cams + k] += step.points[k];

@@ -116,14 +116,17 @@ fn timed<T>(
     out
 }
 
+/// A track's observations in the window: (keyframe index, undistorted pixel).
+type TrackObservations = Vec<(usize, Point2<f64>)>;
+
 /// Tracks for translation averaging: the longest first, but every keyframe gets at least a
 /// share of its own (a keyframe no selected track reaches would be left unconstrained).
 fn select_averaging_tracks<'t>(
-    tracks: &'t BTreeMap<u64, Vec<(usize, Point2<f64>)>>,
+    tracks: &'t BTreeMap<u64, TrackObservations>,
     keyframes: usize,
     options: &WindowSolverOptions,
-) -> Vec<(&'t u64, &'t Vec<(usize, Point2<f64>)>)> {
-    let mut long: Vec<(&u64, &Vec<(usize, Point2<f64>)>)> = tracks
+) -> Vec<(&'t u64, &'t TrackObservations)> {
+    let mut long: Vec<(&u64, &TrackObservations)> = tracks
         .iter()
         .filter(|(_, o)| o.len() >= options.min_track_views)
         .collect();
@@ -218,7 +221,7 @@ pub fn solve_window(
     }
 
     // Tracks of the window: track id -> [(keyframe index, pixel)].
-    let mut tracks: BTreeMap<u64, Vec<(usize, Point2<f64>)>> = BTreeMap::new();
+    let mut tracks: BTreeMap<u64, TrackObservations> = BTreeMap::new();
     for (k, kf) in keyframes.iter().enumerate() {
         for (id, p) in &kf.tracks {
             tracks.entry(*id).or_default().push((k, *p));
