@@ -258,38 +258,30 @@ impl Tracker {
         )
         .map_err(&err)?;
         let p0: Vector<Point2f> = self.tracks.iter().map(|t| t.pos).collect();
-        let (mut p1, mut back) = (Vector::<Point2f>::new(), Vector::<Point2f>::new());
-        let (mut st1, mut st2) = (Vector::<u8>::new(), Vector::<u8>::new());
-        let mut lk_err = Vector::<f32>::new();
         let levels = self.options.pyramid_levels;
-        video::calc_optical_flow_pyr_lk(
-            previous,
-            current,
-            &p0,
-            &mut p1,
-            &mut st1,
-            &mut lk_err,
-            win,
-            levels,
-            criteria,
-            0,
-            1e-4,
-        )
-        .map_err(&err)?;
-        video::calc_optical_flow_pyr_lk(
-            current,
-            previous,
-            &p1,
-            &mut back,
-            &mut st2,
-            &mut lk_err,
-            win,
-            levels,
-            criteria,
-            0,
-            1e-4,
-        )
-        .map_err(&err)?;
+        let lk = |from: &Vector<Mat>, to: &Vector<Mat>, points: &Vector<Point2f>| {
+            let (mut moved, mut status, mut lk_err) = (
+                Vector::<Point2f>::new(),
+                Vector::<u8>::new(),
+                Vector::<f32>::new(),
+            );
+            video::calc_optical_flow_pyr_lk(
+                from,
+                to,
+                points,
+                &mut moved,
+                &mut status,
+                &mut lk_err,
+                win,
+                levels,
+                criteria,
+                0,
+                1e-4,
+            )
+            .map(|_| (moved, status))
+        };
+        let (p1, st1) = lk(previous, current, &p0).map_err(&err)?;
+        let (back, st2) = lk(current, previous, &p1).map_err(&err)?;
         let max_fb2 =
             (self.options.max_forward_backward_px * self.options.max_forward_backward_px) as f32;
         let (w, h) = (self.camera.width as f32, self.camera.height as f32);

@@ -63,6 +63,23 @@ impl Similarity {
     }
 }
 
+/// The rotation closest to `m` in the Frobenius norm (SVD projection onto SO(3), with the
+/// reflection fix). Used for chordal rotation means and Kabsch/Wahba fits: for
+/// `m = sum b_i a_i^T` it is the rotation best mapping the `a_i` onto the `b_i`.
+pub fn nearest_rotation(m: &Matrix3<f64>) -> Rotation3<f64> {
+    let svd = m.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut d = Matrix3::identity();
+            if (u * v_t).determinant() < 0.0 {
+                d[(2, 2)] = -1.0;
+            }
+            Rotation3::from_matrix_unchecked(u * d * v_t)
+        }
+        _ => Rotation3::identity(),
+    }
+}
+
 /// Least-squares similarity `T` minimising `sum |dst_i - T(src_i)|^2` (Umeyama 1991), with
 /// the reflection fix of the paper so the result is always a proper rotation.
 pub fn umeyama(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Result<Similarity, AlignmentError> {

@@ -6,6 +6,6 @@ pub mod alignment;
 pub mod camera;
 pub mod trajectory;
 
-pub use alignment::{umeyama, AlignmentError, Similarity};
+pub use alignment::{nearest_rotation, umeyama, AlignmentError, Similarity};
 pub use camera::{CameraError, PinholeRadtan};
 pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};

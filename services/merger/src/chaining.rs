@@ -1,6 +1,6 @@
 //! Chaining windows into map segments.
 
-use egoslam_geometry::{Similarity, StampedPose};
+use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
 
@@ -47,17 +47,7 @@ pub struct MapBuilder {
 /// rotations, Hartley et al., "Rotation Averaging", IJCV 2013, section 5.3).
 fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
     let sum: Matrix3<f64> = rotations.iter().map(|r| r.matrix()).sum();
-    let svd = sum.svd(true, true);
-    match (svd.u, svd.v_t) {
-        (Some(u), Some(v_t)) => {
-            let mut d = Matrix3::identity();
-            if (u * v_t).determinant() < 0.0 {
-                d[(2, 2)] = -1.0;
-            }
-            Rotation3::from_matrix_unchecked(u * d * v_t)
-        }
-        _ => Rotation3::identity(),
-    }
+    nearest_rotation(&sum)
 }
 
 /// Fewest shared points for the point-based scale (below, the centres are used).

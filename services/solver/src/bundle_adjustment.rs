@@ -345,22 +345,12 @@ pub fn bundle_adjust(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::gaussian;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
-    use rand_distr_free::gaussian;
 
     fn small_rotation(axis: Vector3<f64>, angle: f64) -> Rotation3<f64> {
         Rotation3::new(axis.normalize() * angle)
-    }
-
-    mod rand_distr_free {
-        use rand::Rng;
-        /// Box-Muller normal sample (keeps the dev-dependencies to `rand`).
-        pub fn gaussian(rng: &mut impl Rng) -> f64 {
-            let u1: f64 = rng.random_range(1e-12..1.0);
-            let u2: f64 = rng.random_range(0.0..1.0);
-            (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-        }
     }
 
     #[test]

@@ -15,4 +15,7 @@ pub mod view_graph;
 pub mod window_solver;
 pub mod windowing;
 
+#[cfg(test)]
+mod test_support;
+
 pub use windowing::{WindowBuilder, WindowOptions};

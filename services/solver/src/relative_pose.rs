@@ -79,21 +79,8 @@ pub enum RelativePoseError {
 
 /// Rotation R minimising sum |b_j - R b_i|^2 (Kabsch/Wahba by SVD).
 fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
-    let mut m = Matrix3::zeros();
-    for (bi, bj) in pairs {
-        m += bj * bi.transpose();
-    }
-    let svd = m.svd(true, true);
-    match (svd.u, svd.v_t) {
-        (Some(u), Some(v_t)) => {
-            let mut d = Matrix3::identity();
-            if (u * v_t).determinant() < 0.0 {
-                d[(2, 2)] = -1.0;
-            }
-            Rotation3::from_matrix_unchecked(u * d * v_t)
-        }
-        _ => Rotation3::identity(),
-    }
+    let m: Matrix3<f64> = pairs.iter().map(|(bi, bj)| bj * bi.transpose()).sum();
+    egoslam_geometry::nearest_rotation(&m)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {

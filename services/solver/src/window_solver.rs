@@ -89,6 +89,32 @@ pub struct WindowSolution {
 }
 
 impl WindowSolution {
+    /// Rotations only, every centre at the origin (the first keyframe's).
+    fn rotation_only(
+        rotations: &[Rotation3<f64>],
+        edges: usize,
+        translation_edges: usize,
+        timings_ms: Vec<(&'static str, f64)>,
+    ) -> Self {
+        Self {
+            status: WindowStatus::RotationOnly,
+            poses: rotations
+                .iter()
+                .map(|r| CameraPose {
+                    rotation: *r,
+                    centre: Vector3::zeros(),
+                })
+                .collect(),
+            points: Vec::new(),
+            observations: Vec::new(),
+            outlier_observations: 0,
+            rmse_px: 0.0,
+            edges,
+            translation_edges,
+            timings_ms,
+        }
+    }
+
     fn failed(reason: String, timings_ms: Vec<(&'static str, f64)>, edges: usize) -> Self {
         Self {
             status: WindowStatus::Failed(reason),
@@ -200,24 +226,7 @@ pub fn solve_window(
         .collect();
     let rot = &rotations.rotations;
     if translation_edges.is_empty() {
-        let poses = rot
-            .iter()
-            .map(|r| CameraPose {
-                rotation: *r,
-                centre: Vector3::zeros(),
-            })
-            .collect();
-        return WindowSolution {
-            status: WindowStatus::RotationOnly,
-            poses,
-            points: Vec::new(),
-            observations: Vec::new(),
-            outlier_observations: 0,
-            rmse_px: 0.0,
-            edges: edges.len(),
-            translation_edges: 0,
-            timings_ms: timings,
-        };
+        return WindowSolution::rotation_only(rot, edges.len(), 0, timings);
     }
 
     // Tracks of the window: track id -> [(keyframe index, pixel)].
@@ -253,24 +262,12 @@ pub fn solve_window(
         Err(e) => {
             // The rotations are still good: keep them rather than break the map.
             tracing::warn!(%e, "translation averaging failed; window kept as rotation only");
-            let poses = rot
-                .iter()
-                .map(|r| CameraPose {
-                    rotation: *r,
-                    centre: Vector3::zeros(),
-                })
-                .collect();
-            return WindowSolution {
-                status: WindowStatus::RotationOnly,
-                poses,
-                points: Vec::new(),
-                observations: Vec::new(),
-                outlier_observations: 0,
-                rmse_px: 0.0,
-                edges: edges.len(),
-                translation_edges: translation_edges.len(),
-                timings_ms: timings,
-            };
+            return WindowSolution::rotation_only(
+                rot,
+                edges.len(),
+                translation_edges.len(),
+                timings,
+            );
         }
     };
     let poses: Vec<CameraPose> = rot
@@ -376,23 +373,18 @@ pub fn world_from_camera(pose: &CameraPose) -> (Rotation3<f64>, Vector3<f64>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::gaussian;
     use egoslam_geometry::umeyama;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
 
-    fn gaussian(rng: &mut StdRng) -> f64 {
-        let u1: f64 = rng.random_range(1e-12..1.0);
-        let u2: f64 = rng.random_range(0.0..1.0);
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    fn camera() -> PinholeRadtan {
+        PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera")
     }
 
-    /// A head walking forward and looking around, 20 keyframes, tracks with 1 px noise.
-    fn synthetic_window(
-        rng: &mut StdRng,
-    ) -> (PinholeRadtan, Vec<CameraPose>, Vec<KeyframeObservations>) {
-        let camera =
-            PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera");
-        let poses: Vec<CameraPose> = (0..20)
+    /// A head walking forward and looking around, 20 keyframes.
+    fn head_poses() -> Vec<CameraPose> {
+        (0..20)
             .map(|i| {
                 let t = i as f64;
                 CameraPose {
@@ -404,8 +396,11 @@ mod tests {
                     centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
                 }
             })
-            .collect();
-        let points: Vec<Vector3<f64>> = (0..1500)
+            .collect()
+    }
+
+    fn random_points(rng: &mut StdRng, n: usize) -> Vec<Vector3<f64>> {
+        (0..n)
             .map(|_| {
                 Vector3::new(
                     rng.random_range(-6.0..6.0),
@@ -413,8 +408,18 @@ mod tests {
                     rng.random_range(3.0..15.0),
                 )
             })
-            .collect();
-        let keyframes = poses
+            .collect()
+    }
+
+    /// Tracks of every visible point in every keyframe, with Gaussian pixel noise `sigma`.
+    fn observe(
+        poses: &[CameraPose],
+        points: &[Vector3<f64>],
+        sigma: f64,
+        rng: &mut StdRng,
+    ) -> Vec<KeyframeObservations> {
+        let camera = camera();
+        poses
             .iter()
             .enumerate()
             .map(|(k, pose)| {
@@ -424,7 +429,10 @@ mod tests {
                         if camera.contains(p) {
                             tracks.insert(
                                 id as u64,
-                                Point2::new(p.x + gaussian(rng), p.y + gaussian(rng)),
+                                Point2::new(
+                                    p.x + sigma * gaussian(rng),
+                                    p.y + sigma * gaussian(rng),
+                                ),
                             );
                         }
                     }
@@ -435,16 +443,17 @@ mod tests {
                     tracks,
                 }
             })
-            .collect();
-        (camera, poses, keyframes)
+            .collect()
     }
 
     #[test]
     fn whole_window_from_noisy_tracks_is_accurate() {
         let mut rng = StdRng::seed_from_u64(21);
-        let (camera, truth, keyframes) = synthetic_window(&mut rng);
+        let truth = head_poses();
+        let points = random_points(&mut rng, 1500);
+        let keyframes = observe(&truth, &points, 1.0, &mut rng);
         let solution = solve_window(
-            &camera,
+            &camera(),
             &keyframes,
             &WindowSolverOptions::default(),
             &mut EdgeCache::new(),
@@ -487,45 +496,14 @@ mod tests {
     #[test]
     fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
         let mut rng = StdRng::seed_from_u64(22);
-        let (camera, mut truth, _) = synthetic_window(&mut rng);
+        let mut truth = head_poses();
         for p in &mut truth {
             p.centre = Vector3::zeros();
         }
-        let points: Vec<Vector3<f64>> = (0..800)
-            .map(|_| {
-                Vector3::new(
-                    rng.random_range(-6.0..6.0),
-                    rng.random_range(-3.0..3.0),
-                    rng.random_range(3.0..15.0),
-                )
-            })
-            .collect();
-        let keyframes: Vec<KeyframeObservations> = truth
-            .iter()
-            .enumerate()
-            .map(|(k, pose)| KeyframeObservations {
-                id: k as u64,
-                timestamp: k as f64,
-                tracks: points
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(id, x)| {
-                        let p = camera.project_undistorted(&pose.to_camera(x))?;
-                        camera.contains(p).then(|| {
-                            (
-                                id as u64,
-                                Point2::new(
-                                    p.x + 0.5 * gaussian(&mut rng),
-                                    p.y + 0.5 * gaussian(&mut rng),
-                                ),
-                            )
-                        })
-                    })
-                    .collect(),
-            })
-            .collect();
+        let points = random_points(&mut rng, 800);
+        let keyframes = observe(&truth, &points, 0.5, &mut rng);
         let solution = solve_window(
-            &camera,
+            &camera(),
             &keyframes,
             &WindowSolverOptions::default(),
             &mut EdgeCache::new(),
@@ -538,7 +516,7 @@ mod tests {
             assert_eq!(est.centre, Vector3::zeros());
         }
         let one = solve_window(
-            &camera,
+            &camera(),
             &keyframes[..1],
             &WindowSolverOptions::default(),
             &mut EdgeCache::new(),

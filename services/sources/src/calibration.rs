@@ -279,15 +279,7 @@ mod tests {
     use super::*;
     use crate::detect_layout;
 
-    fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/data")
-            .join(sub);
-        p.exists().then_some(p).or_else(|| {
-            eprintln!("skipping: ../shared/data/{sub} is absent");
-            None
-        })
-    }
+    use crate::shared_test_data as shared;
 
     #[test]
     fn reads_each_datasets_own_calibration() {

@@ -269,15 +269,7 @@ pub fn load_ground_truth(path: &Path) -> Result<GroundTruth, SourceError> {
 mod tests {
     use super::*;
 
-    fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/data")
-            .join(sub);
-        p.exists().then_some(p).or_else(|| {
-            eprintln!("skipping: ../shared/data/{sub} is absent");
-            None
-        })
-    }
+    use crate::shared_test_data as shared;
 
     #[test]
     fn tum_ground_truth() {

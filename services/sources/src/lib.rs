@@ -12,6 +12,18 @@ pub mod layout;
 pub mod reader;
 
 pub use calibration::{load_calibration, Calibration};
+
+/// A sequence of `../shared/data` for tests, or `None` (with a message) when absent.
+#[cfg(test)]
+pub(crate) fn shared_test_data(sub: &str) -> Option<std::path::PathBuf> {
+    let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data")
+        .join(sub);
+    p.exists().then_some(p).or_else(|| {
+        eprintln!("skipping: ../shared/data/{sub} is absent");
+        None
+    })
+}
 pub use error::SourceError;
 pub use ground_truth::load_ground_truth;
 pub use layout::{detect_layout, Layout};

@@ -273,15 +273,7 @@ pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, Source
 mod tests {
     use super::*;
 
-    fn shared(sub: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/data")
-            .join(sub);
-        p.exists().then_some(p).or_else(|| {
-            eprintln!("skipping: ../shared/data/{sub} is absent");
-            None
-        })
-    }
+    use crate::shared_test_data as shared;
 
     fn check(sub: &str, frames: usize, size: (i32, i32), first_t: f64) {
         let Some(d) = shared(sub) else { return };
