@@ -5,8 +5,8 @@ use std::path::PathBuf;
 /// Why a sequence, calibration or ground-truth file could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
-    /// The path does not exist or cannot be read.
-    #[error("{path}: {source}")]
+    /// The path does not exist or cannot be read (the OS error follows in the chain).
+    #[error("{path}")]
     Io {
         path: PathBuf,
         #[source]
@@ -43,7 +43,7 @@ pub enum SourceError {
         height: u32,
     },
     /// The calibration values are invalid (e.g. zero focal length).
-    #[error("{path}: invalid calibration: {source}")]
+    #[error("{path}: invalid calibration")]
     BadCalibration {
         path: PathBuf,
         #[source]
