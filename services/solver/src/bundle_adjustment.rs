@@ -11,7 +11,7 @@
 use crate::schur::SchurSystem;
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
-use nalgebra::{DMatrix, DVector, Matrix2x3, Point2, Rotation3, Vector2, Vector3};
+use nalgebra::{Matrix2x3, Point2, Rotation3, Vector2, Vector3};
 
 /// One observation of point `point` in camera `camera` at an undistorted pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -185,6 +185,7 @@ fn levenberg_marquardt(
     for iteration in 0..options.max_iterations {
         let mut sys = SchurSystem::new(reduced, st.points.len());
         let mut idx = Vec::with_capacity(8);
+        let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
             let pose = &st.poses[o.camera];
             let pc = pose.to_camera(&st.points[o.point]);
@@ -199,7 +200,7 @@ fn levenberg_marquardt(
             let j_c = j_pc * -r_mat;
             let j_x = j_pc * r_mat;
             idx.clear();
-            let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
+            cols.clear();
             if o.camera >= fixed {
                 let base = 6 * (o.camera - fixed);
                 for d in 0..3 {
@@ -215,15 +216,7 @@ fn levenberg_marquardt(
                 idx.push(g0 + d);
                 cols.push(j_intr.column(d).into_owned());
             }
-            let jr = DMatrix::from_fn(2, idx.len(), |row, col| cols[col][row]);
-            let jp = DMatrix::from_fn(2, 3, |row, col| j_x[(row, col)]);
-            sys.add(
-                &idx,
-                &jr,
-                Some((o.point, &jp)),
-                &DVector::from_column_slice(r.as_slice()),
-                w,
-            );
+            sys.add(&idx, &cols, Some((o.point, &j_x)), &r, w);
         }
         let mut accepted = false;
         for _ in 0..8 {

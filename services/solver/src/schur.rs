@@ -6,7 +6,7 @@
 //! Used by bundle adjustment and by the direction refinement of translation averaging.
 
 use faer::linalg::solvers::Solve;
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector3};
 
 /// One point's block: `V = sum J_p^T W J_p`, `g = sum J_p^T W r`, and its coupling
 /// `W_k = sum J_r^T W J_p` to the reduced parameters, stored sparsely by reduced index.
@@ -55,33 +55,31 @@ impl SchurSystem {
         }
     }
 
-    /// Adds one residual block of `m` rows: `jr` (m x idx.len()) on the reduced parameters
-    /// `idx`, `jp` (m x 3) on `point` if any, residual `r`, scalar weight `w` (robust loss).
-    pub fn add(
+    /// Adds one residual block of `M` rows: Jacobian columns `jr` on the reduced parameters
+    /// `idx` (one column per index), `jp` (M x 3) on `point` if any, residual `r`, scalar
+    /// weight `w` (robust loss). Fixed-size and allocation-free: it runs once per
+    /// observation and iteration.
+    pub fn add<const M: usize>(
         &mut self,
         idx: &[usize],
-        jr: &DMatrix<f64>,
-        point: Option<(usize, &DMatrix<f64>)>,
-        r: &DVector<f64>,
+        jr: &[SVector<f64, M>],
+        point: Option<(usize, &SMatrix<f64, M, 3>)>,
+        r: &SVector<f64, M>,
         w: f64,
     ) {
-        for (a, &ia) in idx.iter().enumerate() {
-            let ja = jr.column(a);
+        for (ja, &ia) in jr.iter().zip(idx) {
             self.g[ia] += w * ja.dot(r);
-            for (b, &ib) in idx.iter().enumerate() {
-                self.h[(ia, ib)] += w * ja.dot(&jr.column(b));
+            for (jb, &ib) in jr.iter().zip(idx) {
+                self.h[(ia, ib)] += w * ja.dot(jb);
             }
         }
         if let Some((k, jp)) = point {
             let block = &mut self.points[k];
             let jpt = jp.transpose();
-            let v = &jpt * jp * w;
-            let g = &jpt * r * w;
-            block.v += Matrix3::from_iterator(v.iter().copied());
-            block.g += Vector3::new(g[0], g[1], g[2]);
-            for (a, &ia) in idx.iter().enumerate() {
-                let c = jp.transpose() * jr.column(a) * w;
-                *block.coupling_mut(ia) += Vector3::new(c[0], c[1], c[2]);
+            block.v += jpt * jp * w;
+            block.g += jpt * r * w;
+            for (ja, &ia) in jr.iter().zip(idx) {
+                *block.coupling_mut(ia) += jpt * ja * w;
             }
         }
     }
@@ -163,15 +161,9 @@ mod tests {
             .map(|n| (n / 6, [next(), next()], [next(), next(), next()], next()))
             .collect();
         for (k, jr, jp, r) in rows {
-            let jr_m = DMatrix::from_row_slice(1, 2, &jr);
-            let jp_m = DMatrix::from_row_slice(1, 3, &jp);
-            sys.add(
-                &[0, 1],
-                &jr_m,
-                Some((k, &jp_m)),
-                &DVector::from_element(1, r),
-                2.0,
-            );
+            let cols = [SVector::<f64, 1>::new(jr[0]), SVector::<f64, 1>::new(jr[1])];
+            let jp_m = SMatrix::<f64, 1, 3>::new(jp[0], jp[1], jp[2]);
+            sys.add(&[0, 1], &cols, Some((k, &jp_m)), &SVector::<f64, 1>::new(r), 2.0);
             let mut full = DVector::<f64>::zeros(8);
             full[0] = jr[0];
             full[1] = jr[1];

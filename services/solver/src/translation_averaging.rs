@@ -14,7 +14,7 @@
 //! no longer degenerate, because the points off that line fix the relative scales.
 
 use crate::schur::SchurSystem;
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use nalgebra::{DMatrix, Matrix3, Vector3};
 
 /// What a direction constrains: `end - start` is parallel to `direction` (world frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -36,8 +36,8 @@ pub struct DirectionConstraint {
 /// Options (defaults cited per field).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TranslationAveragingOptions {
-    /// IRLS iterations of the LUD stage (default 40; the IRLS of Ozyesil-Singer converges in
-    /// tens of iterations).
+    /// Most IRLS iterations of the LUD stage (default 40; the IRLS of Ozyesil-Singer converges
+    /// in tens of iterations; stops earlier once positions move by < 1e-6 of the scene size).
     pub lud_iterations: usize,
     /// Smallest residual in the IRLS weight 1/max(|e|, delta) (default 1e-4 of the unit scale).
     pub lud_delta: f64,
@@ -197,7 +197,14 @@ fn lud(
             let e = (diff - scales[n] * c.direction).norm();
             weights[n] = c.weight / e.max(options.lud_delta);
         }
-        x = weighted_positions(cams, pts, constraints, &weights, &scales)?;
+        let next = weighted_positions(cams, pts, constraints, &weights, &scales)?;
+        // Converged when no position moves by more than 1e-6 of the largest distance.
+        let size = next.iter().map(|p| p.norm()).fold(0.0, f64::max).max(1e-12);
+        let moved = next.iter().zip(&x).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        x = next;
+        if moved < 1e-6 * size {
+            break;
+        }
     }
     Some(x)
 }
@@ -250,31 +257,27 @@ fn refine(
     let mut current = cost(x);
     for _ in 0..options.refine_iterations {
         let mut sys = SchurSystem::new(3 * (cams - 1), pts);
+        let (mut idx, mut cols): (Vec<usize>, Vec<Vector3<f64>>) = (Vec::with_capacity(6), Vec::with_capacity(6));
         for c in constraints {
             let (a, b) = endpoints_of(c, cams);
             let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
             let w = c.weight * huber_weight(r.norm(), options.huber);
-            let rv = DVector::from_column_slice(r.as_slice());
-            let mut idx = Vec::new();
-            let mut cols: Vec<Matrix3<f64>> = Vec::new();
+            idx.clear();
+            cols.clear();
             if a != 0 {
                 idx.extend((0..3).map(|d| 3 * (a - 1) + d));
-                cols.push(-jb);
+                cols.extend((0..3).map(|d| -jb.column(d).into_owned()));
             }
             let point = if b < cams {
                 if b != 0 {
                     idx.extend((0..3).map(|d| 3 * (b - 1) + d));
-                    cols.push(jb);
+                    cols.extend((0..3).map(|d| jb.column(d).into_owned()));
                 }
                 None
             } else {
-                Some((b - cams, DMatrix::from_column_slice(3, 3, jb.as_slice())))
+                Some((b - cams, &jb))
             };
-            let mut jr = DMatrix::<f64>::zeros(3, idx.len());
-            for (n, block) in cols.iter().enumerate() {
-                jr.view_mut((0, 3 * n), (3, 3)).copy_from(block);
-            }
-            sys.add(&idx, &jr, point.as_ref().map(|(k, jp)| (*k, jp)), &rv, w);
+            sys.add(&idx, &cols, point, &r, w);
         }
         let Some(step) = sys.solve(lambda) else {
             lambda *= 10.0;
