@@ -57,12 +57,10 @@ pub struct Bus {
 }
 
 impl Bus {
-    /// Creates the node of this process, named after the service (`frontend`, ...).
-    ///
-    /// The iceoryx2 configuration is built here (defaults, dead-node cleanup on) rather than
-    /// looked up in `./config`, so every process of a pipeline agrees on it wherever it runs.
+    /// Creates the node of this process, named after the service (`frontend`, ...), with the
+    /// configuration of [`config_path`].
     pub fn open(process_name: &str, options: BusOptions) -> Result<Self, BusOpenError> {
-        let config = Config::default();
+        let config = load_config();
         let name =
             NodeName::new(process_name).map_err(|_| BusOpenError::BadName(process_name.into()))?;
         let node = NodeBuilder::new()
@@ -92,6 +90,34 @@ impl Bus {
     /// was asked to terminate (SIGINT/SIGTERM): callers then finish cleanly.
     pub fn idle(&self, duration: Duration) -> bool {
         self.node.wait(duration).is_ok()
+    }
+}
+
+/// The iceoryx2 configuration file: `EGOSLAM_ICEORYX2_CONFIG`, else the repository's
+/// `config/iceoryx2.toml` (iceoryx2's defaults: dead-node cleanup on, see docs/bus.md).
+/// Loading it as iceoryx2's *global* configuration matters: dead-node cleanup of other
+/// processes consults the global one, which would otherwise be searched for in `./config`
+/// and warn on every start.
+pub fn config_path() -> std::path::PathBuf {
+    std::env::var_os("EGOSLAM_ICEORYX2_CONFIG")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/iceoryx2.toml")
+        })
+}
+
+fn load_config() -> Config {
+    let path = config_path();
+    let loaded = path
+        .to_str()
+        .and_then(|p| FilePath::new(p.as_bytes()).ok())
+        .and_then(|file| Config::setup_global_config_from_file(&file).ok());
+    match loaded {
+        Some(config) => config.clone(),
+        None => {
+            tracing::warn!(path = %path.display(), "iceoryx2 config not loaded; using its defaults");
+            Config::default()
+        }
     }
 }
 

@@ -574,14 +574,36 @@ mod pyramid_tests {
     /// Corners are detected on pyramid entry 2 and doubled: it must be level 1, unpadded.
     #[test]
     fn level_one_is_half_size_and_aligned() {
-        let mut img = Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(0.0)).expect("mat");
-        imgproc::circle(&mut img, Point::new(100, 60), 6, Scalar::all(255.0), -1, imgproc::LINE_8, 0).expect("draw");
+        let mut img =
+            Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        imgproc::circle(
+            &mut img,
+            Point::new(100, 60),
+            6,
+            Scalar::all(255.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .expect("draw");
         let mut pyramid = Vector::<Mat>::new();
-        video::build_optical_flow_pyramid_def(&img, &mut pyramid, Size::new(9, 9), 3).expect("pyramid");
+        video::build_optical_flow_pyramid_def(&img, &mut pyramid, Size::new(9, 9), 3)
+            .expect("pyramid");
         let half = pyramid.get(2).expect("level 1");
         let mut max_loc = Point::default();
-        opencv::core::min_max_loc(&half, None, None, None, Some(&mut max_loc), &opencv::core::no_array()).expect("minmax");
+        opencv::core::min_max_loc(
+            &half,
+            None,
+            None,
+            None,
+            Some(&mut max_loc),
+            &opencv::core::no_array(),
+        )
+        .expect("minmax");
         assert_eq!((half.cols(), half.rows()), (160, 120));
-        assert!((max_loc.x - 50).abs() <= 2 && (max_loc.y - 30).abs() <= 2, "{max_loc:?}");
+        assert!(
+            (max_loc.x - 50).abs() <= 2 && (max_loc.y - 30).abs() <= 2,
+            "{max_loc:?}"
+        );
     }
 }

@@ -163,7 +163,13 @@ mod tests {
         for (k, jr, jp, r) in rows {
             let cols = [SVector::<f64, 1>::new(jr[0]), SVector::<f64, 1>::new(jr[1])];
             let jp_m = SMatrix::<f64, 1, 3>::new(jp[0], jp[1], jp[2]);
-            sys.add(&[0, 1], &cols, Some((k, &jp_m)), &SVector::<f64, 1>::new(r), 2.0);
+            sys.add(
+                &[0, 1],
+                &cols,
+                Some((k, &jp_m)),
+                &SVector::<f64, 1>::new(r),
+                2.0,
+            );
             let mut full = DVector::<f64>::zeros(8);
             full[0] = jr[0];
             full[1] = jr[1];

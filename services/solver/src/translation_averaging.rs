@@ -200,7 +200,11 @@ fn lud(
         let next = weighted_positions(cams, pts, constraints, &weights, &scales)?;
         // Converged when no position moves by more than 1e-6 of the largest distance.
         let size = next.iter().map(|p| p.norm()).fold(0.0, f64::max).max(1e-12);
-        let moved = next.iter().zip(&x).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        let moved = next
+            .iter()
+            .zip(&x)
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0, f64::max);
         x = next;
         if moved < 1e-6 * size {
             break;
@@ -257,7 +261,8 @@ fn refine(
     let mut current = cost(x);
     for _ in 0..options.refine_iterations {
         let mut sys = SchurSystem::new(3 * (cams - 1), pts);
-        let (mut idx, mut cols): (Vec<usize>, Vec<Vector3<f64>>) = (Vec::with_capacity(6), Vec::with_capacity(6));
+        let (mut idx, mut cols): (Vec<usize>, Vec<Vector3<f64>>) =
+            (Vec::with_capacity(6), Vec::with_capacity(6));
         for c in constraints {
             let (a, b) = endpoints_of(c, cams);
             let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));

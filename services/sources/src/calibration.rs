@@ -326,7 +326,12 @@ mod tests {
             .expect("parses")
             .camera_for(10, 10)
             .expect_err("bad focal");
-        let cause = std::error::Error::source(&err).map(|c| c.to_string()).unwrap_or_default();
-        assert!(err.to_string().contains("zero.yaml") && cause.contains("focal"), "{err}: {cause}");
+        let cause = std::error::Error::source(&err)
+            .map(|c| c.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.to_string().contains("zero.yaml") && cause.contains("focal"),
+            "{err}: {cause}"
+        );
     }
 }
