@@ -5,8 +5,12 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+/// The egoslam binary; zenoh output on a free loopback port so that tests running in
+/// parallel do not compete for 7447.
 pub fn egoslam() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_egoslam"))
+    let mut c = Command::new(env!("CARGO_BIN_EXE_egoslam"));
+    c.env("EGOSLAM_ZENOH_LISTEN", "tcp/127.0.0.1:0");
+    c
 }
 
 pub fn repo() -> PathBuf {

@@ -61,6 +61,25 @@ pub struct PipelineArgs {
     pub refine_keyframes: usize,
 }
 
+/// Where results go over zenoh (docs/egress.md).
+#[derive(Args, Debug, Clone)]
+pub struct EgressArgs {
+    /// Device name: key expressions are egoslam/<device>/...
+    #[arg(long, default_value = "default")]
+    pub device: String,
+    /// zenoh endpoints to listen on (repeatable; loopback only by default; "none" disables
+    /// zenoh output; "tcp/127.0.0.1:0" picks a free port).
+    #[arg(
+        long,
+        env = "EGOSLAM_ZENOH_LISTEN",
+        default_value = "tcp/127.0.0.1:7447"
+    )]
+    pub zenoh_listen: Vec<String>,
+    /// zenoh router or peer endpoints to connect to (repeatable).
+    #[arg(long)]
+    pub zenoh_connect: Vec<String>,
+}
+
 #[derive(Args, Debug)]
 pub struct RunArgs {
     /// Sequence: TUM/KITTI/EuRoC folder, video file or image folder. Default: the embedded
@@ -85,6 +104,8 @@ pub struct RunArgs {
     pub fps: f64,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
+    #[command(flatten)]
+    pub egress: EgressArgs,
 }
 
 #[derive(Args, Debug)]
@@ -123,4 +144,6 @@ pub struct ServiceArgs {
     pub camera: Option<PathBuf>,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
+    #[command(flatten)]
+    pub egress: EgressArgs,
 }

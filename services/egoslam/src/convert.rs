@@ -44,5 +44,7 @@ pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
             w: q.w,
         }),
         segment_id,
+        revision: 0,
+        interpolated: false,
     }
 }

@@ -153,8 +153,26 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     replay_args.extend(common.iter().cloned());
     // Consumers first; every producer also waits for its consumer to connect.
     let mut children = Vec::new();
-    for name in ["merger", "solver", "frontend"] {
-        match spawn(name, &common) {
+    let mut merger_args = common.clone();
+    merger_args.push(format!("--device={}", args.egress.device));
+    merger_args.extend(
+        args.egress
+            .zenoh_listen
+            .iter()
+            .map(|e| format!("--zenoh-listen={e}")),
+    );
+    merger_args.extend(
+        args.egress
+            .zenoh_connect
+            .iter()
+            .map(|e| format!("--zenoh-connect={e}")),
+    );
+    for (name, service_args) in [
+        ("merger", &merger_args),
+        ("solver", &common),
+        ("frontend", &common),
+    ] {
+        match spawn(name, service_args) {
             Ok(c) => children.push(c),
             Err(e) => {
                 stop_all(&mut children);

@@ -8,6 +8,7 @@ mod convert;
 mod eval;
 mod frontend_service;
 mod launcher;
+mod map_state;
 mod merger_service;
 mod output;
 mod replay;

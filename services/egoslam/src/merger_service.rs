@@ -1,73 +1,74 @@
-//! The merger service: window solutions from the bus -> one map -> result files.
+//! The merger service: window solutions from the bus -> one map -> result files and zenoh.
 //!
 //! Files are rewritten (atomically) after every window, so a crash or kill loses at most the
-//! window in flight.
+//! window in flight; the same state goes out over zenoh (docs/egress.md).
 
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
-use crate::output::{ply_text, tum_text, write_atomically};
+use crate::map_state::{self, FrameIndex, MapState, Revisions};
 use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
-use egoslam_geometry::{PinholeRadtan, StampedPose};
-use egoslam_merger::{
-    interpolate_frames, MapBuilder, RefinementOptions, WindowInput, WindowOutcome,
-};
+use egoslam_egress::{Egress, EgressOptions};
+use egoslam_geometry::PinholeRadtan;
+use egoslam_merger::{MapBuilder, RefinementOptions, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use nalgebra::Point2;
-use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Every frame known to the merger: frame id -> timestamp.
-#[derive(Default)]
-struct FrameIndex {
-    frames: BTreeMap<u64, f64>,
+/// Files, stats and (when enabled) zenoh, from one snapshot of the map.
+struct Outputs {
+    egress: Option<Egress>,
+    revisions: Revisions,
 }
 
-impl FrameIndex {
-    fn add_stamp(&mut self, k: &pb::KeyframeStamp) {
-        self.frames.insert(k.frame_id, k.timestamp_s);
-        for (id, t) in k
-            .frames_since_previous_ids
-            .iter()
-            .zip(&k.frames_since_previous_timestamps_s)
-        {
-            self.frames.insert(*id, *t);
+impl Outputs {
+    fn emit(
+        &mut self,
+        out: &Path,
+        map: &MapBuilder,
+        index: &FrameIndex,
+        changed_points: &[u64],
+        state: pb::ServiceState,
+        stats: &mut ServiceStats,
+    ) -> anyhow::Result<()> {
+        let snapshot = MapState::of(map, index);
+        snapshot.write_files(out)?;
+        stats.frames = index.frames.len() as u64;
+        stats.keyframes = snapshot.keyframes.len() as u64;
+        stats
+            .counters
+            .insert("posed_frames".into(), snapshot.frames.len() as u64);
+        stats
+            .counters
+            .insert("segments".into(), u64::from(map.segments()));
+        stats
+            .counters
+            .insert("map_points".into(), snapshot.points.len() as u64);
+        stats.write(out)?;
+        if let Some(egress) = &self.egress {
+            let status = pb::Status {
+                service: "merger".into(),
+                state: state as i32,
+                frames: snapshot.frames.len() as u64,
+                keyframes: snapshot.keyframes.len() as u64,
+                windows: stats.windows,
+                message: format!(
+                    "{} segment(s), {} map points",
+                    map.segments(),
+                    snapshot.points.len()
+                ),
+            };
+            map_state::publish(
+                egress,
+                &snapshot,
+                &mut self.revisions,
+                changed_points,
+                &status,
+            )?;
         }
+        Ok(())
     }
-}
-
-fn write_outputs(
-    out: &Path,
-    map: &MapBuilder,
-    frames: &FrameIndex,
-    stats: &mut ServiceStats,
-) -> anyhow::Result<()> {
-    let keyframes: Vec<(u32, StampedPose)> = map.keyframes().map(|(_, s, p)| (s, *p)).collect();
-    let mut sorted = keyframes.clone();
-    sorted.sort_by(|a, b| a.1.timestamp.total_cmp(&b.1.timestamp));
-    let stamps: Vec<f64> = frames.frames.values().copied().collect();
-    let posed: Vec<StampedPose> = interpolate_frames(&sorted, &stamps)
-        .into_iter()
-        .map(|(_, p, _)| p)
-        .collect();
-    let kf_poses: Vec<StampedPose> = sorted.iter().map(|(_, p)| *p).collect();
-    let points: Vec<_> = map.points().map(|(_, _, x)| *x).collect();
-    write_atomically(&out.join("trajectory.tum"), tum_text(&posed).as_bytes())?;
-    write_atomically(&out.join("keyframes.tum"), tum_text(&kf_poses).as_bytes())?;
-    write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())?;
-    stats.frames = frames.frames.len() as u64;
-    stats.keyframes = kf_poses.len() as u64;
-    stats
-        .counters
-        .insert("posed_frames".into(), posed.len() as u64);
-    stats
-        .counters
-        .insert("segments".into(), u64::from(map.segments()));
-    stats
-        .counters
-        .insert("map_points".into(), points.len() as u64);
-    stats.write(out)
 }
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
@@ -80,6 +81,21 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
+    let egress = if args.egress.zenoh_listen.iter().any(|e| e == "none") {
+        None
+    } else {
+        let e = Egress::open(&EgressOptions {
+            device: args.egress.device.clone(),
+            listen: args.egress.zenoh_listen.clone(),
+            connect: args.egress.zenoh_connect.clone(),
+        })?;
+        tracing::info!(prefix = e.prefix(), listen = ?args.egress.zenoh_listen, "publishing over zenoh");
+        Some(e)
+    };
+    let mut outputs = Outputs {
+        egress,
+        revisions: Revisions::default(),
+    };
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     let mut map = MapBuilder::new();
     let mut frames = FrameIndex::default();
@@ -174,11 +190,26 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             stats.count("unsolved_windows", 1);
             map.break_segment();
         }
+        let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
         let write_start = std::time::Instant::now();
-        write_outputs(&args.out, &map, &frames, &mut stats)?;
+        outputs.emit(
+            &args.out,
+            &map,
+            &frames,
+            &changed,
+            pb::ServiceState::Running,
+            &mut stats,
+        )?;
         stats.add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
     }
-    write_outputs(&args.out, &map, &frames, &mut stats)?;
+    outputs.emit(
+        &args.out,
+        &map,
+        &frames,
+        &[],
+        pb::ServiceState::Finished,
+        &mut stats,
+    )?;
     tracing::info!(
         windows = stats.windows,
         segments = map.segments(),

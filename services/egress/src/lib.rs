@@ -1,0 +1,213 @@
+//! Results of egoslam over zenoh, as protobuf (`proto/egoslam/v1`), for clients in any
+//! language (docs/egress.md).
+//!
+//! | key expression | payload | when |
+//! |---|---|---|
+//! | `egoslam/<device>/pose` | `Pose` | every newly posed or re-posed frame, with its revision |
+//! | `egoslam/<device>/trajectory` | `Trajectory` | all keyframe poses, after every window |
+//! | `egoslam/<device>/map` | `MapPoints` | new and changed points, in chunks of 4096 |
+//! | `egoslam/<device>/status` | `Status` | after every window and at the end |
+//! | `egoslam/<device>/snapshot` | `Snapshot` (queryable) | on request: the whole current state |
+//!
+//! The session listens on loopback only by default (`tcp/127.0.0.1:7447`), peer mode, with
+//! multicast and gossip scouting off: clients connect to that endpoint explicitly.
+
+use egoslam_messages::v1 as pb;
+use prost::Message;
+use std::sync::{Arc, Mutex};
+use zenoh::Wait;
+
+/// Points per `map` message (keeps each under ~200 KB).
+pub const MAP_CHUNK: usize = 4096;
+
+/// Where and as whom results are published.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EgressOptions {
+    /// Device name in the key expressions (default "default").
+    pub device: String,
+    /// Endpoints to listen on (default `tcp/127.0.0.1:7447`: loopback only).
+    pub listen: Vec<String>,
+    /// Router or peer endpoints to connect to (default none).
+    pub connect: Vec<String>,
+}
+
+impl Default for EgressOptions {
+    fn default() -> Self {
+        Self {
+            device: "default".into(),
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            connect: Vec::new(),
+        }
+    }
+}
+
+/// Errors of [`Egress`].
+#[derive(Debug, thiserror::Error)]
+pub enum EgressError {
+    /// The zenoh configuration was rejected (bad endpoint or device name).
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    /// The session could not be opened (e.g. the listen port is taken).
+    #[error("cannot open zenoh session (listen {listen:?}): {reason}")]
+    Open { listen: Vec<String>, reason: String },
+    /// A publisher or queryable could not be declared.
+    #[error("cannot declare {key}: {reason}")]
+    Declare { key: String, reason: String },
+    /// A put failed.
+    #[error("cannot publish on {key}: {reason}")]
+    Put { key: String, reason: String },
+}
+
+/// The zenoh configuration egoslam uses (also for the tests' clients).
+pub fn zenoh_config(listen: &[String], connect: &[String]) -> Result<zenoh::Config, EgressError> {
+    let mut config = zenoh::Config::default();
+    let json = |v: &[String]| serde_json_list(v);
+    let set = |config: &mut zenoh::Config, key: &str, value: &str| {
+        config
+            .insert_json5(key, value)
+            .map_err(|e| EgressError::Config(format!("{key} = {value}: {e}")))
+    };
+    set(&mut config, "mode", "\"peer\"")?;
+    set(&mut config, "listen/endpoints", &json(listen))?;
+    set(&mut config, "connect/endpoints", &json(connect))?;
+    set(&mut config, "scouting/multicast/enabled", "false")?;
+    set(&mut config, "scouting/gossip/enabled", "false")?;
+    Ok(config)
+}
+
+fn serde_json_list(v: &[String]) -> String {
+    let items: Vec<String> = v
+        .iter()
+        .map(|s| format!("\"{}\"", s.replace('"', "")))
+        .collect();
+    format!("[{}]", items.join(","))
+}
+
+/// The publishers and the snapshot queryable of one device.
+pub struct Egress {
+    session: zenoh::Session,
+    prefix: String,
+    pose: zenoh::pubsub::Publisher<'static>,
+    trajectory: zenoh::pubsub::Publisher<'static>,
+    map: zenoh::pubsub::Publisher<'static>,
+    status: zenoh::pubsub::Publisher<'static>,
+    snapshot: Arc<Mutex<Vec<u8>>>,
+    _queryable: zenoh::query::Queryable<()>,
+}
+
+impl Egress {
+    /// Opens the session and declares every key expression.
+    pub fn open(options: &EgressOptions) -> Result<Self, EgressError> {
+        if options.device.is_empty() || options.device.contains(['/', '*', '$', '?', '#']) {
+            return Err(EgressError::Config(format!(
+                "device name {:?} is not a single key chunk",
+                options.device
+            )));
+        }
+        let config = zenoh_config(&options.listen, &options.connect)?;
+        let session = zenoh::open(config).wait().map_err(|e| EgressError::Open {
+            listen: options.listen.clone(),
+            reason: e.to_string(),
+        })?;
+        let prefix = format!("egoslam/{}", options.device);
+        let declare = |name: &str| {
+            let key = format!("{prefix}/{name}");
+            session
+                .declare_publisher(key.clone())
+                .wait()
+                .map_err(|e| EgressError::Declare {
+                    key,
+                    reason: e.to_string(),
+                })
+        };
+        let (pose, trajectory, map, status) = (
+            declare("pose")?,
+            declare("trajectory")?,
+            declare("map")?,
+            declare("status")?,
+        );
+        let snapshot = Arc::new(Mutex::new(pb::Snapshot::default().encode_to_vec()));
+        let shared = snapshot.clone();
+        let key = format!("{prefix}/snapshot");
+        let reply_key = key.clone();
+        let queryable = session
+            .declare_queryable(key.clone())
+            .callback(move |query| {
+                let bytes = shared.lock().map(|b| b.clone()).unwrap_or_default();
+                if let Err(e) = query.reply(reply_key.clone(), bytes).wait() {
+                    tracing::warn!(%e, "snapshot reply failed");
+                }
+            })
+            .wait()
+            .map_err(|e| EgressError::Declare {
+                key,
+                reason: e.to_string(),
+            })?;
+        Ok(Self {
+            session,
+            prefix,
+            pose,
+            trajectory,
+            map,
+            status,
+            snapshot,
+            _queryable: queryable,
+        })
+    }
+
+    /// The key expression prefix, `egoslam/<device>`.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// The session's zenoh id (for status and logs).
+    pub fn zid(&self) -> String {
+        self.session.zid().to_string()
+    }
+
+    fn put(
+        &self,
+        publisher: &zenoh::pubsub::Publisher<'static>,
+        bytes: Vec<u8>,
+    ) -> Result<(), EgressError> {
+        publisher.put(bytes).wait().map_err(|e| EgressError::Put {
+            key: publisher.key_expr().to_string(),
+            reason: e.to_string(),
+        })
+    }
+
+    /// One message per pose.
+    pub fn publish_poses(&self, poses: &[pb::Pose]) -> Result<(), EgressError> {
+        poses
+            .iter()
+            .try_for_each(|p| self.put(&self.pose, p.encode_to_vec()))
+    }
+
+    pub fn publish_trajectory(&self, trajectory: &pb::Trajectory) -> Result<(), EgressError> {
+        self.put(&self.trajectory, trajectory.encode_to_vec())
+    }
+
+    /// New and changed points, in chunks of [`MAP_CHUNK`].
+    pub fn publish_map(&self, points: &[pb::MapPoint]) -> Result<(), EgressError> {
+        points.chunks(MAP_CHUNK).try_for_each(|chunk| {
+            self.put(
+                &self.map,
+                pb::MapPoints {
+                    points: chunk.to_vec(),
+                }
+                .encode_to_vec(),
+            )
+        })
+    }
+
+    pub fn publish_status(&self, status: &pb::Status) -> Result<(), EgressError> {
+        self.put(&self.status, status.encode_to_vec())
+    }
+
+    /// Replaces what the snapshot queryable answers.
+    pub fn set_snapshot(&self, snapshot: &pb::Snapshot) {
+        if let Ok(mut bytes) = self.snapshot.lock() {
+            *bytes = snapshot.encode_to_vec();
+        }
+    }
+}

@@ -1,0 +1,125 @@
+//! Results over zenoh from a real replayed run, read by a zenoh client in this process.
+
+mod common;
+
+use common::*;
+use egoslam_messages::v1 as pb;
+use egoslam_sources::ground_truth::read_tum_file;
+use prost::Message;
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("bind")
+        .local_addr()
+        .expect("addr")
+        .port()
+}
+
+#[test]
+fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let out = tempfile::tempdir().expect("tempdir");
+    let mut run = egoslam()
+        .args(["run", "--realtime", "--device", "it", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path())
+        .env("EGOSLAM_ZENOH_LISTEN", &endpoint)
+        .spawn()
+        .expect("run");
+
+    // Connect to the merger's loopback listener (it appears once the merger has started).
+    let config =
+        egoslam_egress::zenoh_config(&[], std::slice::from_ref(&endpoint)).expect("config");
+    let start = Instant::now();
+    let session = loop {
+        if let Ok(s) = zenoh::open(config.clone()).wait() {
+            if s.info().peers_zid().wait().count() > 0 {
+                break s;
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "merger never listened on {endpoint}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let trajectory = session
+        .declare_subscriber("egoslam/it/trajectory")
+        .wait()
+        .expect("sub");
+    let status = session
+        .declare_subscriber("egoslam/it/status")
+        .wait()
+        .expect("sub");
+    let poses = session
+        .declare_subscriber("egoslam/it/pose")
+        .wait()
+        .expect("sub");
+
+    let (mut trajectories, mut statuses, mut pose_messages, mut snapshot) =
+        (Vec::new(), Vec::new(), Vec::new(), None);
+    while run.try_wait().expect("poll").is_none() {
+        while let Ok(Some(s)) = trajectory.try_recv() {
+            trajectories
+                .push(pb::Trajectory::decode(&*s.payload().to_bytes()).expect("trajectory"));
+        }
+        while let Ok(Some(s)) = status.try_recv() {
+            statuses.push(pb::Status::decode(&*s.payload().to_bytes()).expect("status"));
+        }
+        while let Ok(Some(s)) = poses.try_recv() {
+            pose_messages.push(pb::Pose::decode(&*s.payload().to_bytes()).expect("pose"));
+        }
+        if snapshot.is_none() && !trajectories.is_empty() {
+            let replies = session.get("egoslam/it/snapshot").wait().expect("get");
+            if let Ok(Some(reply)) = replies.recv_timeout(Duration::from_secs(5)) {
+                let sample = reply.result().expect("snapshot reply");
+                snapshot =
+                    Some(pb::Snapshot::decode(&*sample.payload().to_bytes()).expect("snapshot"));
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(run.wait().expect("exit").success());
+
+    let file = read_tum_file(&out.path().join("keyframes.tum")).expect("keyframes.tum");
+    let in_file = |p: &pb::Pose| {
+        let x = p.position.unwrap_or_default();
+        file.iter().any(|f| {
+            (f.timestamp - p.timestamp_s).abs() < 1e-5
+                && (f.position.x - x.x).abs() < 1e-5
+                && (f.position.z - x.z).abs() < 1e-5
+        })
+    };
+    let last = trajectories.last().expect("trajectory messages arrived");
+    assert!(
+        last.poses.len() >= 20,
+        "{} keyframes in the last trajectory message",
+        last.poses.len()
+    );
+    assert!(
+        last.poses.iter().all(in_file),
+        "published keyframes match keyframes.tum"
+    );
+    let snapshot = snapshot.expect("snapshot answered");
+    let snap_keyframes = snapshot.keyframes.expect("keyframes").poses;
+    assert!(!snap_keyframes.is_empty() && snap_keyframes.iter().all(in_file));
+    assert!(!snapshot.map.expect("map").points.is_empty());
+    assert!(statuses.iter().any(|s| s.service == "merger"
+        && s.state == pb::ServiceState::Running as i32
+        && s.windows >= 1));
+    let windows: Vec<u64> = statuses.iter().map(|s| s.windows).collect();
+    assert!(
+        windows.windows(2).all(|w| w[0] <= w[1]),
+        "windows only grow: {windows:?}"
+    );
+    assert!(
+        pose_messages.len() >= 20,
+        "{} pose messages",
+        pose_messages.len()
+    );
+    assert!(pose_messages.iter().all(|p| p.timestamp_s > 0.0));
+}
