@@ -65,10 +65,16 @@ fn create_publisher<H: Debug + ZeroCopySend + Default>(
             }),
         Delivery::DropNewest => builder.backpressure_strategy(BackpressureStrategy::DiscardData),
     };
-    builder.create().map_err(|e| BusOpenError::Port {
-        service: bus.service_name(channel),
+    builder.create().map_err(port_error(bus, channel))
+}
+
+/// Maps an iceoryx2 port-creation error of `channel`.
+fn port_error<E: Debug>(bus: &Bus, channel: &Channel) -> impl Fn(E) -> BusOpenError {
+    let service = bus.service_name(channel);
+    move |e| BusOpenError::Port {
+        service: service.clone(),
         reason: format!("{e:?}"),
-    })
+    }
 }
 
 fn create_subscriber<H: Debug + ZeroCopySend>(
@@ -80,10 +86,7 @@ fn create_subscriber<H: Debug + ZeroCopySend>(
         .subscriber_builder()
         .buffer_size(channel.buffer)
         .create()
-        .map_err(|e| BusOpenError::Port {
-            service: bus.service_name(channel),
-            reason: format!("{e:?}"),
-        })
+        .map_err(port_error(bus, channel))
 }
 
 /// Blocks until at least one subscriber is connected (so nothing is sent into the void).
@@ -199,10 +202,7 @@ fn create_notifier(
     events
         .notifier_builder()
         .create()
-        .map_err(|e| BusOpenError::Port {
-            service: bus.service_name(channel),
-            reason: format!("{e:?}"),
-        })
+        .map_err(port_error(bus, channel))
 }
 
 fn create_listener(
@@ -213,10 +213,7 @@ fn create_listener(
     events
         .listener_builder()
         .create()
-        .map_err(|e| BusOpenError::Port {
-            service: bus.service_name(channel),
-            reason: format!("{e:?}"),
-        })
+        .map_err(port_error(bus, channel))
 }
 
 /// The consumer side of a channel: subscriber, wake-up listener and liveness check.
