@@ -1,0 +1,178 @@
+//! Tests of the tracker (kept beside it to keep tracker.rs short).
+
+use super::*;
+use opencv::core::{Mat, Rect};
+
+/// A blurred random texture, big enough to crop shifted views from.
+fn texture(w: i32, h: i32) -> Mat {
+    let mut noise = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("mat");
+    opencv::core::set_rng_seed(7).expect("seed");
+    opencv::core::randu(&mut noise, &Scalar::all(0.0), &Scalar::all(255.0)).expect("randu");
+    let mut blurred = Mat::default();
+    imgproc::gaussian_blur_def(&noise, &mut blurred, Size::new(7, 7), 1.5).expect("blur");
+    blurred
+}
+
+fn crop(img: &Mat, x: i32, y: i32, w: i32, h: i32) -> Mat {
+    Mat::roi(img, Rect::new(x, y, w, h))
+        .expect("roi")
+        .try_clone()
+        .expect("clone")
+}
+
+fn camera(w: u32, h: u32) -> PinholeRadtan {
+    PinholeRadtan::new(
+        w,
+        h,
+        [300.0, 300.0, w as f64 / 2.0, h as f64 / 2.0],
+        [0.0; 5],
+    )
+    .expect("camera")
+}
+
+#[test]
+fn tracks_follow_a_known_shift_and_flow_triggers_keyframes() {
+    let big = texture(600, 300);
+    let (w, h) = (320, 240);
+    let mut tracker = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let mut keyframes = Vec::new();
+    let mut first_positions = std::collections::HashMap::new();
+    for i in 0..20 {
+        // The camera pans right by 3 px per frame: content moves left by 3 px.
+        let out = tracker
+            .process(i, &crop(&big, 3 * i as i32, 30, w, h))
+            .expect("tracks");
+        if let Some(k) = out.keyframe {
+            if k.keyframe_id == 0 {
+                for t in &k.tracks {
+                    first_positions.insert(t.track_id, t.raw);
+                }
+            } else if k.keyframe_id == 1 {
+                // Every track of the first keyframe still alive moved by exactly -3 px/frame.
+                let shift = -3.0 * k.frame_id as f32;
+                let mut checked = 0;
+                for t in &k.tracks {
+                    if let Some(p0) = first_positions.get(&t.track_id) {
+                        assert!(
+                            (t.raw.x - p0.x - shift).abs() < 0.2,
+                            "x {} -> {}",
+                            p0.x,
+                            t.raw.x
+                        );
+                        assert!((t.raw.y - p0.y).abs() < 0.2);
+                        checked += 1;
+                    }
+                }
+                assert!(checked > 200, "only {checked} tracks survived");
+            }
+            keyframes.push((k.frame_id, k.reason));
+        }
+        assert!(
+            out.live_tracks > 300,
+            "frame {i}: {} tracks",
+            out.live_tracks
+        );
+    }
+    // 3 px/frame: mean flow passes m = 20 px on the 7th frame after a keyframe.
+    assert_eq!(keyframes[0], (0, KeyframeReason::First));
+    assert_eq!(keyframes[1], (7, KeyframeReason::Flow));
+    assert_eq!(keyframes[2], (14, KeyframeReason::Flow));
+}
+
+#[test]
+fn forward_backward_check_drops_tracks_on_a_scrambled_frame() {
+    let big = texture(400, 300);
+    let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+    tracker
+        .process(0, &crop(&big, 0, 0, 320, 240))
+        .expect("first");
+    let before = tracker.live_tracks();
+    // An unrelated image: LK converges somewhere for many points, but not consistently
+    // in both directions.
+    let other = texture(400, 300);
+    let mut flipped = Mat::default();
+    opencv::core::flip(&crop(&other, 50, 40, 320, 240), &mut flipped, -1).expect("flip");
+    let out = tracker.process(1, &flipped).expect("tracks");
+    assert!(
+        out.rejected_forward_backward > before / 4,
+        "rejected {} of {before}",
+        out.rejected_forward_backward
+    );
+}
+
+#[test]
+fn keyframe_every_p_frames_without_motion_and_finish_closes_the_stream() {
+    let img = texture(320, 240);
+    let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+    let mut kf_frames = Vec::new();
+    for i in 0..65 {
+        if let Some(k) = tracker.process(i, &img).expect("tracks").keyframe {
+            kf_frames.push(k.frame_id);
+        }
+    }
+    assert_eq!(kf_frames, vec![0, 30, 60]);
+    let last = tracker
+        .finish()
+        .expect("trailing frames make a last keyframe");
+    assert_eq!(
+        (last.frame_id, last.reason, last.keyframe_id),
+        (64, KeyframeReason::Last, 3)
+    );
+    assert!(tracker.finish().is_none());
+}
+
+#[test]
+fn rejects_wrong_size_and_colour() {
+    let mut tracker = Tracker::new(camera(320, 240), TrackerOptions::default());
+    let small = Mat::new_rows_cols_with_default(10, 10, CV_8UC1, Scalar::all(0.0)).expect("mat");
+    assert!(matches!(
+        tracker.process(0, &small),
+        Err(TrackerError::SizeMismatch { .. })
+    ));
+    let colour = Mat::new_rows_cols_with_default(240, 320, opencv::core::CV_8UC3, Scalar::all(0.0))
+        .expect("mat");
+    assert!(matches!(
+        tracker.process(0, &colour),
+        Err(TrackerError::NotGrey { .. })
+    ));
+}
+
+mod pyramid_tests {
+    use super::super::*;
+
+    /// Corners are detected on pyramid entry 2 and doubled: it must be level 1, unpadded.
+    #[test]
+    fn level_one_is_half_size_and_aligned() {
+        let mut img =
+            Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(0.0)).expect("mat");
+        imgproc::circle(
+            &mut img,
+            Point::new(100, 60),
+            6,
+            Scalar::all(255.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .expect("draw");
+        let mut pyramid = Vector::<Mat>::new();
+        video::build_optical_flow_pyramid_def(&img, &mut pyramid, Size::new(9, 9), 3)
+            .expect("pyramid");
+        let half = pyramid.get(2).expect("level 1");
+        let mut max_loc = Point::default();
+        opencv::core::min_max_loc(
+            &half,
+            None,
+            None,
+            None,
+            Some(&mut max_loc),
+            &opencv::core::no_array(),
+        )
+        .expect("minmax");
+        assert_eq!((half.cols(), half.rows()), (160, 120));
+        assert!(
+            (max_loc.x - 50).abs() <= 2 && (max_loc.y - 30).abs() <= 2,
+            "{max_loc:?}"
+        );
+    }
+}
