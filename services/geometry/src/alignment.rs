@@ -126,6 +126,86 @@ pub fn umeyama(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Result<Similarity,
     })
 }
 
+/// Options of [`umeyama_ransac`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RobustAlignmentOptions {
+    /// A correspondence is an inlier when `|dst - T(src)|` is below this (destination units).
+    pub inlier_threshold: f64,
+    /// Minimal-sample iterations (default 200: with 30 % outliers a 3-point sample is clean
+    /// with probability 0.34, so 200 draws miss a clean one with probability < 1e-35).
+    pub iterations: usize,
+    /// Seed of the deterministic sampler (runs are reproducible).
+    pub seed: u64,
+}
+
+impl Default for RobustAlignmentOptions {
+    fn default() -> Self {
+        Self {
+            inlier_threshold: 0.05,
+            iterations: 200,
+            seed: 1,
+        }
+    }
+}
+
+/// Umeyama in RANSAC (Fischler and Bolles 1981): similarities from random 3-point samples,
+/// the one with the most inliers refitted on all of its inliers. Returns the transform and
+/// the inlier mask.
+pub fn umeyama_ransac(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+    options: &RobustAlignmentOptions,
+) -> Result<(Similarity, Vec<bool>), AlignmentError> {
+    if src.len() != dst.len() {
+        return Err(AlignmentError::LengthMismatch(src.len(), dst.len()));
+    }
+    let n = src.len();
+    if n < 3 {
+        return Err(AlignmentError::TooFewPoints(n));
+    }
+    let mut state = options.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut draw = move |bound: usize| {
+        // xorshift64*: small, deterministic, good enough for sampling indices.
+        state ^= state >> 12;
+        state ^= state << 25;
+        state ^= state >> 27;
+        (state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 33) as usize % bound
+    };
+    let inliers_of = |t: &Similarity| -> Vec<bool> {
+        src.iter()
+            .zip(dst)
+            .map(|(s, d)| (t.apply(s) - d).norm() < options.inlier_threshold)
+            .collect()
+    };
+    let mut best: Option<(usize, Vec<bool>)> = None;
+    for _ in 0..options.iterations {
+        let (a, b, c) = (draw(n), draw(n), draw(n));
+        if a == b || b == c || a == c {
+            continue;
+        }
+        let Ok(t) = umeyama(&[src[a], src[b], src[c]], &[dst[a], dst[b], dst[c]]) else {
+            continue;
+        };
+        let mask = inliers_of(&t);
+        let count = mask.iter().filter(|m| **m).count();
+        if best.as_ref().is_none_or(|(c, _)| count > *c) {
+            best = Some((count, mask));
+        }
+    }
+    let (_, mask) = best.ok_or(AlignmentError::Degenerate)?;
+    let pick = |v: &[Vector3<f64>], m: &[bool]| {
+        v.iter()
+            .zip(m)
+            .filter(|(_, k)| **k)
+            .map(|(x, _)| *x)
+            .collect::<Vec<_>>()
+    };
+    let refit = umeyama(&pick(src, &mask), &pick(dst, &mask))?;
+    let mask = inliers_of(&refit);
+    let refit = umeyama(&pick(src, &mask), &pick(dst, &mask))?;
+    Ok((refit, mask))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -151,6 +231,55 @@ mod tests {
         let round = est.compose(&est.inverse());
         assert!(
             (round.apply(&Vector3::new(3.0, 4.0, 5.0)) - Vector3::new(3.0, 4.0, 5.0)).norm() < 1e-9
+        );
+    }
+
+    #[test]
+    fn robust_fit_ignores_thirty_percent_outliers() {
+        let truth = Similarity {
+            scale: 0.7,
+            rotation: Rotation3::from_euler_angles(-0.4, 0.9, 0.2),
+            translation: Vector3::new(-3.0, 1.0, 2.0),
+        };
+        let src: Vec<_> = (0..100)
+            .map(|i| {
+                let t = i as f64;
+                Vector3::new(
+                    (1.3 * t).sin() * 4.0,
+                    (0.7 * t).cos() * 3.0,
+                    5.0 + (0.3 * t).sin() * 2.0,
+                )
+            })
+            .collect();
+        let mut dst: Vec<_> = src.iter().map(|p| truth.apply(p)).collect();
+        // 30 % gross outliers, and 1 mm noise on the rest.
+        for (i, d) in dst.iter_mut().enumerate() {
+            if i % 10 < 3 {
+                *d += Vector3::new(1.5, -2.0, 0.7 * (i as f64).cos());
+            } else {
+                *d += Vector3::new(1e-3 * (i as f64).sin(), 1e-3 * (i as f64).cos(), 0.0);
+            }
+        }
+        let plain = umeyama(&src, &dst).expect("fits");
+        assert!(
+            (plain.scale - 0.7).abs() > 0.01,
+            "the outliers do bias a plain fit"
+        );
+        let options = RobustAlignmentOptions {
+            inlier_threshold: 0.02,
+            ..RobustAlignmentOptions::default()
+        };
+        let (robust, mask) = umeyama_ransac(&src, &dst, &options).expect("fits");
+        assert!((robust.scale - 0.7).abs() < 1e-3, "scale {}", robust.scale);
+        assert!(robust.rotation.angle_to(&truth.rotation) < 1e-3);
+        assert!((robust.translation - truth.translation).norm() < 5e-3);
+        assert_eq!(mask.iter().filter(|m| !**m).count(), 30);
+        // Noiseless: exact.
+        let clean: Vec<_> = src.iter().map(|p| truth.apply(p)).collect();
+        let (exact, _) = umeyama_ransac(&src, &clean, &options).expect("fits");
+        assert!(
+            (exact.scale - 0.7).abs() < 1e-12
+                && (exact.translation - truth.translation).norm() < 1e-9
         );
     }
 

@@ -6,6 +6,8 @@ pub mod alignment;
 pub mod camera;
 pub mod trajectory;
 
-pub use alignment::{nearest_rotation, umeyama, AlignmentError, Similarity};
+pub use alignment::{
+    nearest_rotation, umeyama, umeyama_ransac, AlignmentError, RobustAlignmentOptions, Similarity,
+};
 pub use camera::{CameraError, PinholeRadtan};
 pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};
