@@ -48,9 +48,9 @@ pub struct PipelineArgs {
     /// Lucas-Kanade window side, pixels (odd; larger is slower and smoother).
     #[arg(long, default_value_t = 9)]
     pub lk_window: i32,
-    /// K: keyframes per window (10-30).
-    #[arg(long, default_value_t = 20)]
-    pub window: usize,
+    /// K: keyframes per window (10-30, the paper's range).
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
+    pub window: u16,
     /// O: keyframes shared by consecutive windows.
     #[arg(long, default_value_t = 5)]
     pub overlap: usize,

@@ -206,7 +206,7 @@ fn dump_window(
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("solver");
     let mut builder = WindowBuilder::new(WindowOptions {
-        size: args.pipeline.window,
+        size: usize::from(args.pipeline.window),
         overlap: args.pipeline.overlap,
     })?;
     let options = WindowSolverOptions::default();
