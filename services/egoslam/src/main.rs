@@ -43,8 +43,9 @@ fn init_tracing(verbose: u8) {
         1 => "debug",
         _ => "trace",
     };
+    // zenoh's own INFO lines (sessions opening and closing) are noise to an operator.
     let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{default},zenoh=warn")));
     tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
