@@ -27,7 +27,8 @@ pub struct RelativePoseOptions {
     pub min_matches: usize,
     /// RANSAC inlier threshold, pixels (default 1.0: LK tracks are sub-pixel accurate).
     pub ransac_threshold_px: f64,
-    /// RANSAC confidence (default 0.999, OpenCV's).
+    /// RANSAC confidence (default 0.99: a third faster than OpenCV's 0.999 on KITTI windows,
+    /// with ATE changes inside run-to-run noise on TUM and KITTI).
     pub ransac_confidence: f64,
     /// Median residual of the best rotation-only fit below which the translation direction
     /// is not trusted, pixels (default 2.0: twice the LK track noise; below it a pure
@@ -45,7 +46,7 @@ impl Default for RelativePoseOptions {
         Self {
             min_matches: 30,
             ransac_threshold_px: 1.0,
-            ransac_confidence: 0.999,
+            ransac_confidence: 0.99,
             min_parallax_px: 2.0,
             min_inliers: 20,
             ransac_points: 200,
