@@ -108,19 +108,11 @@ impl Layout {
 mod tests {
     use super::*;
 
-    fn shared() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-        if p.is_dir() {
-            Some(p)
-        } else {
-            eprintln!("skipping: ../shared/data is absent");
-            None
-        }
-    }
-
     #[test]
     fn detects_each_shared_dataset_from_its_root() {
-        let Some(data) = shared() else { return };
+        let Some(data) = crate::shared_test_data("") else {
+            return;
+        };
         assert!(matches!(
             detect_layout(&data.join("tum_fr1_rpy")),
             Ok(Layout::Tum { .. })
