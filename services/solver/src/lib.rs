@@ -9,6 +9,7 @@ pub mod bundle_adjustment;
 pub mod relative_pose;
 pub mod rotation_averaging;
 pub mod schur;
+pub mod sparse_schur;
 pub mod translation_averaging;
 pub mod triangulation;
 pub mod view_graph;
