@@ -8,7 +8,8 @@
 //! Parameter", 1964. After convergence, observations whose error exceeds a threshold are
 //! removed, reported, and the problem is solved again without them.
 
-use crate::schur::SchurSystem;
+use crate::schur::{SchurStep, SchurSystem};
+use crate::sparse_schur::SparseSchurSystem;
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Matrix2x3, Point2, Rotation3, Vector2, Vector3};
@@ -94,6 +95,47 @@ struct State {
     points: Vec<Vector3<f64>>,
     focal_scale: f64,
     radial_k: f64,
+}
+
+/// Cameras above which the reduced system is kept sparse (a window's 20 cameras factor
+/// faster dense; the merger's hundreds of keyframes couple only through shared points).
+const SPARSE_ABOVE_CAMERAS: usize = 60;
+
+/// Dense or sparse normal equations, chosen by size.
+enum NormalEquations {
+    Dense(SchurSystem),
+    Sparse(SparseSchurSystem),
+}
+
+impl NormalEquations {
+    fn new(reduced: usize, globals: usize, points: usize) -> Self {
+        if globals == 0 && reduced > 6 * SPARSE_ABOVE_CAMERAS {
+            Self::Sparse(SparseSchurSystem::new(reduced, points))
+        } else {
+            Self::Dense(SchurSystem::new(reduced, points))
+        }
+    }
+
+    fn add(
+        &mut self,
+        idx: &[usize],
+        jr: &[Vector2<f64>],
+        point: Option<(usize, &Matrix2x3<f64>)>,
+        r: &Vector2<f64>,
+        w: f64,
+    ) {
+        match self {
+            Self::Dense(s) => s.add(idx, jr, point, r, w),
+            Self::Sparse(s) => s.add(idx, jr, point, r, w),
+        }
+    }
+
+    fn solve(&self, lambda: f64) -> Option<SchurStep> {
+        match self {
+            Self::Dense(s) => s.solve(lambda),
+            Self::Sparse(s) => s.solve(lambda),
+        }
+    }
 }
 
 /// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
@@ -183,7 +225,7 @@ fn levenberg_marquardt(
     let mut lambda = 1e-4;
     let mut current = cost(camera, st, obs, active, options.huber_px);
     for iteration in 0..options.max_iterations {
-        let mut sys = SchurSystem::new(reduced, st.points.len());
+        let mut sys = NormalEquations::new(reduced, globals, st.points.len());
         let mut idx = Vec::with_capacity(8);
         let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {

@@ -104,7 +104,8 @@ impl SparseSchurSystem {
                 rhs[*a] += wa_vinv * p.g;
                 for (b, wb) in &p.coupling {
                     if b >= a {
-                        *s.entry((*a, *b)).or_insert_with(Matrix6::zeros) -= wa_vinv * wb.transpose();
+                        *s.entry((*a, *b)).or_insert_with(Matrix6::zeros) -=
+                            wa_vinv * wb.transpose();
                     }
                 }
             }
@@ -162,7 +163,9 @@ mod tests {
         // Three camera blocks, four points, every point seen by two or three cameras.
         let mut seed = 3u64;
         let mut next = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
         };
         let mut dense = SchurSystem::new(18, 4);
@@ -174,7 +177,9 @@ mod tests {
                 }
                 for _ in 0..3 {
                     let idx: Vec<usize> = (cam * 6..cam * 6 + 6).collect();
-                    let cols: Vec<SVector<f64, 2>> = (0..6).map(|_| SVector::<f64, 2>::new(next(), next())).collect();
+                    let cols: Vec<SVector<f64, 2>> = (0..6)
+                        .map(|_| SVector::<f64, 2>::new(next(), next()))
+                        .collect();
                     let jp = SMatrix::<f64, 2, 3>::from_fn(|_, _| next());
                     let r = SVector::<f64, 2>::new(next(), next());
                     dense.add(&idx, &cols, Some((point, &jp)), &r, 1.5);
@@ -182,7 +187,10 @@ mod tests {
                 }
             }
         }
-        let (a, b) = (dense.solve(0.1).expect("dense"), sparse.solve(0.1).expect("sparse"));
+        let (a, b) = (
+            dense.solve(0.1).expect("dense"),
+            sparse.solve(0.1).expect("sparse"),
+        );
         assert!((&a.reduced - &b.reduced).norm() < 1e-9 * (1.0 + a.reduced.norm()));
         for (p, q) in a.points.iter().zip(&b.points) {
             assert!((p - q).norm() < 1e-9 * (1.0 + p.norm()));
