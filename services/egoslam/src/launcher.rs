@@ -35,7 +35,12 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
 }
 
 /// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
+/// Image folders and videos carry no clock of their own (their timestamps are frame index /
+/// fps), so nothing found near them could be associated: they need `--gt` and real stamps.
 fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
+    if matches!(layout, Layout::ImageFolder { .. } | Layout::Video { .. }) {
+        return None;
+    }
     let root = layout.root();
     if let Layout::Kitti { dir } = layout {
         let name = dir.file_name()?.to_string_lossy().into_owned();
