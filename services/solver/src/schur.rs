@@ -113,13 +113,7 @@ impl SchurSystem {
         let reduced = if n > 0 {
             let a = faer::Mat::<f64>::from_fn(n, n, |i, j| s[(i, j)]);
             let llt = a.llt(faer::Side::Lower).ok()?;
-            let mut x = faer::Mat::<f64>::from_fn(n, 1, |i, _| rhs[i]);
-            llt.solve_in_place(x.as_mut());
-            let out = DVector::from_fn(n, |i, _| x[(i, 0)]);
-            if !out.iter().all(|v| v.is_finite()) {
-                return None;
-            }
-            out
+            solve_finite(&llt, n, |i| rhs[i])?
         } else {
             DVector::zeros(0)
         };
@@ -137,6 +131,18 @@ impl SchurSystem {
             .collect();
         Some(SchurStep { reduced, points })
     }
+}
+
+/// Solves with a factorisation for the right-hand side `rhs(i)`, `None` if not finite.
+pub(crate) fn solve_finite(
+    solver: &impl Solve<f64>,
+    n: usize,
+    rhs: impl Fn(usize) -> f64,
+) -> Option<DVector<f64>> {
+    let mut x = faer::Mat::<f64>::from_fn(n, 1, |i, _| rhs(i));
+    solver.solve_in_place(x.as_mut());
+    let out = DVector::from_fn(n, |i, _| x[(i, 0)]);
+    out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
 #[cfg(test)]

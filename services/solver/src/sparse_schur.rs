@@ -6,8 +6,7 @@
 //!
 //! Parameters are camera blocks of 6 (`index / 6` is the block); no global parameters.
 
-use crate::schur::SchurStep;
-use faer::linalg::solvers::Solve;
+use crate::schur::{solve_finite, SchurStep};
 use faer::sparse::{SparseColMat, Triplet};
 use nalgebra::{DVector, Matrix3, Matrix6, Matrix6x3, SMatrix, SVector, Vector3, Vector6};
 use std::collections::BTreeMap;
@@ -126,13 +125,7 @@ impl SparseSchurSystem {
         let reduced = if n > 0 {
             let matrix = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
             let llt = matrix.sp_cholesky(faer::Side::Lower).ok()?;
-            let mut x = faer::Mat::<f64>::from_fn(n, 1, |i, _| rhs[i / BLOCK][i % BLOCK]);
-            llt.solve_in_place(x.as_mut());
-            let out = DVector::from_fn(n, |i, _| x[(i, 0)]);
-            if !out.iter().all(|v| v.is_finite()) {
-                return None;
-            }
-            out
+            solve_finite(&llt, n, |i| rhs[i / BLOCK][i % BLOCK])?
         } else {
             DVector::zeros(0)
         };
