@@ -42,12 +42,24 @@ impl ServiceStats {
         out
     }
 
+    /// Called per frame on the hot path: allocates the key only the first time.
     pub fn add_time(&mut self, stage: &str, ms: f64) {
-        *self.timings_ms.entry(stage.into()).or_default() += ms;
+        match self.timings_ms.get_mut(stage) {
+            Some(total) => *total += ms,
+            None => {
+                self.timings_ms.insert(stage.into(), ms);
+            }
+        }
     }
 
+    /// As [`Self::add_time`], for counters.
     pub fn count(&mut self, counter: &str, n: u64) {
-        *self.counters.entry(counter.into()).or_default() += n;
+        match self.counters.get_mut(counter) {
+            Some(total) => *total += n,
+            None => {
+                self.counters.insert(counter.into(), n);
+            }
+        }
     }
 
     pub fn path(out: &Path, service: &str) -> PathBuf {

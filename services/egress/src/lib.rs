@@ -85,7 +85,8 @@ fn serde_json_list(v: &[String]) -> String {
 
 /// The publishers and the snapshot queryable of one device.
 pub struct Egress {
-    session: zenoh::Session,
+    /// Held so that the session lives as long as its publishers and queryable.
+    _session: zenoh::Session,
     prefix: String,
     pose: zenoh::pubsub::Publisher<'static>,
     trajectory: zenoh::pubsub::Publisher<'static>,
@@ -144,7 +145,7 @@ impl Egress {
                 reason: e.to_string(),
             })?;
         Ok(Self {
-            session,
+            _session: session,
             prefix,
             pose,
             trajectory,
@@ -158,11 +159,6 @@ impl Egress {
     /// The key expression prefix, `egoslam/<device>`.
     pub fn prefix(&self) -> &str {
         &self.prefix
-    }
-
-    /// The session's zenoh id (for status and logs).
-    pub fn zid(&self) -> String {
-        self.session.zid().to_string()
     }
 
     fn put(

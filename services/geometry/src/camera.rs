@@ -4,7 +4,7 @@
 //! frame, and the solver and tests need the same model without an OpenCV `Mat` round trip.
 //! The model and its iterative inverse are the ones of OpenCV's `calib3d` documentation.
 
-use nalgebra::{Matrix3, Point2, Vector3};
+use nalgebra::{Point2, Vector3};
 
 /// Errors of building a camera from calibration values.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -64,24 +64,6 @@ impl PinholeRadtan {
     /// True when there is no distortion to remove (rectified input).
     pub fn is_rectified(&self) -> bool {
         self.distortion.iter().all(|d| *d == 0.0)
-    }
-
-    /// The 3x3 calibration matrix K.
-    pub fn k(&self) -> Matrix3<f64> {
-        Matrix3::new(self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0)
-    }
-
-    /// Same camera for an image scaled by `s` in both directions (pyramid levels, resized input).
-    pub fn scaled(&self, s: f64) -> Self {
-        Self {
-            width: ((self.width as f64) * s).round() as u32,
-            height: ((self.height as f64) * s).round() as u32,
-            fx: self.fx * s,
-            fy: self.fy * s,
-            cx: self.cx * s,
-            cy: self.cy * s,
-            distortion: self.distortion,
-        }
     }
 
     /// Applies distortion to normalised coordinates (x/z, y/z).

@@ -333,13 +333,15 @@ pub fn solve_window(
             return WindowSolution::failed(format!("bundle adjustment: {e}"), timings, edges.len())
         }
     };
+    let mut outlier = vec![false; observations.len()];
+    for &n in &adjusted.outliers {
+        outlier[n] = true;
+    }
     let mut counts = vec![0u32; points.len()];
     let mut kept = Vec::with_capacity(observations.len());
-    for (n_obs, o) in observations.iter().enumerate() {
-        if !adjusted.outliers.contains(&n_obs) {
-            counts[o.point] += 1;
-            kept.push((o.camera, points[o.point].0, o.pixel));
-        }
+    for (o, _) in observations.iter().zip(&outlier).filter(|(_, out)| !**out) {
+        counts[o.point] += 1;
+        kept.push((o.camera, points[o.point].0, o.pixel));
     }
     let solved_points = points
         .iter()
@@ -363,11 +365,6 @@ pub fn solve_window(
         translation_edges: translation_edges.len(),
         timings_ms: timings,
     }
-}
-
-/// Rotation helper for callers converting to world_from_camera.
-pub fn world_from_camera(pose: &CameraPose) -> (Rotation3<f64>, Vector3<f64>) {
-    (pose.rotation.inverse(), pose.centre)
 }
 
 #[cfg(test)]
