@@ -3,7 +3,7 @@
 use crate::error::{data_lines, parse_floats, read_text};
 use crate::layout::is_image;
 use crate::{detect_layout, Layout, SourceError};
-use opencv::core::{Mat, Vector};
+use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::{imgcodecs, imgproc, videoio};
 use std::path::{Path, PathBuf};
@@ -57,13 +57,13 @@ pub fn decode_grey(path: &Path) -> Result<Mat, SourceError> {
     if is_truncated(&bytes) {
         return Err(SourceError::BadImage { path: path.into() });
     }
-    let buf = Vector::<u8>::from_slice(&bytes);
-    let img = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_GRAYSCALE).map_err(|e| {
-        SourceError::OpenCv {
-            path: path.into(),
-            message: e.to_string(),
-        }
-    })?;
+    // A Mat header over the file bytes: OpenCV decodes from them without another copy.
+    let opencv_error = |e: opencv::Error| SourceError::OpenCv {
+        path: path.into(),
+        message: e.to_string(),
+    };
+    let buf = Mat::from_slice(&bytes).map_err(opencv_error)?;
+    let img = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_GRAYSCALE).map_err(opencv_error)?;
     if img.empty() || img.cols() <= 0 || img.rows() <= 0 {
         return Err(SourceError::BadImage { path: path.into() });
     }
