@@ -12,16 +12,19 @@ use std::time::Duration;
 
 pub(crate) type Service<H> = PubSubFactory<ipc::Service, [u8], H>;
 
+/// An iceoryx2 service name, or the error naming the invalid string.
+fn iceoryx2_name(name: &str) -> Result<ServiceName, BusOpenError> {
+    name.try_into()
+        .map_err(|_| BusOpenError::BadName(name.to_string()))
+}
+
 /// The service of `channel`, created by whichever side comes first.
 pub(crate) fn open_service<H: Debug + ZeroCopySend>(
     bus: &Bus,
     channel: &Channel,
 ) -> Result<Service<H>, BusOpenError> {
     let name = bus.service_name(channel);
-    let service_name: ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|_| BusOpenError::BadName(name.clone()))?;
+    let service_name = iceoryx2_name(&name)?;
     bus.node()
         .service_builder(&service_name)
         .publish_subscribe::<[u8]>()
@@ -174,10 +177,7 @@ fn producers_gone<H: Debug + ZeroCopySend>(bus: &Bus, service: &Service<H>) -> b
 /// sleep in the kernel instead of polling (one-way frame latency stays in microseconds).
 fn open_wakeup(bus: &Bus, channel: &Channel) -> Result<EventService, BusOpenError> {
     let name = format!("{}/wakeup", bus.service_name(channel));
-    let service_name: ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|_| BusOpenError::BadName(name.clone()))?;
+    let service_name = iceoryx2_name(&name)?;
     bus.node()
         .service_builder(&service_name)
         .event()
