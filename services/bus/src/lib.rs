@@ -69,6 +69,10 @@ impl Bus {
             .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
             .create::<ipc::Service>()
             .map_err(|e| BusOpenError::Node(format!("{e:?}")))?;
+        // A service restarted after SIGKILL finds its predecessor's ports still registered;
+        // removing dead nodes' resources first frees their slots and stops producers from
+        // delivering into a buffer nobody will read.
+        let _ = node.try_cleanup_dead_nodes();
         Ok(Self { node, options })
     }
 

@@ -44,13 +44,16 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
     }
 }
 
-/// Receives protobuf messages of type `M`. The header carries a sequence number, so a gap
-/// (which the lossless QoS forbids) would be reported rather than passed on silently.
+/// Receives protobuf messages of type `M`. The header carries the producer's sequence number:
+/// from the first message received on, a gap (which the lossless QoS forbids) is reported
+/// rather than passed on silently. The first number need not be 0: a consumer restarted
+/// mid-stream joins where the producer is, and fills what it missed from the producer's
+/// journal (see docs/durability.md).
 pub struct MessageSubscriber<'a, M> {
     bus: &'a Bus,
     channel: Channel,
     inbox: Inbox<u64>,
-    expected: u64,
+    expected: Option<u64>,
     _message: PhantomData<M>,
 }
 
@@ -61,27 +64,34 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
             bus,
             channel,
             inbox: Inbox::open(bus, &channel)?,
-            expected: 0,
+            expected: None,
             _message: PhantomData,
         })
     }
 
     /// Waits for and decodes the next message. `Ok(None)`: the process was asked to stop.
     pub fn receive(&mut self) -> Result<Option<M>, ReceiveError> {
+        Ok(self.receive_numbered()?.map(|(_, m)| m))
+    }
+
+    /// As [`Self::receive`], with the producer's sequence number of the message.
+    pub fn receive_numbered(&mut self) -> Result<Option<(u64, M)>, ReceiveError> {
         let Some(sample) = self.inbox.next_sample(self.bus, &self.channel)? else {
             return Ok(None);
         };
         let name = self.bus.service_name(&self.channel);
         let sequence = *sample.user_header();
-        if sequence != self.expected {
-            return Err(ReceiveError::Decode {
-                service: name,
-                reason: format!("sequence gap: expected {}, got {sequence}", self.expected),
-            });
+        if let Some(expected) = self.expected {
+            if sequence != expected {
+                return Err(ReceiveError::Decode {
+                    service: name,
+                    reason: format!("sequence gap: expected {expected}, got {sequence}"),
+                });
+            }
         }
-        self.expected += 1;
+        self.expected = Some(sequence + 1);
         M::decode(sample.payload())
-            .map(Some)
+            .map(|m| Some((sequence, m)))
             .map_err(|e| ReceiveError::Decode {
                 service: name,
                 reason: e.to_string(),

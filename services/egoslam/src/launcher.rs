@@ -58,9 +58,18 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
         .find_map(|d| load_ground_truth(d).ok())
 }
 
+/// Services that resume where a killed predecessor stopped (checkpoint + journal), and may
+/// therefore be restarted by the supervisor. The others hold state nothing recovers yet.
+const RESTARTABLE: &[&str] = &["merger"];
+
+/// Restarts allowed per service and run: a service that keeps dying has a real problem.
+const MAX_RESTARTS: u32 = 3;
+
 struct Supervised {
     name: &'static str,
+    args: Vec<String>,
     child: Child,
+    restarts: u32,
 }
 
 fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
@@ -70,7 +79,12 @@ fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
         .args(args)
         .spawn()
         .with_context(|| format!("starting the {name} service"))?;
-    Ok(Supervised { name, child })
+    Ok(Supervised {
+        name,
+        args: args.to_vec(),
+        child,
+        restarts: 0,
+    })
 }
 
 fn stop_all(children: &mut [Supervised]) {
@@ -91,12 +105,27 @@ fn stop_all(children: &mut [Supervised]) {
     }
 }
 
-/// Waits for every service; the first failure stops the others and is reported.
-fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<()> {
+/// Waits for every service. A restartable service killed by a signal (SIGKILL, a crash) is
+/// started again; any other failure stops the others and is reported. Returns the restarts
+/// per service.
+fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Vec<(&'static str, u32)>> {
+    use std::os::unix::process::ExitStatusExt;
     loop {
         let mut running = 0;
         for i in 0..children.len() {
             match children[i].child.try_wait()? {
+                Some(status)
+                    if status.signal().is_some()
+                        && RESTARTABLE.contains(&children[i].name)
+                        && children[i].restarts < MAX_RESTARTS =>
+                {
+                    let c = &mut children[i];
+                    tracing::warn!(service = c.name, %status, "service died; restarting it");
+                    let again = spawn(c.name, &c.args)?;
+                    c.child = again.child;
+                    c.restarts += 1;
+                    running += 1;
+                }
                 Some(status) if !status.success() => {
                     let name = children[i].name;
                     stop_all(&mut children);
@@ -107,7 +136,7 @@ fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<()> {
             }
         }
         if running == 0 {
-            return Ok(());
+            return Ok(children.iter().map(|c| (c.name, c.restarts)).collect());
         }
         std::thread::sleep(Duration::from_millis(20));
     }
@@ -130,7 +159,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    for stale in ["trajectory.tum", "keyframes.tum", "map.ply", "report.json"] {
+    for stale in [
+        "trajectory.tum",
+        "keyframes.tum",
+        "map.ply",
+        "report.json",
+        crate::checkpoint::FILE_NAME,
+        crate::window_journal::FILE_NAME,
+    ] {
         let _ = std::fs::remove_file(out.join(stale));
     }
     let _ = std::fs::remove_dir_all(out.join("stats"));
@@ -192,7 +228,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             return Err(e);
         }
     }
-    supervise(children)?;
+    let restarts = supervise(children)?;
 
     let stats: Vec<ServiceStats> = ["replay", "frontend", "solver", "merger"]
         .iter()
@@ -244,6 +280,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "segments": counter(merger, "segments"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
+        "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
+        "recovered_windows": counter(merger, "recovered_windows"),
         "timings_ms": timings,
         "accuracy": accuracy,
     });

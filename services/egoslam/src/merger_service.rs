@@ -1,12 +1,16 @@
 //! The merger service: window solutions from the bus -> one map -> result files and zenoh.
 //!
-//! Files are rewritten (atomically) after every window, so a crash or kill loses at most the
-//! window in flight; the same state goes out over zenoh (docs/egress.md).
+//! After every window the state is checkpointed and the files rewritten (atomically); a
+//! killed merger restarts from its checkpoint and recovers the windows it had not applied
+//! from the solver's journal, so nothing is lost (docs/durability.md). The same state goes
+//! out over zenoh (docs/egress.md).
 
+use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
 use crate::map_state::{self, FrameIndex, MapState, Revisions};
 use crate::stats::ServiceStats;
+use crate::window_journal;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
@@ -71,9 +75,246 @@ impl Outputs {
     }
 }
 
+/// The merger at work: its durable state, where it writes, what it publishes.
+struct Merger {
+    args: ServiceArgs,
+    state: MergerState,
+    outputs: Outputs,
+    stats: ServiceStats,
+}
+
+impl Merger {
+    fn checkpoint_path(&self) -> std::path::PathBuf {
+        self.args.out.join(checkpoint::FILE_NAME)
+    }
+
+    /// Applies message `sequence`, checkpoints, and writes/publishes the results.
+    fn apply(&mut self, sequence: u64, w: &pb::WindowSolution) -> anyhow::Result<()> {
+        if self.state.stream_id != Some(w.stream_id) {
+            if self.state.stream_id.is_some() {
+                tracing::warn!(
+                    stream = w.stream_id,
+                    "a new solver stream: the merger starts a new map"
+                );
+            }
+            self.state = MergerState::for_stream(w.stream_id);
+        }
+        for k in &w.keyframes {
+            self.state.frames.add_stamp(k);
+        }
+        for f in &w.trailing_frames {
+            self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
+        }
+        if w.end_of_stream {
+            self.state.finished = true;
+        } else {
+            self.add_window(w);
+        }
+        self.state.last_sequence = Some(sequence);
+        let save_start = std::time::Instant::now();
+        self.state.save(&self.checkpoint_path())?;
+        self.stats
+            .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
+        let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
+        let write_start = std::time::Instant::now();
+        let state = if self.state.finished {
+            pb::ServiceState::Finished
+        } else {
+            pb::ServiceState::Running
+        };
+        self.emit(&changed, state)?;
+        self.stats
+            .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
+        Ok(())
+    }
+
+    fn emit(&mut self, changed: &[u64], state: pb::ServiceState) -> anyhow::Result<()> {
+        self.stats.windows = self.state.windows;
+        self.stats
+            .counters
+            .insert("unsolved_windows".into(), self.state.unsolved_windows);
+        self.outputs.emit(
+            &self.args.out,
+            &self.state.map,
+            &self.state.frames,
+            changed,
+            state,
+            &mut self.stats,
+        )
+    }
+
+    /// Applies the journal's messages from the next expected one up to (not including)
+    /// `until` (all of them when `None`). With `until` set, the journal must hold them: a
+    /// gap that cannot be filled is an error, never a silent loss.
+    fn catch_up(&mut self, until: Option<(u64, u64)>) -> anyhow::Result<()> {
+        let path = self.args.out.join(window_journal::FILE_NAME);
+        let journal = match window_journal::read(&path) {
+            Ok(j) => Some(j),
+            Err(e) if until.is_none() => {
+                tracing::warn!(error = %e, "no journal to resume from");
+                None
+            }
+            Err(e) => return Err(e),
+        };
+        let wanted_stream = until.map(|(_, stream)| stream).or(self.state.stream_id);
+        let Some(journal) = journal.filter(|j| Some(j.stream_id) == wanted_stream) else {
+            if let Some((sequence, _)) = until {
+                bail!(
+                    "windows {}..{sequence} were missed and {} does not hold them",
+                    self.state.next_sequence(),
+                    path.display()
+                );
+            }
+            return Ok(());
+        };
+        if self.state.stream_id != Some(journal.stream_id) {
+            self.state = MergerState::for_stream(journal.stream_id);
+        }
+        let first = self.state.next_sequence();
+        let last = until.map_or(journal.messages.len() as u64, |(s, _)| s);
+        if last > journal.messages.len() as u64 {
+            bail!(
+                "windows {first}..{last} were missed and {} holds only {}",
+                path.display(),
+                journal.messages.len()
+            );
+        }
+        if first < last {
+            tracing::info!(first, last, "recovering windows from the journal");
+            self.stats.count("recovered_windows", last - first);
+        }
+        for sequence in first..last {
+            self.apply(sequence, &journal.messages[sequence as usize])?;
+        }
+        Ok(())
+    }
+
+    fn add_window(&mut self, w: &pb::WindowSolution) {
+        self.state.windows += 1;
+        let status = w
+            .quality
+            .as_ref()
+            .map_or(pb::SolveStatus::Unspecified, |q| q.status());
+        if status != pb::SolveStatus::Solved || w.poses.is_empty() {
+            let reason = w
+                .quality
+                .as_ref()
+                .map(|q| q.reason.clone())
+                .unwrap_or_default();
+            tracing::warn!(window = w.window_id, ?status, %reason, "window not solved: map breaks here");
+            self.state.unsolved_windows += 1;
+            self.state.map.break_segment();
+            return;
+        }
+        let input = window_input(w);
+        let map = &mut self.state.map;
+        let outcome = self.stats.time("align", || map.add_window(&input));
+        match outcome {
+            WindowOutcome::NewSegment { segment } => {
+                tracing::info!(window = w.window_id, segment, "new map segment")
+            }
+            WindowOutcome::Aligned {
+                residual,
+                transform,
+                ..
+            } => {
+                tracing::debug!(
+                    window = w.window_id,
+                    residual,
+                    scale = transform.scale,
+                    "window aligned"
+                );
+                self.refine(w);
+            }
+        }
+    }
+
+    /// The optional sliding refinement of the most recent keyframes.
+    fn refine(&mut self, w: &pb::WindowSolution) {
+        let camera = w.intrinsics.as_ref().and_then(|i| {
+            PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
+        });
+        let refine = RefinementOptions {
+            keyframes: self.args.pipeline.refine_keyframes,
+            ..RefinementOptions::default()
+        };
+        let (Some(camera), true) = (camera, refine.keyframes > 0) else {
+            return;
+        };
+        let map = &mut self.state.map;
+        if let Some(r) = self
+            .stats
+            .time("refine", || map.refine_recent(&camera, &refine))
+        {
+            tracing::info!(
+                window = w.window_id,
+                keyframes = r.keyframes,
+                points = r.points,
+                rmse_px = r.rmse_px,
+                outliers = r.outliers,
+                "recent keyframes refined"
+            );
+        }
+    }
+}
+
+/// The geometry of a window message, as the map builder takes it.
+fn window_input(w: &pb::WindowSolution) -> WindowInput {
+    WindowInput {
+        poses: w
+            .poses
+            .iter()
+            .filter_map(|kp| kp.pose.as_ref().map(|p| (kp.keyframe_id, pose_from_pb(p))))
+            .collect(),
+        points: w
+            .points
+            .iter()
+            .map(|p| (p.track_id, vec3_from_pb(&p.position)))
+            .collect(),
+        observations: w
+            .observations
+            .iter()
+            .map(|o| {
+                (
+                    o.keyframe_id,
+                    o.track_id,
+                    Point2::new(f64::from(o.x), f64::from(o.y)),
+                )
+            })
+            .collect(),
+    }
+}
+
+fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {
+    if args.egress.zenoh_listen.iter().any(|e| e == "none") {
+        return Ok(None);
+    }
+    let e = Egress::open(&EgressOptions {
+        device: args.egress.device.clone(),
+        listen: args.egress.zenoh_listen.clone(),
+        connect: args.egress.zenoh_connect.clone(),
+    })?;
+    tracing::info!(prefix = e.prefix(), listen = ?args.egress.zenoh_listen, "publishing over zenoh");
+    Ok(Some(e))
+}
+
+/// Fault injection for the durability tests (docs/durability.md):
+/// `EGOSLAM_FAULT=merger-abort-at-window:N` makes a merger that did not resume from a
+/// checkpoint abort as soon as it has received message N, before applying it, i.e. with a
+/// window in flight. Only the first merger of a run obeys it (a restarted one resumes).
+fn injected_fault() -> Option<u64> {
+    let spec = std::env::var("EGOSLAM_FAULT").ok()?;
+    let n = spec.strip_prefix("merger-abort-at-window:")?.parse().ok();
+    if n.is_none() {
+        tracing::warn!(%spec, "EGOSLAM_FAULT not understood; ignored");
+    }
+    n
+}
+
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
-    let mut stats = ServiceStats::new("merger");
     std::fs::create_dir_all(&args.out)?;
+    let checkpoint_path = args.out.join(checkpoint::FILE_NAME);
+    let resumed = MergerState::load(&checkpoint_path)?;
     let bus = Bus::open(
         "merger",
         BusOptions {
@@ -81,138 +322,62 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
-    let egress = if args.egress.zenoh_listen.iter().any(|e| e == "none") {
-        None
-    } else {
-        let e = Egress::open(&EgressOptions {
-            device: args.egress.device.clone(),
-            listen: args.egress.zenoh_listen.clone(),
-            connect: args.egress.zenoh_connect.clone(),
-        })?;
-        tracing::info!(prefix = e.prefix(), listen = ?args.egress.zenoh_listen, "publishing over zenoh");
-        Some(e)
-    };
-    let mut outputs = Outputs {
-        egress,
+    let outputs = Outputs {
+        egress: open_egress(&args)?,
         revisions: Revisions::default(),
     };
+    // Subscribe before reading the journal: whatever the journal does not hold yet is sent
+    // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
-    let mut map = MapBuilder::new();
-    let mut frames = FrameIndex::default();
-    loop {
-        let Some(w) = windows.receive()? else {
+    let mut merger = Merger {
+        args,
+        state: MergerState::default(),
+        outputs,
+        stats: ServiceStats::new("merger"),
+    };
+    let fault = if resumed.is_none() {
+        injected_fault()
+    } else {
+        None
+    };
+    if let Some(state) = resumed {
+        tracing::info!(
+            windows = state.windows,
+            keyframes = state.map.keyframes().count(),
+            next = state.next_sequence(),
+            finished = state.finished,
+            "resuming from the checkpoint"
+        );
+        merger.stats.count("restarts", 1);
+        merger.state = state;
+        merger.catch_up(None)?;
+    }
+    while !merger.state.finished {
+        let Some((sequence, w)) = windows.receive_numbered()? else {
             bail!("terminated by signal")
         };
-        for k in &w.keyframes {
-            frames.add_stamp(k);
+        if fault == Some(sequence) {
+            tracing::error!(sequence, "EGOSLAM_FAULT: aborting with a window in flight");
+            std::process::abort();
         }
-        for f in &w.trailing_frames {
-            frames.frames.insert(f.frame_id, f.timestamp_s);
+        let same_stream = merger.state.stream_id == Some(w.stream_id);
+        if same_stream && sequence < merger.state.next_sequence() {
+            continue; // already applied (recovered from the journal)
         }
-        if w.end_of_stream {
-            break;
-        }
-        stats.windows += 1;
-        let status = w
-            .quality
-            .as_ref()
-            .map_or(pb::SolveStatus::Unspecified, |q| q.status());
-        if status == pb::SolveStatus::Solved && !w.poses.is_empty() {
-            let input = WindowInput {
-                poses: w
-                    .poses
-                    .iter()
-                    .filter_map(|kp| kp.pose.as_ref().map(|p| (kp.keyframe_id, pose_from_pb(p))))
-                    .collect(),
-                points: w
-                    .points
-                    .iter()
-                    .map(|p| (p.track_id, vec3_from_pb(&p.position)))
-                    .collect(),
-                observations: w
-                    .observations
-                    .iter()
-                    .map(|o| {
-                        (
-                            o.keyframe_id,
-                            o.track_id,
-                            Point2::new(f64::from(o.x), f64::from(o.y)),
-                        )
-                    })
-                    .collect(),
-            };
-            let outcome = stats.time("align", || map.add_window(&input));
-            match outcome {
-                WindowOutcome::NewSegment { segment } => {
-                    tracing::info!(window = w.window_id, segment, "new map segment")
-                }
-                WindowOutcome::Aligned {
-                    residual,
-                    transform,
-                    ..
-                } => {
-                    tracing::debug!(
-                        window = w.window_id,
-                        residual,
-                        scale = transform.scale,
-                        "window aligned"
-                    );
-                    let camera = w.intrinsics.as_ref().and_then(|i| {
-                        PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5])
-                            .ok()
-                    });
-                    let refine = RefinementOptions {
-                        keyframes: args.pipeline.refine_keyframes,
-                        ..RefinementOptions::default()
-                    };
-                    if let (Some(camera), true) = (camera, refine.keyframes > 0) {
-                        let refined = stats.time("refine", || map.refine_recent(&camera, &refine));
-                        if let Some(r) = refined {
-                            tracing::info!(
-                                window = w.window_id,
-                                keyframes = r.keyframes,
-                                points = r.points,
-                                rmse_px = r.rmse_px,
-                                outliers = r.outliers,
-                                "recent keyframes refined"
-                            );
-                        }
-                    }
-                }
-            }
+        let expected = if same_stream {
+            merger.state.next_sequence()
         } else {
-            let reason = w
-                .quality
-                .as_ref()
-                .map(|q| q.reason.clone())
-                .unwrap_or_default();
-            tracing::warn!(window = w.window_id, ?status, %reason, "window not solved: map breaks here");
-            stats.count("unsolved_windows", 1);
-            map.break_segment();
+            0
+        };
+        if sequence > expected {
+            merger.catch_up(Some((sequence, w.stream_id)))?;
         }
-        let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
-        let write_start = std::time::Instant::now();
-        outputs.emit(
-            &args.out,
-            &map,
-            &frames,
-            &changed,
-            pb::ServiceState::Running,
-            &mut stats,
-        )?;
-        stats.add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
+        merger.apply(sequence, &w)?;
     }
-    outputs.emit(
-        &args.out,
-        &map,
-        &frames,
-        &[],
-        pb::ServiceState::Finished,
-        &mut stats,
-    )?;
+    merger.emit(&[], pb::ServiceState::Finished)?;
     tracing::info!(
-        windows = stats.windows,
-        segments = map.segments(),
+        windows = merger.state.windows,
+        segments = merger.state.map.segments(),
         "merger finished"
     );
     Ok(())

@@ -4,6 +4,7 @@
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_to_pb, vec3_to_pb};
 use crate::stats::ServiceStats;
+use crate::window_journal::{self, JournalWriter};
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -179,6 +180,7 @@ fn solve(
         keyframes: kfs.iter().map(stamp).collect(),
         end_of_stream: false,
         trailing_frames: Vec::new(),
+        stream_id: 0, // set when published
         intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
             distortion: Vec::new(),
             ..i
@@ -203,6 +205,15 @@ fn dump_window(
     Ok(())
 }
 
+/// A stream id unlikely to repeat across solver starts (clock and process id; never 0,
+/// which on the wire means "unset").
+fn new_stream_id() -> u64 {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    (nanos ^ (u64::from(std::process::id()) << 40)) | 1
+}
+
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("solver");
     let mut builder = WindowBuilder::new(WindowOptions {
@@ -218,8 +229,22 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
+    let stream_id = new_stream_id();
+    std::fs::create_dir_all(&args.out)?;
+    let mut journal = JournalWriter::create(&args.out.join(window_journal::FILE_NAME), stream_id)?;
     let mut keyframes = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut windows = MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    // Journal first, then send: a message the merger may have received is always in the
+    // journal, so a restarted merger can recover it.
+    let mut publish = |message: pb::WindowSolution| -> anyhow::Result<()> {
+        let message = pb::WindowSolution {
+            stream_id,
+            ..message
+        };
+        journal.append(&message)?;
+        windows.send(&message)?;
+        Ok(())
+    };
     let mut trailing = Vec::new();
     loop {
         let Some(k) = keyframes.receive()? else {
@@ -238,14 +263,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 dump_window(std::path::Path::new(&dir), stats.windows, &window)?;
             }
             let solution = solve(stats.windows, &window, &mut cache, &options, &mut stats)?;
-            windows.send(&solution)?;
+            publish(solution)?;
             stats.windows += 1;
         }
         if end_of_stream {
             break;
         }
     }
-    windows.send(&pb::WindowSolution {
+    publish(pb::WindowSolution {
         end_of_stream: true,
         trailing_frames: trailing,
         ..Default::default()

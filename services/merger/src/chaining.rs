@@ -29,6 +29,22 @@ pub enum WindowOutcome {
     },
 }
 
+/// Everything a [`MapBuilder`] holds, as plain data: what a checkpoint stores so that a
+/// restarted merger continues exactly where the killed one stopped.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MapParts {
+    /// keyframe id -> (segment, pose in the segment's frame).
+    pub keyframes: BTreeMap<u64, (u32, StampedPose)>,
+    /// track id -> (segment, position).
+    pub points: BTreeMap<u64, (u32, Vector3<f64>)>,
+    /// (keyframe id, track id) -> undistorted pixel.
+    pub observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
+    /// Segment new windows are aligned to (`None` after a break).
+    pub current_segment: Option<u32>,
+    /// Segments created so far.
+    pub segments: u32,
+}
+
 /// The growing map: keyframe poses and points per segment.
 #[derive(Debug, Default)]
 pub struct MapBuilder {
@@ -205,6 +221,28 @@ impl MapBuilder {
             self.observations.insert((*kf, *track), *px);
         }
         outcome
+    }
+
+    /// The whole state, for a checkpoint.
+    pub fn to_parts(&self) -> MapParts {
+        MapParts {
+            keyframes: self.keyframes.clone(),
+            points: self.points.clone(),
+            observations: self.observations.clone(),
+            current_segment: self.current_segment,
+            segments: self.segments,
+        }
+    }
+
+    /// A map resumed from a checkpoint's state.
+    pub fn from_parts(parts: MapParts) -> Self {
+        Self {
+            keyframes: parts.keyframes,
+            points: parts.points,
+            observations: parts.observations,
+            current_segment: parts.current_segment,
+            segments: parts.segments,
+        }
     }
 
     /// Number of segments so far (breaks = segments - 1).

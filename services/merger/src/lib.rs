@@ -6,6 +6,6 @@ pub mod chaining;
 pub mod interpolation;
 pub mod refinement;
 
-pub use chaining::{MapBuilder, WindowInput, WindowOutcome};
+pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
 pub use interpolation::interpolate_frames;
 pub use refinement::{RefinementOptions, RefinementReport};

@@ -1,0 +1,231 @@
+//! The merger's durable state: its map, frame index and position in the solver's stream,
+//! saved as a protobuf `MergerCheckpoint` (proto/egoslam/v1/checkpoint.proto) after every
+//! window so that a killed merger resumes with nothing lost (docs/durability.md).
+
+use crate::convert::{pose_from_pb, pose_to_pb, vec3_from_pb, vec3_to_pb};
+use crate::map_state::FrameIndex;
+use crate::output::write_atomically;
+use anyhow::{bail, Context};
+use egoslam_merger::{MapBuilder, MapParts};
+use egoslam_messages::v1 as pb;
+use nalgebra::Point2;
+use prost::Message;
+use std::path::Path;
+
+/// File name of the checkpoint inside the output folder.
+pub const FILE_NAME: &str = "merger.checkpoint";
+
+const FORMAT_VERSION: u32 = 1;
+
+/// Everything the merger must not lose.
+#[derive(Default)]
+pub struct MergerState {
+    pub map: MapBuilder,
+    pub frames: FrameIndex,
+    /// The solver stream this state belongs to (`None` before the first message).
+    pub stream_id: Option<u64>,
+    /// Bus sequence number of the last message applied.
+    pub last_sequence: Option<u64>,
+    /// The end-of-stream message was applied.
+    pub finished: bool,
+    pub windows: u64,
+    pub unsolved_windows: u64,
+}
+
+impl MergerState {
+    /// An empty state for a new stream.
+    pub fn for_stream(stream_id: u64) -> Self {
+        Self {
+            stream_id: Some(stream_id),
+            ..Self::default()
+        }
+    }
+
+    /// The sequence number of the next message to apply.
+    pub fn next_sequence(&self) -> u64 {
+        self.last_sequence.map_or(0, |s| s + 1)
+    }
+
+    fn to_message(&self) -> pb::MergerCheckpoint {
+        let parts = self.map.to_parts();
+        pb::MergerCheckpoint {
+            format_version: FORMAT_VERSION,
+            stream_id: self.stream_id.unwrap_or(0),
+            last_sequence: self.last_sequence,
+            finished: self.finished,
+            keyframes: parts
+                .keyframes
+                .iter()
+                .map(|(id, (segment, pose))| pb::CheckpointKeyframe {
+                    keyframe_id: *id,
+                    segment_id: *segment,
+                    pose: Some(pose_to_pb(
+                        self.frames.keyframe_frames.get(id).copied().unwrap_or(0),
+                        *segment,
+                        pose,
+                    )),
+                })
+                .collect(),
+            points: parts
+                .points
+                .iter()
+                .map(|(track, (segment, x))| pb::CheckpointPoint {
+                    track_id: *track,
+                    segment_id: *segment,
+                    position: Some(vec3_to_pb(x)),
+                })
+                .collect(),
+            observations: parts
+                .observations
+                .iter()
+                .map(|((kf, track), px)| pb::Observation {
+                    keyframe_id: *kf,
+                    track_id: *track,
+                    x: px.x as f32,
+                    y: px.y as f32,
+                })
+                .collect(),
+            current_segment: parts.current_segment,
+            segments: parts.segments,
+            frames: self
+                .frames
+                .frames
+                .iter()
+                .map(|(id, t)| pb::FrameStamp {
+                    frame_id: *id,
+                    timestamp_s: *t,
+                })
+                .collect(),
+            keyframe_ids: self.frames.keyframe_frames.keys().copied().collect(),
+            keyframe_frame_ids: self.frames.keyframe_frames.values().copied().collect(),
+            windows: self.windows,
+            unsolved_windows: self.unsolved_windows,
+        }
+    }
+
+    fn from_message(m: pb::MergerCheckpoint) -> anyhow::Result<Self> {
+        if m.format_version != FORMAT_VERSION {
+            bail!(
+                "checkpoint format version {}, this egoslam reads {FORMAT_VERSION}",
+                m.format_version
+            );
+        }
+        if m.keyframe_ids.len() != m.keyframe_frame_ids.len() {
+            bail!("checkpoint keyframe index lists differ in length");
+        }
+        let keyframes = m
+            .keyframes
+            .iter()
+            .map(|k| match &k.pose {
+                Some(p) => Ok((k.keyframe_id, (k.segment_id, pose_from_pb(p)))),
+                None => bail!("checkpoint keyframe {} has no pose", k.keyframe_id),
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let parts = MapParts {
+            keyframes,
+            points: m
+                .points
+                .iter()
+                .map(|p| (p.track_id, (p.segment_id, vec3_from_pb(&p.position))))
+                .collect(),
+            observations: m
+                .observations
+                .iter()
+                .map(|o| {
+                    let px = Point2::new(f64::from(o.x), f64::from(o.y));
+                    ((o.keyframe_id, o.track_id), px)
+                })
+                .collect(),
+            current_segment: m.current_segment,
+            segments: m.segments,
+        };
+        Ok(Self {
+            map: MapBuilder::from_parts(parts),
+            frames: FrameIndex {
+                frames: m
+                    .frames
+                    .iter()
+                    .map(|f| (f.frame_id, f.timestamp_s))
+                    .collect(),
+                keyframe_frames: m
+                    .keyframe_ids
+                    .into_iter()
+                    .zip(m.keyframe_frame_ids)
+                    .collect(),
+            },
+            stream_id: (m.stream_id != 0).then_some(m.stream_id),
+            last_sequence: m.last_sequence,
+            finished: m.finished,
+            windows: m.windows,
+            unsolved_windows: m.unsolved_windows,
+        })
+    }
+
+    /// Writes the checkpoint atomically (a kill mid-write leaves the previous one).
+    pub fn save(&self, path: &Path) -> anyhow::Result<()> {
+        write_atomically(path, &self.to_message().encode_to_vec())
+    }
+
+    /// The checkpoint at `path`, or `None` when there is none. A checkpoint that exists but
+    /// cannot be read is an error: starting afresh would silently drop the map.
+    pub fn load(path: &Path) -> anyhow::Result<Option<Self>> {
+        let bytes = match std::fs::read(path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        };
+        let message = pb::MergerCheckpoint::decode(bytes.as_slice())
+            .with_context(|| format!("{}: not a readable merger checkpoint", path.display()))?;
+        Self::from_message(message)
+            .map(Some)
+            .with_context(|| format!("loading {}", path.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use egoslam_geometry::StampedPose;
+    use egoslam_merger::WindowInput;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    #[test]
+    fn a_saved_state_loads_back_identical() {
+        let mut state = MergerState::for_stream(7);
+        let poses = (0..5u64)
+            .map(|i| {
+                let pose = StampedPose {
+                    timestamp: i as f64 * 0.1,
+                    position: Vector3::new(i as f64, 0.5, -0.25),
+                    rotation: UnitQuaternion::from_euler_angles(0.1 * i as f64, 0.2, 0.0),
+                };
+                (i, pose)
+            })
+            .collect();
+        state.map.add_window(&WindowInput {
+            poses,
+            points: vec![(3, Vector3::new(1.0, 2.0, 3.0))],
+            observations: vec![(1, 3, Point2::new(320.5, 240.25))],
+        });
+        state.frames.frames.insert(4, 0.4);
+        state.frames.keyframe_frames.insert(1, 4);
+        state.last_sequence = Some(3);
+        state.windows = 4;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(FILE_NAME);
+        state.save(&path).expect("save");
+        let back = MergerState::load(&path).expect("load").expect("present");
+        assert_eq!(back.map.to_parts(), state.map.to_parts());
+        assert_eq!(back.frames.frames, state.frames.frames);
+        assert_eq!(back.frames.keyframe_frames, state.frames.keyframe_frames);
+        assert_eq!(
+            (back.stream_id, back.last_sequence, back.windows),
+            (Some(7), Some(3), 4)
+        );
+        assert!(MergerState::load(&dir.path().join("none"))
+            .expect("absent is fine")
+            .is_none());
+        std::fs::write(&path, [0xff, 0xff, 0xff]).expect("corrupt");
+        assert!(MergerState::load(&path).is_err());
+    }
+}

@@ -1,0 +1,92 @@
+//! Nothing is lost when the merger dies: a killed merger is restarted by the launcher,
+//! resumes from its checkpoint and recovers the windows it missed from the solver's journal
+//! (docs/durability.md). The final results must equal those of an undisturbed run.
+
+mod common;
+
+use common::*;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+fn report(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
+        .expect("json")
+}
+
+fn keyframes(out: &Path) -> String {
+    std::fs::read_to_string(out.join("keyframes.tum")).expect("keyframes.tum")
+}
+
+/// Pid of the `service` process writing to `out`, once it is running.
+fn service_pid(service: &str, out: &Path) -> Option<u32> {
+    let needle = format!("--out={}", out.display());
+    std::fs::read_dir("/proc").ok()?.find_map(|e| {
+        let e = e.ok()?;
+        let pid: u32 = e.file_name().to_str()?.parse().ok()?;
+        let cmdline = std::fs::read(e.path().join("cmdline")).ok()?;
+        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
+        let is_it = args.get(1) == Some(&service.as_bytes())
+            && args.contains(&needle.as_bytes());
+        is_it.then_some(pid)
+    })
+}
+
+fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
+    let mut c = egoslam();
+    c.args(["run", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out);
+    if let Some(f) = fault {
+        c.env("EGOSLAM_FAULT", f);
+    }
+    c.spawn().expect("egoslam run")
+}
+
+fn wait_success(mut run: std::process::Child) {
+    let status = run.wait().expect("wait");
+    assert!(status.success(), "egoslam run failed: {status}");
+}
+
+#[test]
+fn a_killed_merger_resumes_and_loses_nothing() {
+    let undisturbed = tempfile::tempdir().expect("tempdir");
+    wait_success(run_fixture(undisturbed.path(), None));
+    let expected = keyframes(undisturbed.path());
+    let keyframe_count = report(undisturbed.path())["keyframes"]
+        .as_u64()
+        .expect("count");
+    assert_eq!(expected.lines().count() as u64, keyframe_count + 1); // + header line
+
+    // SIGKILL once the merger has checkpointed its first window.
+    let killed = tempfile::tempdir().expect("tempdir");
+    let run = run_fixture(killed.path(), None);
+    let start = Instant::now();
+    while !killed.path().join("merger.checkpoint").exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let pid = service_pid("merger", killed.path()).expect("merger pid");
+    let status = std::process::Command::new("kill")
+        .args(["-KILL", &pid.to_string()])
+        .status()
+        .expect("kill");
+    assert!(status.success());
+    wait_success(run);
+    let r = report(killed.path());
+    assert_eq!(r["restarts"]["merger"], 1, "{r}");
+    assert_eq!(r["segments"], 1);
+    assert_eq!(r["posed_frames"], 120);
+    assert_eq!(keyframes(killed.path()), expected, "results differ");
+
+    // Abort with a window in flight (received, not applied): recovered from the journal.
+    let aborted = tempfile::tempdir().expect("tempdir");
+    wait_success(run_fixture(
+        aborted.path(),
+        Some("merger-abort-at-window:3"),
+    ));
+    let r = report(aborted.path());
+    assert_eq!(r["restarts"]["merger"], 1, "{r}");
+    assert!(r["recovered_windows"].as_u64() >= Some(1), "{r}");
+    assert_eq!(keyframes(aborted.path()), expected, "results differ");
+}
