@@ -54,9 +54,13 @@ pub struct PipelineArgs {
     /// O: keyframes shared by consecutive windows.
     #[arg(long, default_value_t = 5)]
     pub overlap: usize,
-    /// Keyframes the merger refines jointly after each window (0: off, the default: on
-    /// tum_fr1_rpy it changes nothing, on kitti_odometry_00 it made ATE worse, see
-    /// docs/benchmarks.md).
+    /// Merger: start a background bundle adjustment of the map when a new window's
+    /// median cross-window reprojection error exceeds this many pixels ("inf" disables
+    /// it). Default 1.5: inside a window BA leaves ~0.8 px; measured between windows 0.5-1.2
+    /// px on KITTI and TUM, and 2.6 px where the TUM clip's chain drifts (docs/solver.md).
+    #[arg(long, default_value_t = 1.5)]
+    pub global_ba_px: f64,
+    /// Merger: keyframes in that bundle adjustment, newest first (0: the whole segment).
     #[arg(long, default_value_t = 0)]
     pub refine_keyframes: usize,
 }

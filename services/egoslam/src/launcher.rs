@@ -31,6 +31,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--window={}", p.window),
         format!("--overlap={}", p.overlap),
         format!("--refine-keyframes={}", p.refine_keyframes),
+        format!("--global-ba-px={}", p.global_ba_px),
     ]
 }
 
@@ -140,6 +141,21 @@ fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Vec<(&'static str,
         }
         std::thread::sleep(Duration::from_millis(20));
     }
+}
+
+/// Peak resident memory per process and their sum (an upper bound of the pipeline's peak:
+/// the processes need not peak at the same moment), MiB.
+fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
+    let mib = |kib: u64| (kib as f64 / 1024.0 * 10.0).round() / 10.0;
+    let launcher = crate::stats::peak_rss_kib();
+    let mut m = serde_json::Map::new();
+    m.insert("launcher".into(), json!(mib(launcher)));
+    for s in stats {
+        m.insert(s.service.clone(), json!(mib(s.peak_rss_kib)));
+    }
+    let sum = launcher + stats.iter().map(|s| s.peak_rss_kib).sum::<u64>();
+    m.insert("sum".into(), json!(mib(sum)));
+    serde_json::Value::Object(m)
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
@@ -280,6 +296,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "segments": counter(merger, "segments"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
+        "peak_rss_mib": peak_memory(&stats),
         "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
         "recovered_windows": counter(merger, "recovered_windows"),
         "timings_ms": timings,

@@ -3,6 +3,7 @@
 //! One multi-call binary keeps deployment simple (one file on the wearable box, one build)
 //! while every service still runs as its own process, linked to the others by iceoryx2.
 
+mod background_refinement;
 mod checkpoint;
 mod cli;
 mod convert;

@@ -5,6 +5,7 @@
 //! from the solver's journal, so nothing is lost (docs/durability.md). The same state goes
 //! out over zenoh (docs/egress.md).
 
+use crate::background_refinement::BackgroundRefiner;
 use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
@@ -15,9 +16,10 @@ use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{MapBuilder, RefinementOptions, WindowInput, WindowOutcome};
+use egoslam_merger::{MapBuilder, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use nalgebra::Point2;
+use std::collections::BTreeSet;
 use std::path::Path;
 
 /// Files, stats and (when enabled) zenoh, from one snapshot of the map.
@@ -81,6 +83,7 @@ struct Merger {
     state: MergerState,
     outputs: Outputs,
     stats: ServiceStats,
+    refiner: BackgroundRefiner,
 }
 
 impl Merger {
@@ -105,6 +108,10 @@ impl Merger {
         for f in &w.trailing_frames {
             self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
         }
+        // A refinement that finished meanwhile is folded in before the next window (at the
+        // end of the stream, a running one is waited for).
+        self.refiner
+            .fold(&mut self.state.map, w.end_of_stream, &mut self.stats);
         if w.end_of_stream {
             self.state.finished = true;
         } else {
@@ -207,6 +214,7 @@ impl Merger {
             return;
         }
         let input = window_input(w);
+        let earlier_tracks: BTreeSet<u64> = self.state.map.points().map(|(t, _, _)| t).collect();
         let map = &mut self.state.map;
         let outcome = self.stats.time("align", || map.add_window(&input));
         match outcome {
@@ -224,36 +232,21 @@ impl Merger {
                     scale = transform.scale,
                     "window aligned"
                 );
-                self.refine(w);
+                let camera = w.intrinsics.as_ref().and_then(|i| {
+                    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
+                });
+                if let Some(camera) = camera {
+                    let ids: Vec<u64> = input.poses.iter().map(|(id, _)| *id).collect();
+                    let error = self.refiner.after_window(
+                        &self.state.map,
+                        &camera,
+                        &ids,
+                        &earlier_tracks,
+                        &mut self.stats,
+                    );
+                    tracing::info!(window = w.window_id, cross_window_px = ?error, "window aligned");
+                }
             }
-        }
-    }
-
-    /// The optional sliding refinement of the most recent keyframes.
-    fn refine(&mut self, w: &pb::WindowSolution) {
-        let camera = w.intrinsics.as_ref().and_then(|i| {
-            PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
-        });
-        let refine = RefinementOptions {
-            keyframes: self.args.pipeline.refine_keyframes,
-            ..RefinementOptions::default()
-        };
-        let (Some(camera), true) = (camera, refine.keyframes > 0) else {
-            return;
-        };
-        let map = &mut self.state.map;
-        if let Some(r) = self
-            .stats
-            .time("refine", || map.refine_recent(&camera, &refine))
-        {
-            tracing::info!(
-                window = w.window_id,
-                keyframes = r.keyframes,
-                points = r.points,
-                rmse_px = r.rmse_px,
-                outliers = r.outliers,
-                "recent keyframes refined"
-            );
         }
     }
 }
@@ -329,11 +322,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    let (global_ba_px, refine_keyframes) =
+        (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
     let mut merger = Merger {
         args,
         state: MergerState::default(),
         outputs,
         stats: ServiceStats::new("merger"),
+        refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes),
     };
     let fault = if resumed.is_none() {
         injected_fault()

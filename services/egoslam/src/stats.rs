@@ -23,6 +23,21 @@ pub struct ServiceStats {
     /// window). Shows whether motion was invented where the camera stood still.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub window_translations: Vec<f64>,
+    /// Peak resident memory of the process so far (Linux VmHWM), kibibytes; 0 if unknown.
+    #[serde(default)]
+    pub peak_rss_kib: u64,
+}
+
+/// This process's peak resident set size (VmHWM in /proc/self/status), KiB; 0 elsewhere.
+pub fn peak_rss_kib() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        })
+        .unwrap_or(0)
 }
 
 impl ServiceStats {
@@ -67,7 +82,8 @@ impl ServiceStats {
     }
 
     /// Writes atomically (temp file + rename): a crash never leaves half a file.
-    pub fn write(&self, out: &Path) -> anyhow::Result<()> {
+    pub fn write(&mut self, out: &Path) -> anyhow::Result<()> {
+        self.peak_rss_kib = peak_rss_kib();
         let path = Self::path(out, &self.service);
         crate::output::write_atomically(&path, serde_json::to_string_pretty(self)?.as_bytes())
     }

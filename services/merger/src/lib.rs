@@ -8,4 +8,4 @@ pub mod refinement;
 
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
 pub use interpolation::interpolate_frames;
-pub use refinement::{RefinementOptions, RefinementReport};
+pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};

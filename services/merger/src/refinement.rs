@@ -1,34 +1,48 @@
-//! Joint refinement of the most recent keyframes of the map.
+//! Joint (global or sliding) bundle adjustment of the map, runnable off the merger's thread.
 //!
-//! Consecutive windows meet at their ends, where each is least constrained (in forward
-//! motion, scale drifts towards a window's ends), so aligning them there passes that error
-//! on. After each window is chained, the last keyframes of the segment (the new window and
-//! the one before) are bundle-adjusted together with every stored observation, the oldest
-//! ones held fixed so that the settled map keeps its frame and scale: a sliding global
-//! bundle adjustment (paper, section 5, "global BA").
+//! Consecutive windows meet at their ends, where each is least constrained, so chaining
+//! passes their errors on; the cross-window reprojection error (map points seen again from
+//! a new window's keyframes) measures how far the chain has drifted from what the images
+//! say. When it grows, the keyframes of the segment are bundle-adjusted together with every
+//! stored observation, the oldest held fixed so that the settled map keeps its frame and
+//! scale (paper, section 5, "global BA").
+//!
+//! The work is split so that it never stalls the intake of windows: [`MapBuilder::
+//! refinement_job`] copies the problem out of the map (cheap), [`RefinementJob::solve`] runs
+//! anywhere (a background thread), and [`MapBuilder::apply_refinement`] folds the result
+//! back, carrying keyframes and points added meanwhile along by the similarity that the
+//! refinement applied to the newest refined keyframes.
 
-use crate::chaining::MapBuilder;
-use egoslam_geometry::PinholeRadtan;
-use egoslam_solver::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions, Observation};
+use crate::chaining::{align_shared, MapBuilder};
+use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
+use egoslam_solver::bundle_adjustment::{
+    bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
+};
 use egoslam_solver::triangulation::CameraPose;
 use nalgebra::{UnitQuaternion, Vector3};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
-/// Options of the sliding refinement.
+/// Options of a refinement.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RefinementOptions {
-    /// Keyframes refined together, newest first (default 40: two windows of 20).
+    /// Keyframes refined together, newest first (0 = every keyframe of the segment: global
+    /// BA). Default 0.
     pub keyframes: usize,
-    /// Oldest of those held fixed (default 5, the window overlap: they anchor frame and scale).
+    /// Oldest of those held fixed (default 5, the window overlap: they anchor frame and
+    /// scale, the 7 gauge freedoms of a monocular map).
     pub fixed: usize,
+    /// Newest refined keyframes whose change (a similarity) is applied to keyframes and
+    /// points added while the refinement ran (default 5, one window overlap).
+    pub carry_keyframes: usize,
     pub bundle_adjustment: BundleAdjustmentOptions,
 }
 
 impl Default for RefinementOptions {
     fn default() -> Self {
         Self {
-            keyframes: 40,
+            keyframes: 0,
             fixed: 5,
+            carry_keyframes: 5,
             bundle_adjustment: BundleAdjustmentOptions::default(),
         }
     }
@@ -42,39 +56,110 @@ pub struct RefinementReport {
     pub observations: usize,
     pub outliers: usize,
     pub rmse_px: f64,
+    pub iterations: usize,
+    /// Keyframes added while the refinement ran, moved by the carried similarity.
+    pub carried_keyframes: usize,
+}
+
+/// A refinement problem copied out of the map; owns everything, so it can be sent to a
+/// worker thread.
+#[derive(Debug, Clone)]
+pub struct RefinementJob {
+    segment: u32,
+    camera: PinholeRadtan,
+    options: RefinementOptions,
+    /// Keyframe ids in order, with their poses (BA convention) when the job was made.
+    ids: Vec<u64>,
+    poses: Vec<CameraPose>,
+    tracks: Vec<u64>,
+    points: Vec<Vector3<f64>>,
+    observations: Vec<Observation>,
+    /// `(keyframe, track)` of each observation, to remove outliers from the map.
+    keys: Vec<(u64, u64)>,
+    /// Keyframes and tracks of the segment when the job was made.
+    known_keyframes: BTreeSet<u64>,
+    known_tracks: BTreeSet<u64>,
+}
+
+/// A solved job, ready to be folded back with [`MapBuilder::apply_refinement`].
+#[derive(Debug, Clone)]
+pub struct RefinementOutcome {
+    job: RefinementJob,
+    result: BundleAdjustmentResult,
+}
+
+fn camera_pose(p: &StampedPose) -> CameraPose {
+    CameraPose {
+        rotation: p.rotation.inverse().to_rotation_matrix(),
+        centre: p.position,
+    }
+}
+
+fn stamped(timestamp: f64, p: &CameraPose) -> StampedPose {
+    StampedPose {
+        timestamp,
+        position: p.centre,
+        rotation: UnitQuaternion::from_rotation_matrix(&p.rotation.inverse()),
+    }
+}
+
+impl RefinementJob {
+    /// Keyframes in the problem.
+    pub fn keyframes(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// Runs the bundle adjustment (seconds for a thousand keyframes; call it off the
+    /// merger's thread). `None` when the solver rejects the problem.
+    pub fn solve(self) -> Option<RefinementOutcome> {
+        let options = BundleAdjustmentOptions {
+            fixed_cameras: self.options.fixed.min(self.ids.len() - 1),
+            ..self.options.bundle_adjustment
+        };
+        let result = bundle_adjust(
+            &self.camera,
+            &self.poses,
+            &self.points,
+            &self.observations,
+            &options,
+        )
+        .ok()?;
+        Some(RefinementOutcome { job: self, result })
+    }
 }
 
 impl MapBuilder {
-    /// Refines the last keyframes of the current segment; `None` when there is too little
-    /// to refine (fewer keyframes than `fixed + 2`, or no shared points).
-    pub fn refine_recent(
-        &mut self,
-        camera: &PinholeRadtan,
-        options: &RefinementOptions,
-    ) -> Option<RefinementReport> {
-        let segment = self.current_segment?;
-        let mut ids: Vec<u64> = self
-            .keyframes
+    /// Keyframe ids of a segment, in order.
+    fn segment_keyframes(&self, segment: u32) -> Vec<u64> {
+        self.keyframes
             .iter()
             .filter(|(_, (s, _))| *s == segment)
             .map(|(id, _)| *id)
-            .collect();
-        if ids.len() < options.fixed + 2 {
+            .collect()
+    }
+
+    /// Copies the refinement problem of the current segment (its last `options.keyframes`,
+    /// or all) out of the map; `None` when there is too little to refine (fewer keyframes
+    /// than `fixed + 2`, or no point seen twice).
+    pub fn refinement_job(
+        &self,
+        camera: &PinholeRadtan,
+        options: &RefinementOptions,
+    ) -> Option<RefinementJob> {
+        let segment = self.current_segment?;
+        let all = self.segment_keyframes(segment);
+        if all.len() < options.fixed + 2 {
             return None;
         }
-        ids.drain(..ids.len().saturating_sub(options.keyframes));
+        let mut ids = all.clone();
+        if options.keyframes > 0 {
+            ids.drain(..ids.len().saturating_sub(options.keyframes));
+        }
         let index: BTreeMap<u64, usize> = ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
         let poses: Vec<CameraPose> = ids
             .iter()
-            .map(|id| {
-                let p = &self.keyframes[id].1;
-                CameraPose {
-                    rotation: p.rotation.inverse().to_rotation_matrix(),
-                    centre: p.position,
-                }
-            })
+            .map(|id| camera_pose(&self.keyframes[id].1))
             .collect();
-        // Points of the segment seen by at least two of these keyframes.
         let (first, last) = (ids[0], ids[ids.len() - 1]);
         let mut by_track: BTreeMap<u64, Vec<(usize, nalgebra::Point2<f64>)>> = BTreeMap::new();
         for ((kf, track), px) in self.observations.range((first, 0)..=(last, u64::MAX)) {
@@ -82,10 +167,8 @@ impl MapBuilder {
                 by_track.entry(*track).or_default().push((cam, *px));
             }
         }
-        let mut tracks = Vec::new();
-        let mut points: Vec<Vector3<f64>> = Vec::new();
-        let mut observations = Vec::new();
-        let mut keys = Vec::new();
+        let (mut tracks, mut points, mut observations, mut keys) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (track, obs) in &by_track {
             let Some((s, x)) = self.points.get(track) else {
                 continue;
@@ -108,29 +191,228 @@ impl MapBuilder {
         if points.is_empty() {
             return None;
         }
-        let ba = BundleAdjustmentOptions {
-            fixed_cameras: options.fixed.min(ids.len() - 1),
-            ..options.bundle_adjustment
-        };
-        let result = bundle_adjust(camera, &poses, &points, &observations, &ba).ok()?;
-        for (id, pose) in ids.iter().zip(&result.poses) {
+        let known_tracks = self
+            .points
+            .iter()
+            .filter(|(_, (s, _))| *s == segment)
+            .map(|(t, _)| *t)
+            .collect();
+        Some(RefinementJob {
+            segment,
+            camera: *camera,
+            options: *options,
+            ids,
+            poses,
+            tracks,
+            points,
+            observations,
+            keys,
+            known_keyframes: all.into_iter().collect(),
+            known_tracks,
+        })
+    }
+
+    /// Folds a solved job back into the map: refined keyframes and points take their new
+    /// values; keyframes and points of the segment added since the job was made move with
+    /// the similarity that maps the newest refined keyframes' old poses onto their new ones
+    /// (so the map stays continuous at the join); outlier observations are dropped. A job
+    /// whose segment is no longer current still updates that segment's own keyframes.
+    pub fn apply_refinement(&mut self, outcome: RefinementOutcome) -> RefinementReport {
+        let RefinementOutcome { job, result } = outcome;
+        let carry = job.options.carry_keyframes.clamp(2, job.ids.len());
+        let tail = job.ids.len() - carry;
+        let before: Vec<StampedPose> = job.ids[tail..]
+            .iter()
+            .zip(&job.poses[tail..])
+            .map(|(id, p)| stamped(self.keyframes[id].1.timestamp, p))
+            .collect();
+        let after: Vec<StampedPose> = job.ids[tail..]
+            .iter()
+            .zip(&result.poses[tail..])
+            .map(|(id, p)| stamped(self.keyframes[id].1.timestamp, p))
+            .collect();
+        let moved_points: Vec<(Vector3<f64>, Vector3<f64>)> = job
+            .points
+            .iter()
+            .zip(&result.points)
+            .map(|(a, b)| (*a, *b))
+            .collect();
+        let (carried, _) = align_shared(&before, &after, &moved_points);
+        for (id, pose) in job.ids.iter().zip(&result.poses) {
             if let Some((_, p)) = self.keyframes.get_mut(id) {
-                p.position = pose.centre;
-                p.rotation = UnitQuaternion::from_rotation_matrix(&pose.rotation.inverse());
+                *p = stamped(p.timestamp, pose);
             }
         }
-        for (track, x) in tracks.iter().zip(&result.points) {
-            self.points.insert(*track, (segment, *x));
+        for (track, x) in job.tracks.iter().zip(&result.points) {
+            self.points.insert(*track, (job.segment, *x));
         }
+        let carried_keyframes = self.carry_new(&job, &carried);
         for o in &result.outliers {
-            self.observations.remove(&keys[*o]);
+            self.observations.remove(&job.keys[*o]);
         }
-        Some(RefinementReport {
-            keyframes: ids.len(),
-            points: points.len(),
-            observations: observations.len(),
+        RefinementReport {
+            keyframes: job.ids.len(),
+            points: job.points.len(),
+            observations: job.observations.len(),
             outliers: result.outliers.len(),
             rmse_px: result.rmse_px,
-        })
+            iterations: result.iterations,
+            carried_keyframes,
+        }
+    }
+
+    /// Applies `t` to the segment's keyframes and points that the job did not know.
+    fn carry_new(&mut self, job: &RefinementJob, t: &Similarity) -> usize {
+        let rotation = UnitQuaternion::from_rotation_matrix(&t.rotation);
+        let mut moved = 0;
+        for (id, (s, p)) in self.keyframes.iter_mut() {
+            if *s == job.segment && !job.known_keyframes.contains(id) {
+                p.position = t.apply(&p.position);
+                p.rotation = rotation * p.rotation;
+                moved += 1;
+            }
+        }
+        for (track, (s, x)) in self.points.iter_mut() {
+            if *s == job.segment && !job.known_tracks.contains(track) {
+                *x = t.apply(x);
+            }
+        }
+        moved
+    }
+
+    /// Refines in place (job, solve and fold on this thread).
+    pub fn refine_recent(
+        &mut self,
+        camera: &PinholeRadtan,
+        options: &RefinementOptions,
+    ) -> Option<RefinementReport> {
+        let outcome = self.refinement_job(camera, options)?.solve()?;
+        Some(self.apply_refinement(outcome))
+    }
+
+    /// Cross-window reprojection error: the median pixel error of the observations made
+    /// from `keyframes` of points that were already in the map before them, with the map's
+    /// current poses and points. Within a window BA fits its observations to ~1 px; what
+    /// exceeds that here is disagreement between windows (drift). The median, because a
+    /// few points near a camera's plane reproject hundreds of pixels off and would make an
+    /// RMS say "drift" on a sound map. `None` without such observations.
+    pub fn cross_window_error(
+        &self,
+        camera: &PinholeRadtan,
+        keyframes: &[u64],
+        earlier_tracks: &BTreeSet<u64>,
+    ) -> Option<f64> {
+        let mut errors = Vec::new();
+        for id in keyframes {
+            let Some((segment, pose)) = self.keyframes.get(id) else {
+                continue;
+            };
+            let cam = camera_pose(pose);
+            for ((_, track), px) in self.observations.range((*id, 0)..=(*id, u64::MAX)) {
+                if !earlier_tracks.contains(track) {
+                    continue;
+                }
+                let Some((s, x)) = self.points.get(track) else {
+                    continue;
+                };
+                let pc = cam.to_camera(x);
+                if *s != *segment || pc.z <= 1e-9 {
+                    continue;
+                }
+                let Some(projected) = camera.project_undistorted(&pc) else {
+                    continue;
+                };
+                errors.push((projected - px).norm());
+            }
+        }
+        if errors.is_empty() {
+            return None;
+        }
+        let mid = errors.len() / 2;
+        Some(*errors.select_nth_unstable_by(mid, f64::total_cmp).1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chaining::MapParts;
+    use nalgebra::Rotation3;
+
+    fn camera() -> PinholeRadtan {
+        PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera")
+    }
+
+    /// Keyframe `i` of a walk along x, looking down +z with a slow yaw sway.
+    fn truth(i: usize) -> StampedPose {
+        let cam = CameraPose {
+            rotation: Rotation3::from_euler_angles(0.0, 0.05 * (0.3 * i as f64).sin(), 0.0),
+            centre: Vector3::new(0.1 * i as f64, 0.0, 0.0),
+        };
+        stamped(i as f64, &cam)
+    }
+
+    /// Truth moved by a drift growing with the keyframe index (the chaining error).
+    fn drifted(i: usize) -> StampedPose {
+        let d = i.saturating_sub(5) as f64;
+        let mut p = truth(i);
+        p.position += Vector3::new(0.002 * d, -0.001 * d, 0.003 * d);
+        p.rotation = UnitQuaternion::from_euler_angles(0.0005 * d, -0.0004 * d, 0.0) * p.rotation;
+        p
+    }
+
+    #[test]
+    fn a_background_job_corrects_drift_and_carries_what_came_meanwhile() {
+        let camera = camera();
+        let mut parts = MapParts {
+            current_segment: Some(0),
+            segments: 1,
+            ..MapParts::default()
+        };
+        // Points on a wall 4 m ahead, each seen by the keyframes within 0.6 m of it.
+        let mut track = 0u64;
+        for gx in 0..60 {
+            for gy in 0..6 {
+                let x = Vector3::new(-0.5 + 0.05 * gx as f64, -0.6 + 0.25 * gy as f64, 4.0);
+                for i in 0..26 {
+                    let cam = camera_pose(&truth(i));
+                    if (cam.centre.x - x.x).abs() > 0.6 {
+                        continue;
+                    }
+                    if let Some(px) = camera.project_undistorted(&cam.to_camera(&x)) {
+                        parts.observations.insert((i as u64, track), px);
+                    }
+                }
+                parts.points.insert(track, (0, x));
+                track += 1;
+            }
+        }
+        for i in 0..25 {
+            parts.keyframes.insert(i as u64, (0, drifted(i)));
+        }
+        let mut map = MapBuilder::from_parts(parts);
+        let job = map
+            .refinement_job(&camera, &RefinementOptions::default())
+            .expect("job");
+        // A keyframe arrives while the job runs, chained onto the drifted map.
+        map.keyframes.insert(25, (0, drifted(25)));
+        let error = |map: &MapBuilder, i: usize| {
+            (map.keyframes[&(i as u64)].1.position - truth(i).position).norm()
+        };
+        let before: Vec<f64> = (0..26).map(|i| error(&map, i)).collect();
+        let report = map.apply_refinement(job.solve().expect("solved"));
+        assert_eq!(report.keyframes, 25);
+        assert_eq!(report.carried_keyframes, 1);
+        assert!(report.rmse_px < 0.05, "{report:?}");
+        for (i, was) in before.iter().enumerate().take(25).skip(5) {
+            let now = error(&map, i);
+            assert!(now < 0.1 * was.max(1e-3), "kf {i}: {now} was {was}");
+        }
+        assert!(
+            error(&map, 25) < 0.2 * before[25],
+            "carried kf: {} was {}",
+            error(&map, 25),
+            before[25]
+        );
     }
 }
