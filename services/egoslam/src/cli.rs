@@ -51,6 +51,9 @@ pub struct PipelineArgs {
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,
+    /// L: loop-closure edges from each keyframe reach back this many keyframes.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(1..=29))]
+    pub loop_closures: u16,
     /// O: keyframes shared by consecutive windows.
     #[arg(long, default_value_t = 5)]
     pub overlap: usize,

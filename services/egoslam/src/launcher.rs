@@ -30,6 +30,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--lk-window={}", p.lk_window),
         format!("--window={}", p.window),
         format!("--overlap={}", p.overlap),
+        format!("--loop-closures={}", p.loop_closures),
         format!("--refine-keyframes={}", p.refine_keyframes),
         format!("--global-ba-px={}", p.global_ba_px),
     ]

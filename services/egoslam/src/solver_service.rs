@@ -220,7 +220,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         size: usize::from(args.pipeline.window),
         overlap: args.pipeline.overlap,
     })?;
-    let options = WindowSolverOptions::default();
+    let mut options = WindowSolverOptions::default();
+    options.view_graph.loop_closure_span = usize::from(args.pipeline.loop_closures);
     let mut cache = EdgeCache::new();
     let bus = Bus::open(
         "solver",
