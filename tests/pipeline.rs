@@ -69,6 +69,8 @@ fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
         }
         keyframes.push(k);
     }
+    // A consumer that has read the end of stream disconnects; the producer waits for that.
+    drop(sub);
     assert!(replay.wait().expect("replay exit").success());
     assert!(frontend.wait().expect("frontend exit").success());
     std::thread::sleep(Duration::from_millis(10));

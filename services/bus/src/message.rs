@@ -44,6 +44,15 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
     }
 }
 
+impl<M> MessagePublisher<'_, M> {
+    /// Ends the stream: waits until the consumer has disconnected, so that nothing sent is
+    /// lost with this process (see docs/bus.md). Call after the end-of-stream message.
+    /// Returns `false` when the process was asked to terminate meanwhile.
+    pub fn finish(self) -> bool {
+        self.outbox.wait_until_consumers_leave(self.bus)
+    }
+}
+
 /// Receives protobuf messages of type `M`. The header carries the producer's sequence number:
 /// from the first message received on, a gap (which the lossless QoS forbids) is reported
 /// rather than passed on silently. The first number need not be 0: a consumer restarted

@@ -308,6 +308,26 @@ impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
         })
     }
 
+    /// Waits until every consumer has disconnected (finished, or died and was cleaned up).
+    /// A producer must not exit while a consumer may still read: samples that grew the
+    /// publisher's data segment live in memory the consumer maps lazily, and vanish with
+    /// the producer (iceoryx2 then reports a "lost chunk"). `false`: asked to terminate.
+    pub(crate) fn wait_until_consumers_leave(&self, bus: &Bus) -> bool {
+        let mut last_cleanup = std::time::Instant::now();
+        loop {
+            if self._service.dynamic_config().number_of_subscribers() == 0 {
+                return true;
+            }
+            if last_cleanup.elapsed() > Duration::from_millis(500) {
+                last_cleanup = std::time::Instant::now();
+                let _ = bus.node().try_cleanup_dead_nodes();
+            }
+            if !bus.idle(Duration::from_millis(10)) {
+                return false;
+            }
+        }
+    }
+
     /// Sends with the outbox's delivery mode (see [`send_filled`]).
     pub(crate) fn send(
         &self,

@@ -3,7 +3,7 @@
 //! window so that a killed merger resumes with nothing lost (docs/durability.md).
 
 use crate::convert::{pose_from_pb, pose_to_pb, vec3_from_pb, vec3_to_pb};
-use crate::map_state::FrameIndex;
+use crate::map_state::{FrameIndex, LocalizedFrame, PendingFrame};
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts};
@@ -94,12 +94,42 @@ impl MergerState {
                 .map(|(id, t)| pb::FrameStamp {
                     frame_id: *id,
                     timestamp_s: *t,
+                    tracks: Vec::new(),
                 })
                 .collect(),
             keyframe_ids: self.frames.keyframe_frames.keys().copied().collect(),
             keyframe_frame_ids: self.frames.keyframe_frames.values().copied().collect(),
             windows: self.windows,
             unsolved_windows: self.unsolved_windows,
+            pending_frames: self
+                .frames
+                .pending
+                .iter()
+                .map(|(frame, p)| pb::PendingFrame {
+                    frame_id: *frame,
+                    next_keyframe_id: p.next_keyframe,
+                    tracks: p
+                        .tracks
+                        .iter()
+                        .map(|(track, px)| pb::TrackObservation {
+                            track_id: *track,
+                            x: px.x as f32,
+                            y: px.y as f32,
+                            ..Default::default()
+                        })
+                        .collect(),
+                })
+                .collect(),
+            localized_frames: self
+                .frames
+                .localized
+                .iter()
+                .map(|(frame, l)| pb::LocalizedFrame {
+                    frame_id: *frame,
+                    anchor_keyframe_id: l.anchor_keyframe,
+                    relative: Some(pose_to_pb(*frame, 0, &l.relative)),
+                })
+                .collect(),
         }
     }
 
@@ -151,6 +181,34 @@ impl MergerState {
                     .keyframe_ids
                     .into_iter()
                     .zip(m.keyframe_frame_ids)
+                    .collect(),
+                pending: m
+                    .pending_frames
+                    .iter()
+                    .map(|p| {
+                        let tracks = p
+                            .tracks
+                            .iter()
+                            .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+                            .collect();
+                        let pending = PendingFrame {
+                            next_keyframe: p.next_keyframe_id,
+                            tracks,
+                        };
+                        (p.frame_id, pending)
+                    })
+                    .collect(),
+                localized: m
+                    .localized_frames
+                    .iter()
+                    .filter_map(|l| {
+                        let relative = pose_from_pb(l.relative.as_ref()?);
+                        let frame = LocalizedFrame {
+                            anchor_keyframe: l.anchor_keyframe_id,
+                            relative,
+                        };
+                        Some((l.frame_id, frame))
+                    })
                     .collect(),
             },
             stream_id: (m.stream_id != 0).then_some(m.stream_id),
@@ -209,6 +267,24 @@ mod tests {
         });
         state.frames.frames.insert(4, 0.4);
         state.frames.keyframe_frames.insert(1, 4);
+        state.frames.pending.insert(
+            5,
+            PendingFrame {
+                next_keyframe: 2,
+                tracks: vec![(3, Point2::new(10.5, 20.25))],
+            },
+        );
+        state.frames.localized.insert(
+            3,
+            LocalizedFrame {
+                anchor_keyframe: 0,
+                relative: StampedPose {
+                    timestamp: 0.3,
+                    position: Vector3::new(0.01, 0.0, 0.02),
+                    rotation: UnitQuaternion::from_euler_angles(0.0, 0.01, 0.0),
+                },
+            },
+        );
         state.last_sequence = Some(3);
         state.windows = 4;
         let dir = tempfile::tempdir().expect("tempdir");
@@ -218,6 +294,8 @@ mod tests {
         assert_eq!(back.map.to_parts(), state.map.to_parts());
         assert_eq!(back.frames.frames, state.frames.frames);
         assert_eq!(back.frames.keyframe_frames, state.frames.keyframe_frames);
+        assert_eq!(back.frames.pending, state.frames.pending);
+        assert_eq!(back.frames.localized, state.frames.localized);
         assert_eq!(
             (back.stream_id, back.last_sequence, back.windows),
             (Some(7), Some(3), 4)

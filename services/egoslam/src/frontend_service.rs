@@ -4,7 +4,9 @@ use crate::cli::ServiceArgs;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
-use egoslam_frontend::{KeyframePolicy, KeyframeReason, KeyframeTracks, Tracker, TrackerOptions};
+use egoslam_frontend::{
+    KeyframePolicy, KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerOptions,
+};
 use egoslam_messages::v1 as pb;
 use egoslam_sources::calibration::read_calibration_file;
 use opencv::core::Mat;
@@ -20,6 +22,20 @@ fn reason(r: KeyframeReason) -> pb::KeyframeReason {
     }
 }
 
+/// Tracks sent with each frame between keyframes: enough for a PnP with RANSAC, a
+/// fraction of a keyframe's message.
+const TRACKS_PER_FRAME: usize = 300;
+
+fn track_message(t: &TrackPoint) -> pb::TrackObservation {
+    pb::TrackObservation {
+        track_id: t.track_id,
+        raw_x: t.raw.x,
+        raw_y: t.raw.y,
+        x: t.undistorted.x,
+        y: t.undistorted.y,
+    }
+}
+
 /// The proto message of a keyframe.
 fn keyframe_message(
     k: &KeyframeTracks,
@@ -32,17 +48,7 @@ fn keyframe_message(
         frame_id: k.frame_id,
         timestamp_s,
         intrinsics: Some(intrinsics.clone()),
-        tracks: k
-            .tracks
-            .iter()
-            .map(|t| pb::TrackObservation {
-                track_id: t.track_id,
-                raw_x: t.raw.x,
-                raw_y: t.raw.y,
-                x: t.undistorted.x,
-                y: t.undistorted.y,
-            })
-            .collect(),
+        tracks: k.tracks.iter().map(track_message).collect(),
         frames_since_previous: skipped,
         mean_flow_px: k.mean_flow_px as f32,
         reason: reason(k.reason) as i32,
@@ -117,6 +123,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let stamp = pb::FrameStamp {
             frame_id: meta.frame_id,
             timestamp_s: meta.timestamp,
+            tracks: Vec::new(),
         };
         match outcome.keyframe {
             Some(k) => {
@@ -130,7 +137,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 stats.keyframes += 1;
                 tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
             }
-            None => skipped.push(stamp),
+            None => skipped.push(pb::FrameStamp {
+                tracks: tracker
+                    .sample_tracks(TRACKS_PER_FRAME)
+                    .iter()
+                    .map(track_message)
+                    .collect(),
+                ..stamp
+            }),
         }
         last_stamp = Some(stamp);
     }
@@ -158,5 +172,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         "frontend finished ({:.1} frames/s)",
         stats.frames as f64 / secs
     );
-    stats.write(&args.out)
+    stats.write(&args.out)?;
+    // Stay until the solver has read everything (see MessagePublisher::finish).
+    if !keyframes.finish() {
+        bail!("terminated by signal while the solver was reading the last keyframes")
+    }
+    Ok(())
 }

@@ -300,6 +300,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "peak_rss_mib": peak_memory(&stats),
         "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
         "recovered_windows": counter(merger, "recovered_windows"),
+        "localized_frames": counter(merger, "localized_frames"),
+        "interpolated_frames": counter(merger, "interpolated_frames"),
         "timings_ms": timings,
         "accuracy": accuracy,
     });

@@ -8,6 +8,7 @@ mod checkpoint;
 mod cli;
 mod convert;
 mod eval;
+mod frame_poses;
 mod frontend_service;
 mod launcher;
 mod map_state;

@@ -7,29 +7,72 @@ use egoslam_egress::Egress;
 use egoslam_geometry::StampedPose;
 use egoslam_merger::{interpolate_frames, MapBuilder};
 use egoslam_messages::v1 as pb;
-use nalgebra::Vector3;
+use nalgebra::{Point2, Vector3};
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Every frame known to the merger and which keyframe is which frame.
+/// A frame between keyframes waiting for its next keyframe to reach the map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PendingFrame {
+    pub next_keyframe: u64,
+    /// `(track id, undistorted pixel)`.
+    pub tracks: Vec<(u64, Point2<f64>)>,
+}
+
+/// A frame posed by PnP, kept relative to the keyframe before it so that it follows that
+/// keyframe when a refinement moves it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalizedFrame {
+    pub anchor_keyframe: u64,
+    /// anchor_from_frame (position: the frame's centre in the anchor camera's frame).
+    pub relative: StampedPose,
+}
+
+/// Every frame known to the merger, which keyframe is which frame, and how the frames
+/// between keyframes are posed.
 #[derive(Default)]
 pub struct FrameIndex {
     /// frame id -> timestamp
     pub frames: BTreeMap<u64, f64>,
     /// keyframe id -> frame id
     pub keyframe_frames: BTreeMap<u64, u64>,
+    /// frame id -> tracks, until its bracketing keyframes are in the map.
+    pub pending: BTreeMap<u64, PendingFrame>,
+    /// frame id -> PnP pose relative to its anchor keyframe.
+    pub localized: BTreeMap<u64, LocalizedFrame>,
 }
 
 impl FrameIndex {
     pub fn add_stamp(&mut self, k: &pb::KeyframeStamp) {
         self.frames.insert(k.frame_id, k.timestamp_s);
-        self.keyframe_frames.insert(k.keyframe_id, k.frame_id);
+        // Overlapping windows repeat keyframes: their frames are taken (and tried) once.
+        let new = self
+            .keyframe_frames
+            .insert(k.keyframe_id, k.frame_id)
+            .is_none();
         for (id, t) in k
             .frames_since_previous_ids
             .iter()
             .zip(&k.frames_since_previous_timestamps_s)
         {
             self.frames.insert(*id, *t);
+        }
+        for f in &k.frames_since_previous {
+            if !new || f.tracks.is_empty() {
+                continue;
+            }
+            let tracks = f
+                .tracks
+                .iter()
+                .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+                .collect();
+            self.pending.insert(
+                f.frame_id,
+                PendingFrame {
+                    next_keyframe: k.keyframe_id,
+                    tracks,
+                },
+            );
         }
     }
 }
@@ -41,6 +84,24 @@ pub struct PosedFrame {
     pub segment: u32,
     pub pose: StampedPose,
     pub interpolated: bool,
+}
+
+/// `a_from_b` of two world_from_camera poses (timestamp of `b`).
+pub fn relative(a: &StampedPose, b: &StampedPose) -> StampedPose {
+    StampedPose {
+        timestamp: b.timestamp,
+        position: a.rotation.inverse() * (b.position - a.position),
+        rotation: a.rotation.inverse() * b.rotation,
+    }
+}
+
+/// `a` composed with `a_from_b`: world_from_b (timestamp of `a_from_b`).
+pub fn compose(a: &StampedPose, a_from_b: &StampedPose) -> StampedPose {
+    StampedPose {
+        timestamp: a_from_b.timestamp,
+        position: a.position + a.rotation * a_from_b.position,
+        rotation: a.rotation * a_from_b.rotation,
+    }
 }
 
 /// The results at one moment.
@@ -70,11 +131,18 @@ impl MapState {
             keyframes.iter().map(|k| k.frame_id).collect();
         let frames = interpolate_frames(&anchors, &stamps)
             .into_iter()
-            .map(|(i, pose, segment)| PosedFrame {
-                frame_id: ids[i],
-                segment,
-                pose,
-                interpolated: !keyframe_ids.contains(&ids[i]),
+            .map(|(i, pose, segment)| {
+                let frame_id = ids[i];
+                let localized = index.localized.get(&frame_id).and_then(|l| {
+                    let (s, anchor) = map.keyframe(l.anchor_keyframe)?;
+                    (s == segment).then(|| compose(anchor, &l.relative))
+                });
+                PosedFrame {
+                    frame_id,
+                    segment,
+                    interpolated: localized.is_none() && !keyframe_ids.contains(&frame_id),
+                    pose: localized.unwrap_or(pose),
+                }
             })
             .collect();
         let points = map.points().map(|(track, _, x)| (track, *x)).collect();

@@ -9,6 +9,7 @@ use crate::background_refinement::BackgroundRefiner;
 use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
+use crate::frame_poses;
 use crate::map_state::{self, FrameIndex, MapState, Revisions};
 use crate::stats::ServiceStats;
 use crate::window_journal;
@@ -84,6 +85,8 @@ struct Merger {
     outputs: Outputs,
     stats: ServiceStats,
     refiner: BackgroundRefiner,
+    /// Camera of the observations (from the windows), for PnP.
+    camera: Option<PinholeRadtan>,
 }
 
 impl Merger {
@@ -116,6 +119,16 @@ impl Merger {
             self.state.finished = true;
         } else {
             self.add_window(w);
+        }
+        if let Some(camera) = window_camera(w) {
+            self.camera = Some(camera);
+        }
+        if let Some(camera) = &self.camera {
+            let (frames, map) = (&mut self.state.frames, &self.state.map);
+            let stats = &mut self.stats;
+            let start = std::time::Instant::now();
+            frame_poses::localize_pending(frames, map, camera, stats);
+            stats.add_time("localize_frames", start.elapsed().as_secs_f64() * 1e3);
         }
         self.state.last_sequence = Some(sequence);
         let save_start = std::time::Instant::now();
@@ -232,10 +245,7 @@ impl Merger {
                     scale = transform.scale,
                     "window aligned"
                 );
-                let camera = w.intrinsics.as_ref().and_then(|i| {
-                    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
-                });
-                if let Some(camera) = camera {
+                if let Some(camera) = window_camera(w) {
                     let ids: Vec<u64> = input.poses.iter().map(|(id, _)| *id).collect();
                     let error = self.refiner.after_window(
                         &self.state.map,
@@ -249,6 +259,12 @@ impl Merger {
             }
         }
     }
+}
+
+/// The ideal pinhole camera of a window's (undistorted) observations.
+fn window_camera(w: &pb::WindowSolution) -> Option<PinholeRadtan> {
+    let i = w.intrinsics.as_ref()?;
+    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
 }
 
 /// The geometry of a window message, as the map builder takes it.
@@ -330,6 +346,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         outputs,
         stats: ServiceStats::new("merger"),
         refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes),
+        camera: None,
     };
     let fault = if resumed.is_none() {
         injected_fault()

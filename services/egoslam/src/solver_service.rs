@@ -27,6 +27,7 @@ fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
             .iter()
             .map(|f| f.timestamp_s)
             .collect(),
+        frames_since_previous: k.frames_since_previous.clone(),
     }
 }
 
@@ -281,5 +282,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         windows = stats.windows,
         "solver finished"
     );
-    stats.write(&args.out)
+    stats.write(&args.out)?;
+    // Stay until the merger has read everything (see MessagePublisher::finish).
+    if !windows.finish() {
+        bail!("terminated by signal while the merger was reading the last windows")
+    }
+    Ok(())
 }

@@ -233,6 +233,29 @@ impl Tracker {
             .then(|| self.make_keyframe(frame_id, KeyframeReason::Last, self.last_mean_flow))
     }
 
+    /// Up to `max` of the live tracks that were alive at the last keyframe (evenly spread
+    /// over the list), undistorted: what a frame between keyframes can be localized with.
+    pub fn sample_tracks(&self, max: usize) -> Vec<TrackPoint> {
+        let old: Vec<&Track> = self
+            .tracks
+            .iter()
+            .filter(|t| t.at_keyframe.is_some())
+            .collect();
+        let step = old.len().div_ceil(max.max(1)).max(1);
+        old.iter()
+            .step_by(step)
+            .map(|t| {
+                let raw = Point2::new(f64::from(t.pos.x), f64::from(t.pos.y));
+                let und = self.camera.undistort_pixel(raw);
+                TrackPoint {
+                    track_id: t.id,
+                    raw: Point2::new(t.pos.x, t.pos.y),
+                    undistorted: Point2::new(und.x as f32, und.y as f32),
+                }
+            })
+            .collect()
+    }
+
     /// Number of live tracks.
     pub fn live_tracks(&self) -> usize {
         self.tracks.len()

@@ -250,6 +250,16 @@ impl MapBuilder {
         self.segments
     }
 
+    /// A keyframe's segment and pose.
+    pub fn keyframe(&self, id: u64) -> Option<(u32, &StampedPose)> {
+        self.keyframes.get(&id).map(|(s, p)| (*s, p))
+    }
+
+    /// A map point's segment and position.
+    pub fn point(&self, track: u64) -> Option<(u32, &Vector3<f64>)> {
+        self.points.get(&track).map(|(s, x)| (*s, x))
+    }
+
     /// Posed keyframes in id order with their segment.
     pub fn keyframes(&self) -> impl Iterator<Item = (u64, u32, &StampedPose)> {
         self.keyframes.iter().map(|(id, (s, p))| (*id, *s, p))

@@ -29,18 +29,24 @@ pub fn interpolate_frames(
         if s0 != s1 {
             continue;
         }
-        let w = (t - a.timestamp) / (b.timestamp - a.timestamp);
-        out.push((
-            i,
-            StampedPose {
-                timestamp: t,
-                position: a.position.lerp(&b.position, w),
-                rotation: a.rotation.slerp(&b.rotation, w),
-            },
-            s0,
-        ));
+        out.push((i, interpolate_between(&a, &b, t), s0));
     }
     out
+}
+
+/// The pose at time `t` between keyframes `a` and `b` (linear centre, slerp rotation).
+pub fn interpolate_between(a: &StampedPose, b: &StampedPose, t: f64) -> StampedPose {
+    let span = b.timestamp - a.timestamp;
+    let w = if span.abs() > 0.0 {
+        ((t - a.timestamp) / span).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    StampedPose {
+        timestamp: t,
+        position: a.position.lerp(&b.position, w),
+        rotation: a.rotation.slerp(&b.rotation, w),
+    }
 }
 
 #[cfg(test)]

@@ -3,9 +3,11 @@
 //! keyframes are posed by interpolation.
 
 pub mod chaining;
+pub mod frame_localization;
 pub mod interpolation;
 pub mod refinement;
 
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
-pub use interpolation::interpolate_frames;
+pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
+pub use interpolation::{interpolate_between, interpolate_frames};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
