@@ -10,6 +10,7 @@ use egoslam_merger::{MapBuilder, MapParts};
 use egoslam_messages::v1 as pb;
 use nalgebra::Point2;
 use prost::Message;
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// File name of the checkpoint inside the output folder.
@@ -120,6 +121,18 @@ impl MergerState {
                         .collect(),
                 })
                 .collect(),
+            weak_observations: parts
+                .weak
+                .iter()
+                .flat_map(|(track, views)| {
+                    views.iter().map(|(kf, px)| pb::Observation {
+                        keyframe_id: *kf,
+                        track_id: *track,
+                        x: px.x as f32,
+                        y: px.y as f32,
+                    })
+                })
+                .collect(),
             localized_frames: self
                 .frames
                 .localized
@@ -166,6 +179,16 @@ impl MergerState {
                     ((o.keyframe_id, o.track_id), px)
                 })
                 .collect(),
+            weak: {
+                let mut weak: BTreeMap<u64, BTreeMap<u64, Point2<f64>>> = BTreeMap::new();
+                for o in &m.weak_observations {
+                    let px = Point2::new(f64::from(o.x), f64::from(o.y));
+                    weak.entry(o.track_id)
+                        .or_default()
+                        .insert(o.keyframe_id, px);
+                }
+                weak
+            },
             current_segment: m.current_segment,
             segments: m.segments,
         };
@@ -264,6 +287,7 @@ mod tests {
             poses,
             points: vec![(3, Vector3::new(1.0, 2.0, 3.0))],
             observations: vec![(1, 3, Point2::new(320.5, 240.25))],
+            weak_observations: vec![(2, 9, Point2::new(100.5, 200.75))],
         });
         state.frames.frames.insert(4, 0.4);
         state.frames.keyframe_frames.insert(1, 4);

@@ -19,6 +19,7 @@ use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{MapBuilder, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
+use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
 use std::collections::BTreeSet;
 use std::path::Path;
@@ -230,6 +231,21 @@ impl Merger {
         let earlier_tracks: BTreeSet<u64> = self.state.map.points().map(|(t, _, _)| t).collect();
         let map = &mut self.state.map;
         let outcome = self.stats.time("align", || map.add_window(&input));
+        if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
+            let map = &mut self.state.map;
+            let options = TriangulationOptions::default();
+            let r = self.stats.time("retriangulate", || {
+                map.retriangulate(&camera, &options, *first)
+            });
+            self.stats.count("retriangulated_points", r.added as u64);
+            tracing::debug!(
+                window = w.window_id,
+                tried = r.tried,
+                added = r.added,
+                dropped = r.dropped,
+                "weak tracks re-triangulated"
+            );
+        }
         match outcome {
             WindowOutcome::NewSegment { segment } => {
                 tracing::info!(window = w.window_id, segment, "new map segment")
@@ -282,6 +298,17 @@ fn window_input(w: &pb::WindowSolution) -> WindowInput {
             .collect(),
         observations: w
             .observations
+            .iter()
+            .map(|o| {
+                (
+                    o.keyframe_id,
+                    o.track_id,
+                    Point2::new(f64::from(o.x), f64::from(o.y)),
+                )
+            })
+            .collect(),
+        weak_observations: w
+            .weak_observations
             .iter()
             .map(|o| {
                 (

@@ -182,6 +182,16 @@ fn solve(
         end_of_stream: false,
         trailing_frames: Vec::new(),
         stream_id: 0, // set when published
+        weak_observations: solution
+            .weak_observations
+            .iter()
+            .map(|(k, track, px)| pb::Observation {
+                keyframe_id: kfs[*k].keyframe_id,
+                track_id: *track,
+                x: px.x as f32,
+                y: px.y as f32,
+            })
+            .collect(),
         intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
             distortion: Vec::new(),
             ..i

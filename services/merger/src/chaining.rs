@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
 
 /// One solved window as the merger needs it.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct WindowInput {
     /// `(keyframe id, pose in the window's frame)`, in keyframe order.
     pub poses: Vec<(u64, StampedPose)>,
@@ -13,6 +13,8 @@ pub struct WindowInput {
     pub points: Vec<(u64, Vector3<f64>)>,
     /// Inlier observations `(keyframe id, track id, undistorted pixel)`.
     pub observations: Vec<(u64, u64, nalgebra::Point2<f64>)>,
+    /// Observations of tracks too weakly seen to triangulate in the window (same layout).
+    pub weak_observations: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
 /// What happened to a window.
@@ -39,6 +41,8 @@ pub struct MapParts {
     pub points: BTreeMap<u64, (u32, Vector3<f64>)>,
     /// (keyframe id, track id) -> undistorted pixel.
     pub observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
+    /// track id -> keyframe id -> undistorted pixel, of tracks not triangulated yet.
+    pub weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
     /// Segment new windows are aligned to (`None` after a break).
     pub current_segment: Option<u32>,
     /// Segments created so far.
@@ -55,6 +59,9 @@ pub struct MapBuilder {
     /// (keyframe id, track id) -> undistorted pixel: every inlier observation of the
     /// windows, kept for the joint refinement of recent keyframes.
     pub(crate) observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
+    /// track id -> keyframe id -> undistorted pixel: tracks not triangulated yet
+    /// (retriangulation.rs).
+    pub(crate) weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
     pub(crate) current_segment: Option<u32>,
     segments: u32,
 }
@@ -219,7 +226,14 @@ impl MapBuilder {
         }
         for (kf, track, px) in &window.observations {
             self.observations.insert((*kf, *track), *px);
+            // Triangulated now: what was kept of it as weak joins its observations.
+            if let Some(views) = self.weak.remove(track) {
+                for (k, p) in views {
+                    self.observations.entry((k, *track)).or_insert(p);
+                }
+            }
         }
+        self.add_weak_observations(&window.weak_observations);
         outcome
     }
 
@@ -229,6 +243,7 @@ impl MapBuilder {
             keyframes: self.keyframes.clone(),
             points: self.points.clone(),
             observations: self.observations.clone(),
+            weak: self.weak.clone(),
             current_segment: self.current_segment,
             segments: self.segments,
         }
@@ -240,6 +255,7 @@ impl MapBuilder {
             keyframes: parts.keyframes,
             points: parts.points,
             observations: parts.observations,
+            weak: parts.weak,
             current_segment: parts.current_segment,
             segments: parts.segments,
         }
@@ -298,7 +314,7 @@ mod tests {
         let first = WindowInput {
             poses: (0..10).map(|i| (i as u64, truth[i])).collect(),
             points: vec![(7, Vector3::new(1.0, 2.0, 3.0))],
-            observations: vec![],
+            ..WindowInput::default()
         };
         assert_eq!(
             map.add_window(&first),
@@ -315,7 +331,7 @@ mod tests {
                 .map(|i| (i as u64, transform_pose(&g, &truth[i])))
                 .collect(),
             points: vec![(8, g.apply(&Vector3::new(-1.0, 0.5, 4.0)))],
-            observations: vec![],
+            ..WindowInput::default()
         };
         match map.add_window(&second) {
             WindowOutcome::Aligned { residual, .. } => assert!(residual < 1e-9),
@@ -359,7 +375,7 @@ mod rotation_only_tests {
                 })
                 .collect(),
             points: vec![],
-            observations: vec![],
+            ..WindowInput::default()
         };
         map.add_window(&moving);
         let still = WindowInput {
@@ -380,13 +396,13 @@ mod rotation_only_tests {
                 })
                 .collect(),
             points: vec![],
-            observations: vec![],
+            ..WindowInput::default()
         };
         map.add_window(&still);
         map.add_window(&WindowInput {
             poses: still.poses.iter().map(|(i, p)| (i + 5, *p)).collect(),
             points: vec![],
-            observations: vec![],
+            ..WindowInput::default()
         });
         for (id, _, p) in map.keyframes() {
             assert!(p.position.iter().all(|v| v.is_finite()), "kf {id} {p:?}");

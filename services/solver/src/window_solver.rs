@@ -7,7 +7,9 @@ use crate::rotation_averaging::{average_rotations, RelativeRotation, RotationAve
 use crate::translation_averaging::{
     average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions,
 };
-use crate::triangulation::{triangulate_track, CameraPose, TriangulationOptions};
+use crate::triangulation::{
+    triangulate_track, CameraPose, TriangulationFailure, TriangulationOptions,
+};
 use crate::view_graph::{build_view_graph, EdgeCache, KeyframeObservations, ViewGraphOptions};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Point2, Rotation3, Vector3};
@@ -81,6 +83,10 @@ pub struct WindowSolution {
     /// Inlier observations kept by bundle adjustment: (keyframe index, track id, pixel).
     pub observations: Vec<(usize, u64, Point2<f64>)>,
     pub outlier_observations: usize,
+    /// Observations (keyframe index, track id, pixel) of tracks seen twice or more whose
+    /// rays met at too small an angle to triangulate in this window: the merger
+    /// re-triangulates them once other windows add views (paper, section 5).
+    pub weak_observations: Vec<(usize, u64, Point2<f64>)>,
     pub rmse_px: f64,
     pub edges: usize,
     pub translation_edges: usize,
@@ -108,6 +114,7 @@ impl WindowSolution {
             points: Vec::new(),
             observations: Vec::new(),
             outlier_observations: 0,
+            weak_observations: Vec::new(),
             rmse_px: 0.0,
             edges,
             translation_edges,
@@ -122,6 +129,7 @@ impl WindowSolution {
             points: Vec::new(),
             observations: Vec::new(),
             outlier_observations: 0,
+            weak_observations: Vec::new(),
             rmse_px: 0.0,
             edges,
             translation_edges: 0,
@@ -286,24 +294,31 @@ pub fn solve_window(
         .map(|(id, _)| *id)
         .collect();
     ids.sort_unstable();
-    let (points, observations) = timed(&mut timings, "triangulation", || {
+    let (points, observations, weak) = timed(&mut timings, "triangulation", || {
         let mut points: Vec<(u64, Vector3<f64>)> = Vec::new();
         let mut observations: Vec<Observation> = Vec::new();
+        let mut weak = Vec::new();
         for id in &ids {
             let obs = &tracks[id];
-            if let Ok(p) = triangulate_track(camera, &poses, obs, &options.triangulation) {
-                let index = points.len();
-                points.push((*id, p.position));
-                for o in p.inliers {
-                    observations.push(Observation {
-                        camera: obs[o].0,
-                        point: index,
-                        pixel: obs[o].1,
-                    });
+            match triangulate_track(camera, &poses, obs, &options.triangulation) {
+                Ok(p) => {
+                    let index = points.len();
+                    points.push((*id, p.position));
+                    for o in p.inliers {
+                        observations.push(Observation {
+                            camera: obs[o].0,
+                            point: index,
+                            pixel: obs[o].1,
+                        });
+                    }
                 }
+                Err(TriangulationFailure::LowAngle) => {
+                    weak.extend(obs.iter().map(|(k, px)| (*k, *id, *px)));
+                }
+                Err(_) => {}
             }
         }
-        (points, observations)
+        (points, observations, weak)
     });
     if points.len() < options.min_points {
         return WindowSolution {
@@ -312,6 +327,7 @@ pub fn solve_window(
             points: Vec::new(),
             observations: Vec::new(),
             outlier_observations: 0,
+            weak_observations: weak,
             rmse_px: 0.0,
             edges: edges.len(),
             translation_edges: translation_edges.len(),
@@ -360,6 +376,7 @@ pub fn solve_window(
         points: solved_points,
         observations: kept,
         outlier_observations: adjusted.outliers.len(),
+        weak_observations: weak,
         rmse_px: adjusted.rmse_px,
         edges: edges.len(),
         translation_edges: translation_edges.len(),
