@@ -413,3 +413,105 @@ mod rotation_only_tests {
         }
     }
 }
+
+#[cfg(test)]
+mod robustness_tests {
+    use super::*;
+
+    /// Two overlapping windows of a forward walk with different scales, noisy shared
+    /// keyframes and 30 % of the shared points wrong: merged keyframes within 0.5 % of the
+    /// path length (issue: "merge to < 0.5 % of path length ATE").
+    #[test]
+    fn noisy_windows_with_wrong_points_merge_within_half_a_percent() {
+        let mut state = 99u64;
+        let mut uniform = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let truth: Vec<StampedPose> = (0..30)
+            .map(|i| StampedPose {
+                timestamp: i as f64,
+                position: Vector3::new(0.02 * (0.4 * i as f64).sin(), 0.0, 0.1 * i as f64),
+                rotation: UnitQuaternion::from_euler_angles(
+                    0.0,
+                    0.03 * (0.3 * i as f64).sin(),
+                    0.0,
+                ),
+            })
+            .collect();
+        let path: f64 = truth
+            .windows(2)
+            .map(|w| (w[1].position - w[0].position).norm())
+            .sum();
+        let points: Vec<Vector3<f64>> = (0..200)
+            .map(|_| Vector3::new(8.0 * uniform(), 3.0 * uniform(), 6.0 + 8.0 * uniform()))
+            .collect();
+        // Window-frame noise: 0.1 % of the path on centres, 0.2 deg on rotations, 1 % of
+        // depth on points.
+        let mut noisy = |p: &StampedPose, g: &Similarity| {
+            let n = Vector3::new(uniform(), uniform(), uniform()) * 0.002 * path;
+            let r = UnitQuaternion::from_euler_angles(uniform(), uniform(), uniform()).powf(0.007);
+            transform_pose(
+                g,
+                &StampedPose {
+                    position: p.position + n,
+                    rotation: r * p.rotation,
+                    ..*p
+                },
+            )
+        };
+        let first = WindowInput {
+            poses: (0..20)
+                .map(|i| (i as u64, noisy(&truth[i], &Similarity::identity())))
+                .collect(),
+            points: points
+                .iter()
+                .enumerate()
+                .map(|(t, x)| (t as u64, *x))
+                .collect(),
+            ..WindowInput::default()
+        };
+        let g = Similarity {
+            scale: 0.2,
+            rotation: Rotation3::from_euler_angles(-0.3, 0.9, 0.1),
+            translation: Vector3::new(1.0, 2.0, -3.0),
+        };
+        let second = WindowInput {
+            poses: (15..30).map(|i| (i as u64, noisy(&truth[i], &g))).collect(),
+            points: points
+                .iter()
+                .enumerate()
+                .map(|(t, x)| {
+                    let wrong = t % 10 < 3;
+                    let x = if wrong {
+                        Vector3::new(
+                            10.0 * uniform(),
+                            5.0 * uniform(),
+                            3.0 + 20.0 * (uniform() + 0.5),
+                        )
+                    } else {
+                        x * (1.0 + 0.01 * uniform())
+                    };
+                    (t as u64, g.apply(&x))
+                })
+                .collect(),
+            ..WindowInput::default()
+        };
+        let mut map = MapBuilder::new();
+        map.add_window(&first);
+        assert!(matches!(
+            map.add_window(&second),
+            WindowOutcome::Aligned { .. }
+        ));
+        let est: Vec<StampedPose> = map.keyframes().map(|(_, _, p)| *p).collect();
+        let ate = egoslam_geometry::absolute_trajectory_error(&est, &truth, 1e-3).expect("ate");
+        assert!(
+            ate.rmse < 0.005 * path,
+            "ATE {} over a {} path",
+            ate.rmse,
+            path
+        );
+    }
+}
