@@ -13,6 +13,9 @@ pub struct Cli {
     /// More logging (-v debug, -vv trace); EGOSLAM_LOG overrides (tracing filter syntax).
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     pub verbose: u8,
+    /// Configuration file (TOML, docs/config.md); flags given on the command line win.
+    #[arg(long, global = true, env = "EGOSLAM_CONFIG")]
+    pub config: Option<PathBuf>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -128,8 +131,9 @@ pub struct EvalArgs {
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
+    /// Sequence, video file or camera (required here or in the config file).
     #[arg(long)]
-    pub input: PathBuf,
+    pub input: Option<PathBuf>,
     #[arg(long)]
     pub realtime: bool,
     #[arg(long, default_value_t = 30.0)]

@@ -6,6 +6,7 @@
 mod background_refinement;
 mod checkpoint;
 mod cli;
+mod config;
 mod convert;
 mod eval;
 mod frame_poses;
@@ -19,11 +20,28 @@ mod solver_service;
 mod stats;
 mod window_journal;
 
-use clap::Parser;
+use clap::{CommandFactory, FromArgMatches};
 
 fn main() -> std::process::ExitCode {
-    let cli = cli::Cli::parse();
+    let matches = cli::Cli::command().get_matches();
+    let mut cli = match cli::Cli::from_arg_matches(&matches) {
+        Ok(c) => c,
+        Err(e) => e.exit(),
+    };
     init_tracing(cli.verbose);
+    if let Some(path) = &cli.config {
+        match config::Config::load(path) {
+            Ok(c) => {
+                if let Some((_, sub)) = matches.subcommand() {
+                    config::apply(&c, sub, &mut cli.command);
+                }
+            }
+            Err(e) => {
+                eprintln!("error: {e:#}");
+                return std::process::ExitCode::FAILURE;
+            }
+        }
+    }
     let result = match cli.command {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),

@@ -10,7 +10,10 @@ use std::time::{Duration, Instant};
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("replay");
-    let mut source = open_source(&args.input, args.fps)?;
+    let Some(input) = args.input.clone() else {
+        bail!("replay needs --input (or input.path in the config file)")
+    };
+    let mut source = open_source(&input, args.fps)?;
     let total = source.len_hint();
     let camera = match &args.service.camera {
         Some(path) => Some(read_calibration_file(path)?),
@@ -82,7 +85,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         }
     }
     let Some(mut publisher) = publisher else {
-        bail!("{}: no frames", args.input.display())
+        bail!("{}: no frames", input.display())
     };
     publisher.finish(last_id)?;
     stats.count("dropped_frames", publisher.dropped());

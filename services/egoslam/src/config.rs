@@ -1,0 +1,311 @@
+//! The one configuration file (TOML) that every egoslam process reads: `--config FILE` or
+//! `EGOSLAM_CONFIG`; schema and defaults in docs/config.md, an example in
+//! deploy/egoslam.toml. Command-line flags (and their environment variables) win over the
+//! file, the file wins over built-in defaults. Unknown keys and bad values are rejected at
+//! start with a message naming the key.
+
+use crate::cli::{Command, EgressArgs, PipelineArgs};
+use anyhow::{bail, Context};
+use clap::parser::ValueSource;
+use clap::ArgMatches;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+/// `[input]`: the sequence or camera.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InputSection {
+    pub path: Option<PathBuf>,
+    pub calibration: Option<PathBuf>,
+    pub fps: Option<f64>,
+    pub realtime: Option<bool>,
+}
+
+/// `[output]`: results, checkpoint and journal folder.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputSection {
+    pub dir: Option<PathBuf>,
+}
+
+/// `[frontend]`: tracking and the paper's keyframe rule.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrontendSection {
+    pub keyframe_every: Option<u32>,
+    pub keyframe_flow_px: Option<f64>,
+    pub tracks: Option<usize>,
+    pub lk_window: Option<i32>,
+}
+
+/// `[solver]`: temporal windows and the view graph.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolverSection {
+    pub window: Option<u16>,
+    pub overlap: Option<usize>,
+    pub loop_closures: Option<u16>,
+}
+
+/// `[merger]`: background refinement.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MergerSection {
+    pub global_ba_px: Option<f64>,
+    pub refine_keyframes: Option<usize>,
+}
+
+/// `[zenoh]`: where results are published.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohSection {
+    pub device: Option<String>,
+    pub listen: Option<Vec<String>>,
+    pub connect: Option<Vec<String>>,
+}
+
+/// `[bus]`: iceoryx2 service names.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusSection {
+    pub namespace: Option<String>,
+}
+
+/// The whole file; every section and key is optional.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub input: InputSection,
+    #[serde(default)]
+    pub output: OutputSection,
+    #[serde(default)]
+    pub frontend: FrontendSection,
+    #[serde(default)]
+    pub solver: SolverSection,
+    #[serde(default)]
+    pub merger: MergerSection,
+    #[serde(default)]
+    pub zenoh: ZenohSection,
+    #[serde(default)]
+    pub bus: BusSection,
+}
+
+/// Checks one value; the message names the key and the allowed range.
+fn check<T: PartialOrd + std::fmt::Display + Copy>(
+    key: &str,
+    value: Option<T>,
+    min: T,
+    max: T,
+) -> anyhow::Result<()> {
+    match value {
+        Some(v) if !(v >= min && v <= max) => bail!("{key} = {v}: must be between {min} and {max}"),
+        _ => Ok(()),
+    }
+}
+
+impl Config {
+    /// Reads and validates a file.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the config file {}", path.display()))?;
+        let config: Config =
+            toml::from_str(&text).with_context(|| format!("config file {}", path.display()))?;
+        config
+            .validate()
+            .with_context(|| format!("config file {}", path.display()))?;
+        Ok(config)
+    }
+
+    fn validate(&self) -> anyhow::Result<()> {
+        check("input.fps", self.input.fps, 0.1, 1000.0)?;
+        check(
+            "frontend.keyframe_every",
+            self.frontend.keyframe_every,
+            1,
+            1000,
+        )?;
+        check(
+            "frontend.keyframe_flow_px",
+            self.frontend.keyframe_flow_px,
+            0.1,
+            1000.0,
+        )?;
+        check("frontend.tracks", self.frontend.tracks, 50, 20_000)?;
+        check("frontend.lk_window", self.frontend.lk_window, 3, 51)?;
+        if self.frontend.lk_window.is_some_and(|w| w % 2 == 0) {
+            bail!("frontend.lk_window must be odd");
+        }
+        check("solver.window", self.solver.window, 10, 30)?;
+        check("solver.loop_closures", self.solver.loop_closures, 1, 29)?;
+        let window = usize::from(self.solver.window.unwrap_or(20));
+        check("solver.overlap", self.solver.overlap, 3, window - 1)?;
+        if let Some(px) = self.merger.global_ba_px {
+            if px.is_nan() || px <= 0.0 {
+                bail!("merger.global_ba_px = {px}: must be positive (inf disables)");
+            }
+        }
+        for e in self
+            .zenoh
+            .listen
+            .iter()
+            .chain(&self.zenoh.connect)
+            .flatten()
+        {
+            if e != "none" && !e.contains('/') {
+                bail!("zenoh endpoint {e:?}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Whether `id` was given explicitly (flag or environment variable).
+fn explicit(m: &ArgMatches, id: &str) -> bool {
+    matches!(
+        m.value_source(id),
+        Some(ValueSource::CommandLine | ValueSource::EnvVariable)
+    )
+}
+
+/// Sets `target` from the file unless the command line set it.
+fn fill<T: Clone>(m: &ArgMatches, id: &str, target: &mut T, value: &Option<T>) {
+    if let (Some(v), false) = (value, explicit(m, id)) {
+        *target = v.clone();
+    }
+}
+
+fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
+    fill(
+        m,
+        "keyframe_every",
+        &mut p.keyframe_every,
+        &c.frontend.keyframe_every,
+    );
+    fill(
+        m,
+        "keyframe_flow_px",
+        &mut p.keyframe_flow_px,
+        &c.frontend.keyframe_flow_px,
+    );
+    fill(m, "tracks", &mut p.tracks, &c.frontend.tracks);
+    fill(m, "lk_window", &mut p.lk_window, &c.frontend.lk_window);
+    fill(m, "window", &mut p.window, &c.solver.window);
+    fill(m, "overlap", &mut p.overlap, &c.solver.overlap);
+    fill(
+        m,
+        "loop_closures",
+        &mut p.loop_closures,
+        &c.solver.loop_closures,
+    );
+    fill(
+        m,
+        "global_ba_px",
+        &mut p.global_ba_px,
+        &c.merger.global_ba_px,
+    );
+    fill(
+        m,
+        "refine_keyframes",
+        &mut p.refine_keyframes,
+        &c.merger.refine_keyframes,
+    );
+}
+
+fn fill_egress(c: &Config, m: &ArgMatches, e: &mut EgressArgs) {
+    fill(m, "device", &mut e.device, &c.zenoh.device);
+    fill(m, "zenoh_listen", &mut e.zenoh_listen, &c.zenoh.listen);
+    fill(m, "zenoh_connect", &mut e.zenoh_connect, &c.zenoh.connect);
+}
+
+/// Applies the file to the parsed command (`m`: the subcommand's matches).
+pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
+    let optional = |id: &str, target: &mut Option<PathBuf>, value: &Option<PathBuf>| {
+        if value.is_some() && !explicit(m, id) {
+            target.clone_from(value);
+        }
+    };
+    match command {
+        Command::Run(a) => {
+            optional("input", &mut a.input, &c.input.path);
+            optional("calib", &mut a.calib, &c.input.calibration);
+            fill(m, "out", &mut a.out, &c.output.dir);
+            fill(m, "fps", &mut a.fps, &c.input.fps);
+            fill(m, "realtime", &mut a.realtime, &c.input.realtime);
+            fill_pipeline(c, m, &mut a.pipeline);
+            fill_egress(c, m, &mut a.egress);
+        }
+        Command::Replay(a) => {
+            optional("input", &mut a.input, &c.input.path);
+            fill(m, "fps", &mut a.fps, &c.input.fps);
+            fill(m, "realtime", &mut a.realtime, &c.input.realtime);
+            fill(m, "namespace", &mut a.service.namespace, &c.bus.namespace);
+            fill(m, "out", &mut a.service.out, &c.output.dir);
+            fill_pipeline(c, m, &mut a.service.pipeline);
+            fill_egress(c, m, &mut a.service.egress);
+        }
+        Command::Frontend(a) | Command::Solver(a) | Command::Merger(a) => {
+            fill(m, "namespace", &mut a.namespace, &c.bus.namespace);
+            fill(m, "out", &mut a.out, &c.output.dir);
+            fill_pipeline(c, m, &mut a.pipeline);
+            fill_egress(c, m, &mut a.egress);
+        }
+        Command::Eval(_) => {}
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> anyhow::Result<Config> {
+        let c: Config = toml::from_str(text)?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    #[test]
+    fn the_shipped_example_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/egoslam.toml");
+        let c = Config::load(&path).expect("deploy/egoslam.toml");
+        assert_eq!(c.solver.window, Some(20));
+        assert_eq!(c.zenoh.listen, Some(vec!["tcp/127.0.0.1:7447".to_string()]));
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_name_the_key() {
+        let e = parse("[solver]\nwindw = 20\n").expect_err("unknown key");
+        assert!(format!("{e:#}").contains("windw"), "{e:#}");
+        let e = parse("[sovler]\nwindow = 20\n").expect_err("unknown section");
+        assert!(format!("{e:#}").contains("sovler"), "{e:#}");
+        let e = parse("[solver]\nwindow = 40\n").expect_err("range");
+        assert!(format!("{e:#}").contains("solver.window = 40"), "{e:#}");
+        let e = parse("[solver]\nwindow = \"twenty\"\n").expect_err("type");
+        assert!(format!("{e:#}").contains("window"), "{e:#}");
+        let e = parse("[frontend]\nlk_window = 10\n").expect_err("even");
+        assert!(format!("{e:#}").contains("frontend.lk_window"), "{e:#}");
+        let e = parse("[zenoh]\nlisten = [\"127.0.0.1:7447\"]\n").expect_err("endpoint");
+        assert!(format!("{e:#}").contains("127.0.0.1:7447"), "{e:#}");
+        assert!(parse("[merger]\nglobal_ba_px = inf\n").is_ok());
+    }
+
+    #[test]
+    fn flags_win_over_the_file_and_the_file_over_defaults() {
+        use clap::{CommandFactory, FromArgMatches};
+        let c = parse("[solver]\nwindow = 12\noverlap = 4\n[zenoh]\ndevice = \"glasses\"\n")
+            .expect("valid");
+        let matches = crate::cli::Cli::command()
+            .try_get_matches_from(["egoslam", "solver", "--overlap", "6"])
+            .expect("args");
+        let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
+        let (_, sub) = matches.subcommand().expect("subcommand");
+        apply(&c, sub, &mut cli.command);
+        let Command::Solver(a) = cli.command else {
+            panic!("solver")
+        };
+        assert_eq!(a.pipeline.window, 12, "from the file");
+        assert_eq!(a.pipeline.overlap, 6, "the flag wins");
+        assert_eq!(a.egress.device, "glasses");
+        assert_eq!(a.pipeline.tracks, 1000, "built-in default");
+    }
+}
