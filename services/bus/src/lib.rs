@@ -125,6 +125,27 @@ fn load_config() -> Config {
     }
 }
 
+/// Milliseconds since [`PROCESS_START`] of the last sign of life (see [`last_activity`]).
+static LAST_ACTIVITY_MS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+static PROCESS_START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+
+fn process_start() -> std::time::Instant {
+    *PROCESS_START.get_or_init(std::time::Instant::now)
+}
+
+/// Records that the calling thread is alive and making progress (the bus's waiting loops
+/// call it; so should a service's main loop). Feeds the systemd watchdog.
+pub fn record_activity() {
+    let ms = process_start().elapsed().as_millis() as u64;
+    LAST_ACTIVITY_MS.store(ms, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// When activity was last recorded.
+pub fn last_activity() -> std::time::Instant {
+    process_start()
+        + Duration::from_millis(LAST_ACTIVITY_MS.load(std::sync::atomic::Ordering::Relaxed))
+}
+
 /// Polls `f` until it yields a value, idling between attempts with a short backoff. Returns
 /// `Ok(None)` when the process is asked to terminate.
 pub(crate) fn poll_until<T, E>(
@@ -136,6 +157,7 @@ pub(crate) fn poll_until<T, E>(
     let start = std::time::Instant::now();
     let mut spins = 0u32;
     loop {
+        record_activity();
         if let Some(v) = f()? {
             return Ok(Some(v));
         }

@@ -133,6 +133,7 @@ fn send_filled<H: Debug + ZeroCopySend + Default + Copy>(
 ) -> Result<usize, SendError> {
     let start = std::time::Instant::now();
     loop {
+        crate::record_activity();
         let mut sample = publisher
             .loan_slice_uninit(len)
             .map_err(|e| SendError::Loan {
@@ -248,6 +249,7 @@ impl<H: Debug + ZeroCopySend> Inbox<H> {
         let name = || bus.service_name(channel);
         let mut last_liveness_check = std::time::Instant::now();
         loop {
+            crate::record_activity();
             let got = self.subscriber.receive().map_err(|e| ReceiveError::Port {
                 service: name(),
                 reason: format!("{e:?}"),
@@ -315,6 +317,7 @@ impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
     pub(crate) fn wait_until_consumers_leave(&self, bus: &Bus) -> bool {
         let mut last_cleanup = std::time::Instant::now();
         loop {
+            crate::record_activity();
             if self._service.dynamic_config().number_of_subscribers() == 0 {
                 return true;
             }

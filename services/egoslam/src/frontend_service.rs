@@ -98,6 +98,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     )?;
     let frames = FrameSubscriber::create(&bus)?;
     let mut keyframes = MessagePublisher::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
+    crate::systemd::ready("frontend");
     let mut skipped: Vec<pb::FrameStamp> = Vec::new();
     let mut last_stamp: Option<pb::FrameStamp> = None;
     let started = Instant::now();

@@ -18,6 +18,7 @@ mod output;
 mod replay;
 mod solver_service;
 mod stats;
+mod systemd;
 mod window_journal;
 
 use clap::{CommandFactory, FromArgMatches};
@@ -50,6 +51,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Solver(args) => solver_service::run(args),
         cli::Command::Merger(args) => merger_service::run(args),
     };
+    systemd::notify("STOPPING=1");
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -68,9 +70,14 @@ fn init_tracing(verbose: u8) {
     // zenoh's own INFO lines (sessions opening and closing) are noise to an operator.
     let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{default},zenoh=warn")));
-    tracing_subscriber::fmt()
+    // EGOSLAM_LOG_FORMAT=json: one JSON object per line, for journald (the systemd units).
+    let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
-        .with_target(false)
-        .init();
+        .with_target(false);
+    if std::env::var("EGOSLAM_LOG_FORMAT").is_ok_and(|f| f == "json") {
+        builder.json().with_current_span(true).init();
+    } else {
+        builder.init();
+    }
 }

@@ -365,6 +365,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    crate::systemd::ready("merger");
     let (global_ba_px, refine_keyframes) =
         (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
     let mut merger = Merger {

@@ -246,6 +246,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut journal = JournalWriter::create(&args.out.join(window_journal::FILE_NAME), stream_id)?;
     let mut keyframes = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut windows = MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    crate::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
     let mut publish = |message: pb::WindowSolution| -> anyhow::Result<()> {

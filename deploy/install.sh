@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Installs egoslam as systemd services on the wearable box (Debian 12), as root:
+#   ./deploy/install.sh [path/to/egoslam]      (default: target/release/egoslam, built if absent)
+# Creates the system user `egoslam` (groups: video), installs the binary to
+# /usr/local/bin, the units to /etc/systemd/system, and the configuration to /etc/egoslam
+# (an existing egoslam.toml is kept). Then: edit /etc/egoslam/egoslam.toml (input.path,
+# input.calibration) and `systemctl enable --now egoslam.target`. See docs/deploy.md.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if [ "$(id -u)" -ne 0 ]; then echo "run as root" >&2; exit 1; fi
+binary="${1:-target/release/egoslam}"
+if [ ! -x "$binary" ]; then
+  ./deploy/install-deps.sh
+  cargo build --release -p egoslam
+fi
+if ! id egoslam >/dev/null 2>&1; then
+  useradd --system --no-create-home --home-dir /var/lib/egoslam --shell /usr/sbin/nologin egoslam
+fi
+getent group video >/dev/null && usermod -a -G video egoslam
+install -m 0755 "$binary" /usr/local/bin/egoslam
+install -d -m 0755 /etc/egoslam
+[ -e /etc/egoslam/egoslam.toml ] || install -m 0644 deploy/egoslam.toml /etc/egoslam/egoslam.toml
+install -m 0644 config/iceoryx2.toml /etc/egoslam/iceoryx2.toml
+install -m 0644 deploy/systemd/*.service deploy/systemd/egoslam.target /etc/systemd/system/
+install -d -m 0755 /usr/share/doc/egoslam
+install -m 0644 docs/deploy.md /usr/share/doc/egoslam/deploy.md
+systemd-analyze verify /etc/systemd/system/egoslam-*.service /etc/systemd/system/egoslam.target
+systemctl daemon-reload
+echo "installed; edit /etc/egoslam/egoslam.toml, then: systemctl enable --now egoslam.target"

@@ -1,0 +1,68 @@
+//! The systemd deployment (deploy/): the units pass `systemd-analyze verify` without a
+//! warning, and a real service process speaks sd_notify (READY, then watchdog pings) to
+//! the socket systemd would give it.
+
+mod common;
+
+use common::*;
+use std::os::unix::net::UnixDatagram;
+use std::time::{Duration, Instant};
+
+#[test]
+fn units_verify_cleanly() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let units = repo().join("deploy/systemd");
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(&units).expect("deploy/systemd") {
+        let path = entry.expect("entry").path();
+        let name = path.file_name().expect("name").to_owned();
+        // verify checks that ExecStart exists: point it at the binary under test.
+        let text = std::fs::read_to_string(&path)
+            .expect("unit")
+            .replace("/usr/local/bin/egoslam", env!("CARGO_BIN_EXE_egoslam"));
+        std::fs::write(dir.path().join(&name), text).expect("copy");
+        names.push(dir.path().join(name));
+    }
+    assert_eq!(names.len(), 5, "four services and the target");
+    let out = std::process::Command::new("systemd-analyze")
+        .arg("verify")
+        .args(&names)
+        .output()
+        .expect("systemd-analyze (package systemd, installed by deploy/install-deps.sh)");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && stderr.trim().is_empty(), "{stderr}");
+}
+
+#[test]
+fn a_service_reports_ready_and_pings_the_watchdog() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let socket_path = dir.path().join("notify");
+    let socket = UnixDatagram::bind(&socket_path).expect("bind");
+    socket
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .expect("timeout");
+    let mut merger = egoslam()
+        .arg("merger")
+        .arg(format!("--namespace={}", namespace("notify")))
+        .arg(format!("--out={}", dir.path().display()))
+        .env("NOTIFY_SOCKET", &socket_path)
+        .env("WATCHDOG_USEC", "400000")
+        .spawn()
+        .expect("merger");
+    let mut seen = Vec::new();
+    let start = Instant::now();
+    let mut buf = [0u8; 256];
+    while !(seen.iter().any(|m: &String| m.starts_with("READY=1"))
+        && seen.iter().filter(|m| *m == "WATCHDOG=1").count() >= 2)
+    {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "got only {seen:?}"
+        );
+        let n = socket.recv(&mut buf).expect("notification");
+        seen.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+    }
+    merger.kill().expect("kill");
+    merger.wait().expect("reaped");
+    assert!(seen[0].starts_with("READY=1"), "{seen:?}");
+}
