@@ -1,4 +1,5 @@
-//! Bad input gives one clear error naming the file, a non-zero exit and no panic.
+//! Bad input gives one clear error naming the file, a non-zero exit and no panic; a bad frame
+//! in the middle of a stream is skipped, named and counted instead (the run goes on).
 
 mod common;
 
@@ -68,27 +69,44 @@ fn empty_sequence() {
 }
 
 #[test]
-fn truncated_image_mid_stream_stops_the_pipeline_and_names_the_file() {
+fn truncated_image_mid_stream_is_skipped_named_and_counted() {
     let dir = tempfile::tempdir().expect("tempdir");
-    tum_copy(dir.path(), 12);
+    tum_copy(dir.path(), 40);
     let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("read");
     let victim = index
         .lines()
-        .nth(6)
+        .nth(20)
         .and_then(|l| l.split_whitespace().nth(1))
-        .expect("7th")
+        .expect("21st")
         .to_string();
     let bytes = std::fs::read(dir.path().join(&victim)).expect("read");
     std::fs::write(dir.path().join(&victim), &bytes[..bytes.len() / 4]).expect("truncate");
-    let (ok, err) = run(dir.path(), &[]);
-    assert!(!ok);
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = egoslam()
+        .args(["run", "--input"])
+        .arg(dir.path())
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
     let name = Path::new(&victim)
         .file_name()
         .expect("name")
         .to_string_lossy()
         .into_owned();
-    assert!(err.contains(&name), "{err}");
-    assert!(err.contains("replay service failed"), "{err}");
+    assert!(
+        err.contains(&name) && err.contains("corrupt frame skipped"),
+        "{err}"
+    );
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("report"),
+    )
+    .expect("json");
+    assert_eq!(report["corrupt_frames"], 1);
+    assert_eq!(report["frames"], 39);
+    assert_eq!(report["posed_frames"], 39);
 }
 
 #[test]
@@ -123,4 +141,50 @@ fn missing_calibration() {
         err.contains("missing calibration") && err.contains("--calib"),
         "{err}"
     );
+}
+
+#[test]
+fn a_frame_of_another_size_is_skipped_and_counted() {
+    use opencv::core::{Mat, Size, Vector};
+    use opencv::{imgcodecs, imgproc};
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 40);
+    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("read");
+    let victim = index
+        .lines()
+        .nth(15)
+        .and_then(|l| l.split_whitespace().nth(1))
+        .expect("16th")
+        .to_string();
+    let path = dir.path().join(&victim);
+    let image = imgcodecs::imread(path.to_str().expect("utf-8"), imgcodecs::IMREAD_UNCHANGED)
+        .expect("read");
+    let mut small = Mat::default();
+    imgproc::resize(
+        &image,
+        &mut small,
+        Size::new(320, 240),
+        0.0,
+        0.0,
+        imgproc::INTER_AREA,
+    )
+    .expect("resize");
+    imgcodecs::imwrite(path.to_str().expect("utf-8"), &small, &Vector::new()).expect("write");
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = egoslam()
+        .args(["run", "--input"])
+        .arg(dir.path())
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("320x240") && err.contains("skipped"), "{err}");
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("report"),
+    )
+    .expect("json");
+    assert_eq!(report["wrong_size_frames"], 1);
+    assert_eq!(report["posed_frames"], 39);
 }

@@ -5,7 +5,8 @@ use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
 use egoslam_frontend::{
-    KeyframePolicy, KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerOptions,
+    KeyframePolicy, KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError,
+    TrackerOptions,
 };
 use egoslam_messages::v1 as pb;
 use egoslam_sources::calibration::read_calibration_file;
@@ -113,7 +114,16 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let image =
             Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
                 .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
-        let outcome = stats.time("track", || tracker.process(meta.frame_id, &image))?;
+        let outcome = match stats.time("track", || tracker.process(meta.frame_id, &image)) {
+            Ok(o) => o,
+            // A frame that does not fit the stream is skipped, not fatal (docs/bus.md).
+            Err(e @ (TrackerError::SizeMismatch { .. } | TrackerError::NotGrey { .. })) => {
+                tracing::warn!(error = %e, "frame skipped");
+                stats.count("rejected_frames", 1);
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
         drop(image);
         drop(frame);
         stats.frames += 1;

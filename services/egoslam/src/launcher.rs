@@ -290,6 +290,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "calibration": calibration.origin.display().to_string(),
         "frames": replay.frames,
         "dropped_frames": counter(replay, "dropped_frames"),
+        "corrupt_frames": counter(replay, "corrupt_frames"),
+        "wrong_size_frames": counter(replay, "wrong_size_frames"),
         "posed_frames": counter(merger, "posed_frames"),
         "keyframes": frontend.keyframes,
         "windows": solver.windows,

@@ -228,6 +228,16 @@ impl Merger {
             return;
         }
         let input = window_input(w);
+        if !input.is_finite() {
+            tracing::warn!(
+                window = w.window_id,
+                "window with non-finite poses or points refused: map breaks here"
+            );
+            self.state.unsolved_windows += 1;
+            self.stats.count("invalid_windows", 1);
+            self.state.map.break_segment();
+            return;
+        }
         let earlier_tracks: BTreeSet<u64> = self.state.map.points().map(|(t, _, _)| t).collect();
         let map = &mut self.state.map;
         let outcome = self.stats.time("align", || map.add_window(&input));

@@ -4,7 +4,7 @@ use crate::cli::ReplayArgs;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, Delivery, FrameMeta, FramePublisher};
-use egoslam_sources::{calibration::read_calibration_file, open_source};
+use egoslam_sources::{calibration::read_calibration_file, open_source, SourceError};
 use opencv::prelude::*;
 use std::time::{Duration, Instant};
 
@@ -35,12 +35,34 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let (start, mut first_t) = (Instant::now(), None);
     let mut last_progress = Instant::now();
     let mut last_id = 0;
+    let mut size: Option<(u32, u32)> = None;
     while let Some(frame) = stats.time("decode", || source.next_frame()) {
-        let frame = frame?;
+        // A corrupt or truncated frame after the first is skipped, named and counted: one
+        // bad file must not end a long recording (the first frame is checked by `run`).
+        let frame = match frame {
+            Ok(f) => f,
+            Err(e @ SourceError::BadImage { .. }) if size.is_some() => {
+                tracing::warn!(error = %e, "corrupt frame skipped");
+                stats.count("corrupt_frames", 1);
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-        if let Some(calib) = &camera {
-            // Fails with the calibration file and both sizes named.
-            calib.camera_for(w, h)?;
+        match size {
+            None => {
+                if let Some(calib) = &camera {
+                    // Fails with the calibration file and both sizes named.
+                    calib.camera_for(w, h)?;
+                }
+                size = Some((w, h));
+            }
+            Some((w0, h0)) if (w0, h0) != (w, h) => {
+                tracing::warn!(source = %frame.source, "frame is {w}x{h}, the stream {w0}x{h0}: skipped");
+                stats.count("wrong_size_frames", 1);
+                continue;
+            }
+            Some(_) => {}
         }
         let image = if frame.image.is_continuous() {
             frame.image

@@ -44,15 +44,34 @@ fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
     )?)
 }
 
-fn observations(k: &pb::Keyframe) -> KeyframeObservations {
+/// The keyframe's tracks as the solver takes them. Tracks with a non-finite or absurd
+/// position (a corrupted message; the frontend never sends them) are dropped and counted.
+fn observations(k: &pb::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
+    let limit = k
+        .intrinsics
+        .as_ref()
+        .map_or(1e6, |i| 4.0 * f64::from(i.width.max(i.height)));
+    let tracks: std::collections::BTreeMap<u64, Point2<f64>> = k
+        .tracks
+        .iter()
+        .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+        .filter(|(_, p)| {
+            p.x.is_finite() && p.y.is_finite() && p.x.abs() < limit && p.y.abs() < limit
+        })
+        .collect();
+    let rejected = k.tracks.len() - tracks.len();
+    if rejected > 0 {
+        tracing::warn!(
+            keyframe = k.keyframe_id,
+            rejected,
+            "tracks with invalid positions dropped"
+        );
+        stats.count("invalid_tracks", rejected as u64);
+    }
     KeyframeObservations {
         id: k.keyframe_id,
         timestamp: k.timestamp_s,
-        tracks: k
-            .tracks
-            .iter()
-            .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
-            .collect(),
+        tracks,
     }
 }
 
@@ -91,7 +110,7 @@ fn solve(
 ) -> anyhow::Result<pb::WindowSolution> {
     let kfs = &window.keyframes;
     let camera = pinhole(&kfs[0])?;
-    let obs: Vec<KeyframeObservations> = kfs.iter().map(observations).collect();
+    let obs: Vec<KeyframeObservations> = kfs.iter().map(|k| observations(k, stats)).collect();
     let first_id = kfs[0].keyframe_id;
     cache.retain(|(a, _), _| *a >= first_id);
     let solution = stats.time("window", || solve_window(&camera, &obs, options, cache));
@@ -299,4 +318,39 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         bail!("terminated by signal while the merger was reading the last windows")
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tracks_with_invalid_positions_are_dropped_and_counted() {
+        let track = |id: u64, x: f32, y: f32| pb::TrackObservation {
+            track_id: id,
+            x,
+            y,
+            ..Default::default()
+        };
+        let k = pb::Keyframe {
+            keyframe_id: 3,
+            intrinsics: Some(pb::Intrinsics {
+                width: 640,
+                height: 480,
+                ..Default::default()
+            }),
+            tracks: vec![
+                track(1, 10.0, 20.0),
+                track(2, f32::NAN, 5.0),
+                track(3, 5.0, f32::INFINITY),
+                track(4, 1e9, 5.0),
+                track(5, -3.0, 479.5),
+            ],
+            ..Default::default()
+        };
+        let mut stats = ServiceStats::new("solver");
+        let o = observations(&k, &mut stats);
+        assert_eq!(o.tracks.keys().copied().collect::<Vec<_>>(), vec![1, 5]);
+        assert_eq!(stats.counters.get("invalid_tracks"), Some(&3));
+    }
 }

@@ -17,6 +17,26 @@ pub struct WindowInput {
     pub weak_observations: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
+impl WindowInput {
+    /// Whether every pose, point and observation is finite: a window that is not (a
+    /// corrupted message) must be refused before it poisons the map.
+    pub fn is_finite(&self) -> bool {
+        let pose_ok = |p: &StampedPose| {
+            p.position.iter().all(|v| v.is_finite())
+                && p.rotation.coords.iter().all(|v| v.is_finite())
+        };
+        let px_ok =
+            |(_, _, px): &(u64, u64, nalgebra::Point2<f64>)| px.x.is_finite() && px.y.is_finite();
+        self.poses.iter().all(|(_, p)| pose_ok(p))
+            && self
+                .points
+                .iter()
+                .all(|(_, x)| x.iter().all(|v| v.is_finite()))
+            && self.observations.iter().all(px_ok)
+            && self.weak_observations.iter().all(px_ok)
+    }
+}
+
 /// What happened to a window.
 #[derive(Debug, Clone, PartialEq)]
 pub enum WindowOutcome {
@@ -417,6 +437,33 @@ mod rotation_only_tests {
 #[cfg(test)]
 mod robustness_tests {
     use super::*;
+
+    #[test]
+    fn a_window_with_nan_is_recognised() {
+        let good = WindowInput {
+            poses: vec![(
+                0,
+                StampedPose {
+                    timestamp: 0.0,
+                    position: Vector3::zeros(),
+                    rotation: UnitQuaternion::identity(),
+                },
+            )],
+            points: vec![(1, Vector3::new(1.0, 2.0, 3.0))],
+            ..WindowInput::default()
+        };
+        assert!(good.is_finite());
+        let mut bad = good.clone();
+        bad.points[0].1.y = f64::NAN;
+        assert!(!bad.is_finite());
+        let mut bad = good.clone();
+        bad.poses[0].1.position.x = f64::INFINITY;
+        assert!(!bad.is_finite());
+        let mut bad = good;
+        bad.observations
+            .push((0, 1, nalgebra::Point2::new(f64::NAN, 0.0)));
+        assert!(!bad.is_finite());
+    }
 
     /// Two overlapping windows of a forward walk with different scales, noisy shared
     /// keyframes and 30 % of the shared points wrong: merged keyframes within 0.5 % of the
