@@ -11,6 +11,8 @@ mod convert;
 mod eval;
 mod frame_poses;
 mod frontend_service;
+#[cfg(test)]
+mod fuzz_tests;
 mod launcher;
 mod map_state;
 mod merger_service;

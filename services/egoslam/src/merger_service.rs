@@ -294,7 +294,7 @@ fn window_camera(w: &pb::WindowSolution) -> Option<PinholeRadtan> {
 }
 
 /// The geometry of a window message, as the map builder takes it.
-fn window_input(w: &pb::WindowSolution) -> WindowInput {
+pub(crate) fn window_input(w: &pb::WindowSolution) -> WindowInput {
     WindowInput {
         poses: w
             .poses

@@ -46,7 +46,7 @@ fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
 
 /// The keyframe's tracks as the solver takes them. Tracks with a non-finite or absurd
 /// position (a corrupted message; the frontend never sends them) are dropped and counted.
-fn observations(k: &pb::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
+pub(crate) fn observations(k: &pb::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
     let limit = k
         .intrinsics
         .as_ref()
