@@ -40,7 +40,10 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
 /// Image folders and videos carry no clock of their own (their timestamps are frame index /
 /// fps), so nothing found near them could be associated: they need `--gt` and real stamps.
 fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
-    if matches!(layout, Layout::ImageFolder { .. } | Layout::Video { .. }) {
+    if matches!(
+        layout,
+        Layout::ImageFolder { .. } | Layout::Video { .. } | Layout::Camera { .. }
+    ) {
         return None;
     }
     let root = layout.root();

@@ -16,6 +16,16 @@ pub enum Layout {
     Video { file: PathBuf },
     /// A folder of images, taken in file-name order at a fixed rate.
     ImageFolder { dir: PathBuf },
+    /// A live V4L2 camera (`/dev/videoN`), read through OpenCV's V4L2 backend; frames are
+    /// stamped with the wall clock when captured.
+    Camera { device: PathBuf },
+}
+
+/// Whether `path` names a V4L2 capture device.
+fn is_camera_device(path: &Path) -> bool {
+    use std::os::unix::fs::FileTypeExt;
+    path.to_str().is_some_and(|p| p.starts_with("/dev/video"))
+        && std::fs::metadata(path).is_ok_and(|m| m.file_type().is_char_device())
 }
 
 const VIDEO_EXTENSIONS: &[&str] = &["mp4", "avi", "mkv", "mov", "webm", "m4v", "mpg", "mpeg"];
@@ -64,6 +74,11 @@ fn sorted_subdirs(dir: &Path) -> Vec<PathBuf> {
 /// four levels, so the root of a downloaded dataset works as well as the sequence folder).
 pub fn detect_layout(path: &Path) -> Result<Layout, SourceError> {
     let meta = std::fs::metadata(path).map_err(|e| SourceError::io(path, e))?;
+    if is_camera_device(path) {
+        return Ok(Layout::Camera {
+            device: path.into(),
+        });
+    }
     if meta.is_file() {
         return if has_extension(path, VIDEO_EXTENSIONS) {
             Ok(Layout::Video { file: path.into() })
@@ -100,6 +115,8 @@ impl Layout {
             Layout::Tum { dir } | Layout::Kitti { dir } | Layout::ImageFolder { dir } => dir,
             Layout::Euroc { cam_dir } => cam_dir,
             Layout::Video { file } => file.parent().unwrap_or(Path::new(".")),
+            // Calibration of a camera is never searched next to /dev: it must be given.
+            Layout::Camera { device } => device,
         }
     }
 }
@@ -135,6 +152,9 @@ mod tests {
         assert!(err.to_string().contains("unknown layout"), "{err}");
         let err = detect_layout(&dir.path().join("nope")).expect_err("missing");
         assert!(err.to_string().contains("nope"), "{err}");
+        // A camera that is not there is named, not mistaken for a file.
+        let err = detect_layout(Path::new("/dev/video97")).expect_err("no such camera");
+        assert!(err.to_string().contains("/dev/video97"), "{err}");
         let vid = dir.path().join("clip.mp4");
         std::fs::write(&vid, b"x").expect("write");
         assert_eq!(

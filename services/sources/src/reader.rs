@@ -94,6 +94,8 @@ impl FrameSource for IndexedSource {
 
 struct VideoSource {
     layout: Layout,
+    /// A live camera: frames stamped with the wall clock, never a known length.
+    live: bool,
     file: PathBuf,
     capture: videoio::VideoCapture,
     fps: f64,
@@ -132,9 +134,16 @@ impl FrameSource for VideoSource {
         }
         let index = self.next;
         self.next += 1;
+        let timestamp = if self.live {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64())
+        } else {
+            index as f64 / self.fps
+        };
         Some(Ok(Frame {
             index,
-            timestamp: index as f64 / self.fps,
+            timestamp,
             image: std::mem::take(&mut self.grey),
             source: format!("{}#{index}", self.file.display()),
         }))
@@ -226,18 +235,28 @@ pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, Source
         Layout::Kitti { dir } => kitti_entries(dir)?,
         Layout::Euroc { cam_dir } => euroc_entries(cam_dir)?,
         Layout::ImageFolder { dir } => folder_entries(dir, fps)?,
-        Layout::Video { file } => {
-            let capture =
-                videoio::VideoCapture::from_file(file, videoio::CAP_ANY).map_err(|e| {
-                    SourceError::OpenCv {
-                        path: file.clone(),
-                        message: e.to_string(),
-                    }
-                })?;
+        Layout::Video { file } | Layout::Camera { device: file } => {
+            let live = matches!(layout, Layout::Camera { .. });
+            let backend = if live {
+                videoio::CAP_V4L2
+            } else {
+                videoio::CAP_ANY
+            };
+            let capture = videoio::VideoCapture::from_file(file, backend).map_err(|e| {
+                SourceError::OpenCv {
+                    path: file.clone(),
+                    message: e.to_string(),
+                }
+            })?;
             if !capture.is_opened().unwrap_or(false) {
+                let message = if live {
+                    "cannot open the camera (busy, no permission: is the user in group video?)"
+                } else {
+                    "cannot open video (unknown codec or not a video)"
+                };
                 return Err(SourceError::OpenCv {
                     path: file.clone(),
-                    message: "cannot open video (unknown codec or not a video)".into(),
+                    message: message.into(),
                 });
             }
             let reported = capture.get(videoio::CAP_PROP_FPS).unwrap_or(0.0);
@@ -251,7 +270,8 @@ pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, Source
                 } else {
                     fps
                 },
-                frames: (count >= 1.0).then_some(count as usize),
+                frames: (count >= 1.0 && !live).then_some(count as usize),
+                live,
                 next: 0,
                 grey: Mat::default(),
             }));
