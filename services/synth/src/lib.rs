@@ -1,0 +1,14 @@
+//! Synthetic egocentric sequences with exact ground truth (issue: "Egocentric test bed"):
+//! the paper's scene of textured planes (section "Egocentric Videos", Table 2) and larger
+//! indoor scenes, head-like camera paths (the paper's three profiles, a procedural walker,
+//! replayed real head trajectories) and a ray-casting renderer that produces grey frames
+//! and depth. Pure computation: writing files is the `egoslam synth` command's job.
+
+pub mod paths;
+pub mod render;
+pub mod scene;
+pub mod texture;
+
+pub use paths::{CameraPath, PathError, WalkerOptions};
+pub use render::{render_frame, Frame, RenderOptions};
+pub use scene::{Plane, Scene};

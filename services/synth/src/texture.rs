@@ -1,0 +1,135 @@
+//! Procedural, band-limited plane textures: value noise over several octaves plus
+//! "posters" (random grey rectangles with soft edges) that give the tracker corners at
+//! every distance. Band-limited analytically: octaves and edges finer than the pixel's
+//! footprint on the plane fade out, so distant surfaces do not alias or flicker (what a
+//! mip-mapped photograph would do), and frames stay deterministic for a seed.
+
+/// A 2-D integer hash (a few rounds of multiply-xorshift): the lattice values of the noise.
+fn hash(x: i64, y: i64, seed: u64) -> f64 {
+    let mut h = seed
+        ^ (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+    h ^= h >> 31;
+    h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    h ^= h >> 27;
+    h = h.wrapping_mul(0x94D0_49BB_1331_11EB);
+    h ^= h >> 31;
+    (h >> 11) as f64 / (1u64 << 53) as f64
+}
+
+fn smooth(t: f64) -> f64 {
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Value noise in [0, 1] at (u, v) in lattice units.
+fn value_noise(u: f64, v: f64, seed: u64) -> f64 {
+    let (x0, y0) = (u.floor(), v.floor());
+    let (fx, fy) = (smooth(u - x0), smooth(v - y0));
+    let (x, y) = (x0 as i64, y0 as i64);
+    let a = hash(x, y, seed);
+    let b = hash(x + 1, y, seed);
+    let c = hash(x, y + 1, seed);
+    let d = hash(x + 1, y + 1, seed);
+    let top = a + (b - a) * fx;
+    let bottom = c + (d - c) * fx;
+    top + (bottom - top) * fy
+}
+
+/// How much of a feature of `wavelength` survives at `footprint` (both metres): 1 when it
+/// spans many pixels, 0 below two pixels (Nyquist), smooth in between.
+fn keep(wavelength: f64, footprint: f64) -> f64 {
+    let r = wavelength / (2.0 * footprint.max(1e-9));
+    ((r - 1.0) / 1.0).clamp(0.0, 1.0)
+}
+
+/// A plane's texture: seed and feature size.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Texture {
+    pub seed: u64,
+    /// Wavelength of the coarsest noise octave and side of a poster cell, metres.
+    pub scale_m: f64,
+    /// Mean brightness in [0, 1] (planes differ, so edges between them are visible).
+    pub base: f64,
+}
+
+impl Texture {
+    /// Brightness in [0, 1] at plane coordinates (u, v) metres, seen with `footprint`
+    /// metres per pixel.
+    pub fn sample(&self, u: f64, v: f64, footprint: f64) -> f64 {
+        // Noise: 5 octaves, each half the wavelength and amplitude of the previous.
+        let (mut sum, mut norm) = (0.0, 0.0);
+        let (mut wavelength, mut amplitude) = (self.scale_m, 0.5);
+        for octave in 0..5u64 {
+            let k = keep(wavelength, footprint);
+            let n = value_noise(
+                u / wavelength,
+                v / wavelength,
+                self.seed.wrapping_add(octave),
+            );
+            sum += amplitude * (k * n + (1.0 - k) * 0.5);
+            norm += amplitude;
+            wavelength *= 0.5;
+            amplitude *= 0.5;
+        }
+        let noise = sum / norm;
+        // Posters: in each cell of the poster lattice, with probability 0.6, a rectangle
+        // of random size and grey level, edges softened over one footprint.
+        let cell = self.scale_m;
+        let (cx, cy) = ((u / cell).floor(), (v / cell).floor());
+        let (ix, iy) = (cx as i64, cy as i64);
+        let salt = self.seed.wrapping_mul(31).wrapping_add(7);
+        let mut value = self.base + 0.45 * (noise - 0.5);
+        if hash(ix, iy, salt) < 0.6 {
+            let w = 0.25 + 0.5 * hash(ix, iy, salt + 1);
+            let h = 0.25 + 0.5 * hash(ix, iy, salt + 2);
+            let x0 = cx + (1.0 - w) * hash(ix, iy, salt + 3);
+            let y0 = cy + (1.0 - h) * hash(ix, iy, salt + 4);
+            let (lu, lv) = (u / cell, v / cell);
+            let soft = (footprint / cell).max(1e-6);
+            let inside_u = ((lu - x0).min(x0 + w - lu) / soft).clamp(-0.5, 0.5) + 0.5;
+            let inside_v = ((lv - y0).min(y0 + h - lv) / soft).clamp(-0.5, 0.5) + 0.5;
+            let coverage = inside_u * inside_v;
+            // Posters too small to resolve fade to their mean.
+            let k = keep(cell * w.min(h), footprint);
+            let grey = 0.1 + 0.8 * hash(ix, iy, salt + 5);
+            value = value * (1.0 - k * coverage) + k * coverage * grey;
+        }
+        value.clamp(0.0, 1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deterministic_bounded_and_band_limited() {
+        let t = Texture {
+            seed: 3,
+            scale_m: 0.5,
+            base: 0.5,
+        };
+        let mut near_var = 0.0;
+        let mut far_var = 0.0;
+        let n = 400;
+        let (mut near_mean, mut far_mean) = (0.0, 0.0);
+        let samples: Vec<(f64, f64)> = (0..n)
+            .map(|i| (0.0137 * i as f64, 0.0291 * i as f64))
+            .collect();
+        for &(u, v) in &samples {
+            let a = t.sample(u, v, 0.002);
+            assert_eq!(a, t.sample(u, v, 0.002), "deterministic");
+            assert!((0.0..=1.0).contains(&a));
+            near_mean += a / n as f64;
+            far_mean += t.sample(u, v, 5.0) / n as f64;
+        }
+        for &(u, v) in &samples {
+            near_var += (t.sample(u, v, 0.002) - near_mean).powi(2) / n as f64;
+            far_var += (t.sample(u, v, 5.0) - far_mean).powi(2) / n as f64;
+        }
+        // Close up the texture has contrast; seen from far away (a footprint of 5 m per
+        // pixel) every feature is below Nyquist and it is nearly flat: no aliasing.
+        assert!(near_var.sqrt() > 0.1, "near contrast {}", near_var.sqrt());
+        assert!(far_var.sqrt() < 0.02, "far contrast {}", far_var.sqrt());
+    }
+}
