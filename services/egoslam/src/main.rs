@@ -20,6 +20,7 @@ mod output;
 mod replay;
 mod solver_service;
 mod stats;
+mod synth_command;
 mod systemd;
 mod window_journal;
 
@@ -48,6 +49,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),
+        cli::Command::Synth(args) => synth_command::run(args),
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => frontend_service::run(args),
         cli::Command::Solver(args) => solver_service::run(args),

@@ -82,6 +82,7 @@ pub fn render_frame(
                 let y0 = chunk * rows_per;
                 for (k, pose) in poses.iter().enumerate() {
                     let r = pose.rotation.to_rotation_matrix();
+                    let planes = scene.facing(&pose.position, &(r * Vector3::z()));
                     for (i, (value, z)) in rad.iter_mut().zip(dep.iter_mut()).enumerate() {
                         let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
                         let d_cam = Vector3::new(
@@ -91,7 +92,9 @@ pub fn render_frame(
                         );
                         let norm = d_cam.norm();
                         let d = r * (d_cam / norm);
-                        let Some((hit, plane)) = scene.cast(&pose.position, &d) else {
+                        let Some((hit, plane)) =
+                            Scene::nearest(planes.iter().copied(), &pose.position, &d)
+                        else {
                             *value += 0.5;
                             continue;
                         };

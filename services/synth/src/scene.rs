@@ -79,10 +79,36 @@ pub struct Scene {
 impl Scene {
     /// The nearest hit over all planes, with its plane.
     pub fn cast(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(Hit, &Plane)> {
-        self.planes
-            .iter()
+        Self::nearest(self.planes.iter(), o, d)
+    }
+
+    /// The nearest hit over `planes`.
+    pub fn nearest<'a>(
+        planes: impl Iterator<Item = &'a Plane>,
+        o: &Vector3<f64>,
+        d: &Vector3<f64>,
+    ) -> Option<(Hit, &'a Plane)> {
+        planes
             .filter_map(|p| p.intersect(o, d).map(|h| (h, p)))
             .min_by(|a, b| a.0.distance.total_cmp(&b.0.distance))
+    }
+
+    /// The planes that can be seen at all from `position` looking along `forward` with a
+    /// field of view under 180 deg: those with a corner in front of the camera. A cheap
+    /// per-frame cull that halves the work in a room.
+    pub fn facing(&self, position: &Vector3<f64>, forward: &Vector3<f64>) -> Vec<&Plane> {
+        self.planes
+            .iter()
+            .filter(|p| {
+                let corners = [
+                    p.origin,
+                    p.origin + p.u_axis * p.width,
+                    p.origin + p.v_axis * p.height,
+                    p.origin + p.u_axis * p.width + p.v_axis * p.height,
+                ];
+                corners.iter().any(|c| (c - position).dot(forward) > 0.0)
+            })
+            .collect()
     }
 
     fn texture(seed: u64, index: u64, scale_m: f64) -> Texture {

@@ -61,11 +61,15 @@ impl Texture {
         let (mut wavelength, mut amplitude) = (self.scale_m, 0.5);
         for octave in 0..5u64 {
             let k = keep(wavelength, footprint);
-            let n = value_noise(
-                u / wavelength,
-                v / wavelength,
-                self.seed.wrapping_add(octave),
-            );
+            let n = if k > 0.0 {
+                value_noise(
+                    u / wavelength,
+                    v / wavelength,
+                    self.seed.wrapping_add(octave),
+                )
+            } else {
+                0.5 // unresolved: its mean, without computing it
+            };
             sum += amplitude * (k * n + (1.0 - k) * 0.5);
             norm += amplitude;
             wavelength *= 0.5;
