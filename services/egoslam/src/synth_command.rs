@@ -87,7 +87,7 @@ fn write_png(path: &std::path::Path, mat: &Mat) -> anyhow::Result<()> {
 }
 
 pub fn run(args: SynthArgs) -> anyhow::Result<()> {
-    if args.frames < 2 || !(args.fps > 0.0) {
+    if args.frames < 2 || args.fps.is_nan() || args.fps <= 0.0 {
         bail!("--frames must be >= 2 and --fps > 0");
     }
     let camera = PinholeRadtan::new(
