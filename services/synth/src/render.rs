@@ -2,7 +2,7 @@
 //! band-limited texture lookup, optional motion blur (sub-frame poses over the exposure),
 //! exposure drift and sensor noise; depth along the optical axis.
 
-use crate::scene::Scene;
+use crate::scene::{Plane, Scene};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::Vector3;
 
@@ -57,6 +57,53 @@ fn gaussian(frame: u64, pixel: u64) -> f64 {
     (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
 }
 
+/// A plane expressed for one camera pose so that, for the unnormalised ray
+/// `d = (x', y', 1)` of a pixel, the hit `o + t R d` needs three dot products and one
+/// division: `t = K / (n_c . d)`, `u = u0 + t (u_c . d)`, `v = v0 + t (v_c . d)`.
+struct PlaneInView<'a> {
+    plane: &'a Plane,
+    n_c: Vector3<f64>,
+    u_c: Vector3<f64>,
+    v_c: Vector3<f64>,
+    k: f64,
+    u0: f64,
+    v0: f64,
+}
+
+impl<'a> PlaneInView<'a> {
+    fn new(plane: &'a Plane, pose: &StampedPose) -> Self {
+        let rt = pose.rotation.inverse();
+        let rel = pose.position - plane.origin;
+        Self {
+            plane,
+            n_c: rt * plane.normal,
+            u_c: rt * plane.u_axis,
+            v_c: rt * plane.v_axis,
+            k: -plane.normal.dot(&rel),
+            u0: rel.dot(&plane.u_axis),
+            v0: rel.dot(&plane.v_axis),
+        }
+    }
+
+    /// `(t, u, v, n . d)` of the hit, if the ray meets the rectangle in front (> 1 cm).
+    fn intersect(&self, d: &Vector3<f64>) -> Option<(f64, f64, f64, f64)> {
+        let n_d = self.n_c.dot(d);
+        if n_d.abs() < 1e-12 {
+            return None;
+        }
+        let t = self.k / n_d;
+        if t <= 0.01 {
+            return None;
+        }
+        let u = self.u0 + t * self.u_c.dot(d);
+        if u < 0.0 || u > self.plane.width {
+            return None;
+        }
+        let v = self.v0 + t * self.v_c.dot(d);
+        (v >= 0.0 && v <= self.plane.height).then_some((t, u, v, n_d))
+    }
+}
+
 /// Renders `poses` (one, or the sub-frame poses of a blurred frame) averaged, for frame
 /// number `index` (noise and exposure depend on it).
 pub fn render_frame(
@@ -82,28 +129,38 @@ pub fn render_frame(
                 let y0 = chunk * rows_per;
                 for (k, pose) in poses.iter().enumerate() {
                     let r = pose.rotation.to_rotation_matrix();
-                    let planes = scene.facing(&pose.position, &(r * Vector3::z()));
+                    let planes: Vec<PlaneInView> = scene
+                        .facing(&pose.position, &(r * Vector3::z()))
+                        .into_iter()
+                        .map(|p| PlaneInView::new(p, pose))
+                        .collect();
                     for (i, (value, z)) in rad.iter_mut().zip(dep.iter_mut()).enumerate() {
                         let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
-                        let d_cam = Vector3::new(
+                        let d = Vector3::new(
                             (x - camera.cx) / camera.fx,
                             (y - camera.cy) / camera.fy,
                             1.0,
                         );
-                        let norm = d_cam.norm();
-                        let d = r * (d_cam / norm);
-                        let Some((hit, plane)) =
-                            Scene::nearest(planes.iter().copied(), &pose.position, &d)
-                        else {
+                        let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
+                        for p in &planes {
+                            if let Some((t, u, v, n_d)) = p.intersect(&d) {
+                                if best.is_none_or(|b| t < b.0) {
+                                    best = Some((t, u, v, n_d, p));
+                                }
+                            }
+                        }
+                        let Some((t, u, v, n_d, p)) = best else {
                             *value += 0.5;
                             continue;
                         };
                         // Metres per pixel on the plane: distance over focal, stretched by
-                        // the slant of the surface.
-                        let footprint = hit.distance / (camera.fx * hit.cos_incidence.max(0.15));
-                        *value += plane.texture.sample(hit.u, hit.v, footprint);
+                        // the slant of the surface (|cos| = |n.d| / |d|).
+                        let norm = d.norm();
+                        let cos = (n_d.abs() / norm).max(0.15);
+                        let footprint = t * norm / (camera.fx * cos);
+                        *value += p.plane.texture.sample(u, v, footprint);
                         if k == centre {
-                            *z = (hit.distance / norm) as f32;
+                            *z = t as f32; // d has z = 1: t is the z-depth
                         }
                     }
                 }

@@ -13,7 +13,7 @@ pub struct Plane {
     pub width: f64,
     pub height: f64,
     pub texture: Texture,
-    normal: Vector3<f64>,
+    pub(crate) normal: Vector3<f64>,
 }
 
 /// Where a ray meets a plane.
