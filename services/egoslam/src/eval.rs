@@ -1,9 +1,19 @@
-//! `egoslam eval`: ATE of a TUM trajectory against ground truth.
+//! `egoslam eval` and the accuracy part of `report.json`: ATE (Sim(3)-aligned), RPE over
+//! 1 s, and structure error of the map against ground-truth depth where the sequence has
+//! depth maps (rendered sequences, docs/synth.md).
 
 use crate::cli::EvalArgs;
-use egoslam_geometry::{absolute_trajectory_error, AteReport, StampedPose};
+use anyhow::Context;
+use egoslam_geometry::{
+    absolute_trajectory_error, relative_pose_error, structure_error, AteReport, PinholeRadtan,
+    RpeReport, Similarity, StampedPose, StructureReport,
+};
 use egoslam_sources::ground_truth::read_tum_file;
 use egoslam_sources::load_ground_truth;
+use nalgebra::Vector3;
+use opencv::prelude::*;
+use serde_json::json;
+use std::path::Path;
 
 /// ATE with the usual failure cases turned into messages.
 pub fn evaluate(
@@ -36,11 +46,151 @@ pub fn summary(r: &AteReport) -> String {
     )
 }
 
+/// RPE over one second, in the estimate's scale brought to metres by the ATE alignment.
+pub fn rpe_1s(est: &[StampedPose], gt: &[StampedPose], ate: &AteReport) -> Option<RpeReport> {
+    relative_pose_error(est, gt, 0.02, 1.0, ate.alignment.scale)
+}
+
+pub fn rpe_summary(r: &RpeReport) -> String {
+    let per_metre = r
+        .translation_per_metre
+        .map_or_else(|| "-".to_string(), |p| format!("{:.2} %", 100.0 * p));
+    format!(
+        "RPE over {:.0} s: {:.4} m ({per_metre} of the distance), {:.3} deg, {} pairs",
+        r.delta_s, r.translation_rmse_m, r.rotation_rmse_deg, r.pairs
+    )
+}
+
+pub fn rpe_json(r: &RpeReport) -> serde_json::Value {
+    json!({"delta_s": r.delta_s, "translation_rmse_m": r.translation_rmse_m, "translation_per_metre": r.translation_per_metre, "rotation_rmse_deg": r.rotation_rmse_deg, "pairs": r.pairs})
+}
+
+/// Map points of an ASCII `map.ply` written by egoslam.
+fn read_ply(path: &Path) -> anyhow::Result<Vec<Vector3<f64>>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let body = text
+        .split_once("end_header\n")
+        .map(|(_, b)| b)
+        .with_context(|| format!("{}: not an ASCII PLY", path.display()))?;
+    body.lines()
+        .map(|l| {
+            let v: Vec<f64> = l
+                .split_whitespace()
+                .filter_map(|x| x.parse().ok())
+                .collect();
+            match v[..] {
+                [x, y, z] => Ok(Vector3::new(x, y, z)),
+                _ => anyhow::bail!("{}: bad vertex line {l:?}", path.display()),
+            }
+        })
+        .collect()
+}
+
+/// Structure error of `map.ply` against the sequence's depth maps (TUM `depth.txt`, 16-bit
+/// PNG, metres x 5000), over up to 40 ground-truth views spread over the sequence.
+pub fn structure(
+    sequence: &Path,
+    map: &Path,
+    camera: &PinholeRadtan,
+    gt: &[StampedPose],
+    alignment: &Similarity,
+) -> anyhow::Result<Option<StructureReport>> {
+    let index = sequence.join("depth.txt");
+    let Ok(text) = std::fs::read_to_string(&index) else {
+        return Ok(None);
+    };
+    let entries: Vec<(f64, String)> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let mut it = l.split_whitespace();
+            Some((it.next()?.parse().ok()?, it.next()?.to_string()))
+        })
+        .collect();
+    let step = entries.len().div_ceil(40).max(1);
+    let (mut views, mut depths) = (Vec::new(), Vec::new());
+    for (t, file) in entries.iter().step_by(step) {
+        let Some(pose) = gt
+            .iter()
+            .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))
+        else {
+            continue;
+        };
+        if (pose.timestamp - t).abs() > 0.02 {
+            continue;
+        }
+        let path = sequence.join(file);
+        let image = opencv::imgcodecs::imread(
+            path.to_str().context("non-UTF-8 path")?,
+            opencv::imgcodecs::IMREAD_ANYDEPTH,
+        )?;
+        if image.empty() || image.typ() != opencv::core::CV_16UC1 {
+            anyhow::bail!("{}: not a 16-bit depth image", path.display());
+        }
+        views.push(*pose);
+        depths.push(image);
+    }
+    let points: Vec<Vector3<f64>> = read_ply(map)?.iter().map(|x| alignment.apply(x)).collect();
+    Ok(structure_error(camera, &points, &views, |v, x, y| {
+        let d = *depths[v].at_2d::<u16>(y as i32, x as i32).ok()?;
+        (d > 0).then(|| f64::from(d) / 5000.0)
+    }))
+}
+
+/// The accuracy section of `report.json` (and the lines printed for it).
+pub fn accuracy(
+    out: &Path,
+    sequence: &Path,
+    camera: &PinholeRadtan,
+    gt: &egoslam_sources::ground_truth::GroundTruth,
+) -> anyhow::Result<serde_json::Value> {
+    let mut acc = serde_json::Map::new();
+    for (key, file) in [
+        ("trajectory", "trajectory.tum"),
+        ("keyframes", "keyframes.tum"),
+    ] {
+        let est = read_tum_file(&out.join(file))?;
+        match evaluate(&est, &gt.poses, 0.02) {
+            Ok(r) => {
+                println!("{key}: {}", summary(&r));
+                let mut entry = json!({"ate_rmse_m": r.rmse, "ate_mean_m": r.mean, "ate_median_m": r.median, "ate_max_m": r.max, "matched": r.matched, "gt_path_m": r.gt_path_length, "scale": r.alignment.scale});
+                if let Some(rpe) = rpe_1s(&est, &gt.poses, &r) {
+                    println!("{key}: {}", rpe_summary(&rpe));
+                    entry["rpe"] = rpe_json(&rpe);
+                }
+                if key == "keyframes" {
+                    if let Some(s) = structure(
+                        sequence,
+                        &out.join("map.ply"),
+                        camera,
+                        &gt.poses,
+                        &r.alignment,
+                    )? {
+                        println!(
+                            "map: structure RMSE {:.4} m (median {:.4}) over {} of {} points",
+                            s.rmse_m, s.median_m, s.evaluated, s.points
+                        );
+                        acc.insert("structure".into(), json!({"rmse_m": s.rmse_m, "median_m": s.median_m, "evaluated": s.evaluated, "points": s.points}));
+                    }
+                }
+                acc.insert(key.into(), entry);
+            }
+            Err(e) => println!("{key}: not evaluated: {e}"),
+        }
+    }
+    acc.insert("ground_truth".into(), json!(gt.description));
+    Ok(serde_json::Value::Object(acc))
+}
+
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let estimate = read_tum_file(&args.estimate)?;
     let gt = load_ground_truth(&args.ground_truth)?;
     let report = evaluate(&estimate, &gt.poses, args.max_dt)?;
     println!("{}", summary(&report));
+    if let Some(rpe) = rpe_1s(&estimate, &gt.poses, &report) {
+        println!("{}", rpe_summary(&rpe));
+    }
     println!("ground truth: {}", gt.description);
     Ok(())
 }

@@ -1,11 +1,10 @@
 //! `egoslam run`: checks the input, starts the services, supervises them, reports.
 
 use crate::cli::{PipelineArgs, RunArgs};
-use crate::eval::{evaluate, summary};
 use crate::output::{camera_yaml, write_atomically};
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
-use egoslam_sources::ground_truth::{read_tum_file, GroundTruth};
+use egoslam_sources::ground_truth::GroundTruth;
 use egoslam_sources::{detect_layout, load_calibration, load_ground_truth, open_source, Layout};
 use opencv::prelude::*;
 use serde_json::json;
@@ -270,22 +269,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     };
     let mut accuracy = serde_json::Value::Null;
     if let Some(gt) = &ground_truth {
-        let mut acc = serde_json::Map::new();
-        for (key, file) in [
-            ("trajectory", "trajectory.tum"),
-            ("keyframes", "keyframes.tum"),
-        ] {
-            let est = read_tum_file(&out.join(file))?;
-            match evaluate(&est, &gt.poses, 0.02) {
-                Ok(r) => {
-                    println!("{key}: {}", summary(&r));
-                    acc.insert(key.into(), json!({"ate_rmse_m": r.rmse, "ate_mean_m": r.mean, "ate_median_m": r.median, "ate_max_m": r.max, "matched": r.matched, "gt_path_m": r.gt_path_length, "scale": r.alignment.scale}));
-                }
-                Err(e) => println!("{key}: not evaluated: {e}"),
-            }
-        }
-        acc.insert("ground_truth".into(), json!(gt.description));
-        accuracy = serde_json::Value::Object(acc);
+        accuracy = crate::eval::accuracy(out, layout.root(), &camera, gt)?;
     }
     let report = json!({
         "input": input.display().to_string(),

@@ -4,10 +4,14 @@
 
 pub mod alignment;
 pub mod camera;
+pub mod relative_pose_error;
+pub mod structure_error;
 pub mod trajectory;
 
 pub use alignment::{
     nearest_rotation, umeyama, umeyama_ransac, AlignmentError, RobustAlignmentOptions, Similarity,
 };
 pub use camera::{CameraError, PinholeRadtan};
+pub use relative_pose_error::{relative_pose_error, RpeReport};
+pub use structure_error::{structure_error, StructureReport};
 pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};
