@@ -26,6 +26,8 @@ pub enum Command {
     Run(RunArgs),
     /// ATE RMSE of a TUM trajectory against ground truth (TUM, KITTI or EuRoC layout).
     Eval(EvalArgs),
+    /// Run the benchmark suite (real and rendered sequences) and write the table.
+    Bench(crate::bench_command::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).
     Synth(crate::synth_command::SynthArgs),
     /// Service: publish a sequence's frames on the bus.

@@ -250,7 +250,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill_pipeline(c, m, &mut a.pipeline);
             fill_egress(c, m, &mut a.egress);
         }
-        Command::Eval(_) | Command::Synth(_) => {}
+        Command::Eval(_) | Command::Synth(_) | Command::Bench(_) => {}
     }
 }
 

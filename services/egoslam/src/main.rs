@@ -4,6 +4,7 @@
 //! while every service still runs as its own process, linked to the others by iceoryx2.
 
 mod background_refinement;
+mod bench_command;
 mod checkpoint;
 mod cli;
 mod config;
@@ -50,6 +51,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),
         cli::Command::Synth(args) => synth_command::run(args),
+        cli::Command::Bench(args) => bench_command::run(args),
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => frontend_service::run(args),
         cli::Command::Solver(args) => solver_service::run(args),

@@ -7,7 +7,9 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_synth::paths::aria_head_trajectory;
-use egoslam_synth::{render_frame, CameraPath, RenderOptions, Scene, WalkerOptions};
+use egoslam_synth::{
+    render_frame, CameraPath, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
+};
 use opencv::core::{Mat, Vector, CV_16UC1};
 use opencv::prelude::*;
 use std::path::PathBuf;
@@ -25,6 +27,16 @@ pub enum PathKind {
     Walker,
     /// A recorded head trajectory (`--trajectory`): Aria MPS / HOT3D CSV or TUM file.
     Replay,
+    /// Robustness: a walk with a 60 deg head turn in place (no translation) 3 s in.
+    PureRotation,
+    /// Robustness: a walk with a 360 deg turn on the spot.
+    Spin,
+    /// Robustness: a walk with the camera perfectly still for 5 s.
+    Static,
+    /// Robustness: a walk with a fast head shake (+-20 deg at 3 Hz for 2 s).
+    Shake,
+    /// Robustness: a walk with 1 s of darkness.
+    Dark,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -123,10 +135,16 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             };
             CameraPath::Replay(poses)
         }
+        PathKind::PureRotation => CameraPath::Event(RobustnessEvent::PureRotation),
+        PathKind::Spin => CameraPath::Event(RobustnessEvent::Spin),
+        PathKind::Static => CameraPath::Event(RobustnessEvent::Static),
+        PathKind::Shake => CameraPath::Event(RobustnessEvent::Shake),
+        PathKind::Dark => CameraPath::Event(RobustnessEvent::Dark),
     };
+    let dark = (args.path == PathKind::Dark).then(|| RobustnessEvent::Dark.window());
     let scene_kind = args.scene.unwrap_or(match args.path {
         PathKind::Frontal | PathKind::LeftRight | PathKind::Egomotion => SceneKind::Planes,
-        PathKind::Walker | PathKind::Replay => SceneKind::Room,
+        _ => SceneKind::Room,
     });
     let scene = match scene_kind {
         SceneKind::Planes => Scene::paper_planes(args.seed),
@@ -169,7 +187,13 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             vec![*pose]
         };
         let render_start = Instant::now();
-        let frame = render_frame(&scene, &camera, &shutter, i as u64, &options);
+        let in_dark =
+            dark.is_some_and(|(start, length)| (start..start + length).contains(&pose.timestamp));
+        let frame_options = RenderOptions {
+            exposure_scale: if in_dark { 0.03 } else { 1.0 },
+            ..options
+        };
+        let frame = render_frame(&scene, &camera, &shutter, i as u64, &frame_options);
         render_s += render_start.elapsed().as_secs_f64();
         let name = format!("{i:06}.png");
         let grey =

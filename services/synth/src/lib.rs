@@ -9,6 +9,6 @@ pub mod render;
 pub mod scene;
 pub mod texture;
 
-pub use paths::{CameraPath, PathError, WalkerOptions};
+pub use paths::{CameraPath, PathError, RobustnessEvent, WalkerOptions};
 pub use render::{render_frame, Frame, RenderOptions};
 pub use scene::{Plane, Scene};

@@ -75,6 +75,38 @@ pub enum CameraPath {
     /// A recorded trajectory, re-expressed relative to its first pose and started where
     /// the walker starts.
     Replay(Vec<StampedPose>),
+    /// The walker with one hard event 3 s in (the robustness cases); the walk
+    /// resumes after it.
+    Event(RobustnessEvent),
+}
+
+/// A hard moment for a SLAM system, inserted into a walk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RobustnessEvent {
+    /// Standing still, the head turns 60 deg to one side and back (4 s): no translation.
+    PureRotation,
+    /// A full 360 deg turn on the spot (4 s).
+    Spin,
+    /// The camera does not move at all for 5 s.
+    Static,
+    /// A fast head shake: +-20 deg yaw at 3 Hz for 2 s while walking.
+    Shake,
+    /// The image goes dark for 1 s (lens covered, lights off): the renderer's job, the
+    /// path is the plain walk.
+    Dark,
+}
+
+impl RobustnessEvent {
+    /// When the event starts and how long it lasts, seconds.
+    pub fn window(self) -> (f64, f64) {
+        let duration = match self {
+            RobustnessEvent::PureRotation | RobustnessEvent::Spin => 4.0,
+            RobustnessEvent::Static => 5.0,
+            RobustnessEvent::Shake => 2.0,
+            RobustnessEvent::Dark => 1.0,
+        };
+        (3.0, duration)
+    }
 }
 
 /// Camera orientation from head yaw (about the world's vertical), pitch (about the
@@ -145,6 +177,7 @@ impl CameraPath {
                 .collect(),
             CameraPath::Walker(o) => walk(o, frames, fps),
             CameraPath::Replay(recorded) => replay(recorded, frames, fps),
+            CameraPath::Event(event) => with_event(*event, frames, fps),
         }
     }
 }
@@ -211,6 +244,61 @@ fn walk(o: &WalkerOptions, frames: usize, fps: f64) -> Vec<StampedPose> {
             base + bob + sway,
             orientation(yaw, pitch, 0.01 * moving * (0.5 * step_phase).sin()),
         ));
+    }
+    out
+}
+
+/// A walk (no periodic stops or turns of its own) with `event` inserted at its start time.
+fn with_event(event: RobustnessEvent, frames: usize, fps: f64) -> Vec<StampedPose> {
+    let calm = WalkerOptions {
+        stop_s: 0.0,
+        turn_every_s: 0.0,
+        ..WalkerOptions::default()
+    };
+    let walk = walk(&calm, frames, fps);
+    let (start, duration) = event.window();
+    let begin = ((start * fps) as usize).min(frames.saturating_sub(1));
+    let event_frames = ((duration * fps) as usize).min(frames - begin);
+    let at = walk[begin];
+    let mut out: Vec<StampedPose> = walk[..begin].to_vec();
+    for k in 0..event_frames {
+        let t = (begin + k) as f64 / fps;
+        let s = k as f64 / event_frames.max(1) as f64;
+        let yaw = |angle: f64| UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle);
+        let p = match event {
+            RobustnessEvent::PureRotation => pose(
+                t,
+                at.position,
+                yaw(60f64.to_radians() * (PI * s).sin()) * at.rotation,
+            ),
+            RobustnessEvent::Spin => pose(t, at.position, yaw(TAU * s) * at.rotation),
+            RobustnessEvent::Static => pose(t, at.position, at.rotation),
+            RobustnessEvent::Shake => {
+                let w = walk[begin + k];
+                pose(
+                    t,
+                    w.position,
+                    yaw(20f64.to_radians() * (TAU * 3.0 * (t - start)).sin()) * w.rotation,
+                )
+            }
+            RobustnessEvent::Dark => walk[begin + k],
+        };
+        out.push(p);
+    }
+    // The walk resumes where it was (moving events continue it in place).
+    let resumed = if matches!(event, RobustnessEvent::Shake | RobustnessEvent::Dark) {
+        begin + event_frames
+    } else {
+        begin
+    };
+    for w in &walk[resumed..] {
+        if out.len() >= frames {
+            break;
+        }
+        out.push(StampedPose {
+            timestamp: out.len() as f64 / fps,
+            ..*w
+        });
     }
     out
 }
@@ -399,6 +487,48 @@ mod tests {
             .map(|w| (w[1].position - w[0].position).norm())
             .sum();
         assert!(walked > 100.0 && walked < 160.0, "{walked} m in 2 min");
+    }
+
+    #[test]
+    fn events_happen_when_said_and_the_walk_resumes() {
+        let fps = 30.0;
+        for event in [
+            RobustnessEvent::PureRotation,
+            RobustnessEvent::Spin,
+            RobustnessEvent::Static,
+            RobustnessEvent::Shake,
+            RobustnessEvent::Dark,
+        ] {
+            let p = CameraPath::Event(event).poses(450, fps);
+            assert_eq!(p.len(), 450, "{event:?}");
+            let (start, duration) = event.window();
+            let inside = &p[(start * fps) as usize + 1..((start + duration) * fps) as usize];
+            let moved: f64 = inside
+                .windows(2)
+                .map(|w| (w[1].position - w[0].position).norm())
+                .sum();
+            let turned: f64 = inside
+                .windows(2)
+                .map(|w| w[0].rotation.angle_to(&w[1].rotation))
+                .sum::<f64>()
+                .to_degrees();
+            match event {
+                RobustnessEvent::PureRotation => {
+                    assert!(moved < 1e-9 && turned > 110.0, "{turned}")
+                }
+                RobustnessEvent::Spin => {
+                    assert!(moved < 1e-9 && (turned - 360.0).abs() < 15.0, "{turned}")
+                }
+                RobustnessEvent::Static => assert!(moved < 1e-9 && turned < 1e-9),
+                RobustnessEvent::Shake => assert!(moved > 1.0 && turned > 400.0, "{turned}"),
+                RobustnessEvent::Dark => assert!(moved > 0.5),
+            }
+            let after: f64 = p[300..]
+                .windows(2)
+                .map(|w| (w[1].position - w[0].position).norm())
+                .sum();
+            assert!(after > 3.0, "{event:?}: walks again ({after} m)");
+        }
     }
 
     #[test]

@@ -20,6 +20,9 @@ pub struct RenderOptions {
     pub exposure_drift: f64,
     /// Worker threads (default: available parallelism).
     pub threads: usize,
+    /// Exposure of this frame relative to normal (default 1; ~0 renders a dark frame:
+    /// lens covered, lights off).
+    pub exposure_scale: f64,
 }
 
 impl Default for RenderOptions {
@@ -30,6 +33,7 @@ impl Default for RenderOptions {
             shutter: 0.5,
             exposure_drift: 0.0,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            exposure_scale: 1.0,
         }
     }
 }
@@ -168,7 +172,8 @@ pub fn render_frame(
         }
     });
     let n = poses.len().max(1) as f64;
-    let gain = 1.0 + options.exposure_drift * (index as f64 * 0.02).sin();
+    let gain =
+        options.exposure_scale * (1.0 + options.exposure_drift * (index as f64 * 0.02).sin());
     let grey = radiance
         .iter()
         .enumerate()
