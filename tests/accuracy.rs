@@ -11,16 +11,7 @@ use egoslam_sources::load_ground_truth;
 use std::path::Path;
 
 fn run(input: &Path, out: &Path) -> serde_json::Value {
-    let status = egoslam()
-        .args(["run", "--input"])
-        .arg(input)
-        .arg("--out")
-        .arg(out)
-        .status()
-        .expect("run");
-    assert!(status.success());
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
-        .expect("json")
+    run_report(input, out)
 }
 
 /// Keyframe ATE (m) and its ground-truth path length.

@@ -9,14 +9,6 @@ use prost::Message;
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .expect("bind")
-        .local_addr()
-        .expect("addr")
-        .port()
-}
-
 #[test]
 fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
     let port = free_port();

@@ -8,14 +8,6 @@ mod common;
 use common::*;
 use std::time::Duration;
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .expect("bind")
-        .local_addr()
-        .expect("addr")
-        .port()
-}
-
 #[test]
 fn python_subscriber_saves_the_same_trajectory_as_the_run() {
     let python = repo().join("target/python/bin/python");

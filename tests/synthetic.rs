@@ -29,17 +29,7 @@ fn synth(dir: &Path, path: &str, frames: usize) {
 
 /// Runs the pipeline; returns the report and the keyframe ATE over the path length.
 fn run(input: &Path, out: &Path) -> (serde_json::Value, f64, f64) {
-    let status = egoslam()
-        .args(["run", "--input"])
-        .arg(input)
-        .arg("--out")
-        .arg(out)
-        .status()
-        .expect("run");
-    assert!(status.success());
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
-            .expect("json");
+    let report = run_report(input, out);
     let est = read_tum_file(&out.join("keyframes.tum")).expect("keyframes");
     let gt = read_tum_file(&input.join("groundtruth.txt")).expect("ground truth");
     let ate = absolute_trajectory_error(&est, &gt, 0.001).expect("aligned");

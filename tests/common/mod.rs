@@ -40,3 +40,26 @@ pub fn shared(name: &str) -> Option<PathBuf> {
 pub fn namespace(test: &str) -> String {
     format!("it_{test}_{}", std::process::id())
 }
+
+/// A TCP port free on loopback now (for a zenoh endpoint a test connects to).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("bind")
+        .local_addr()
+        .expect("addr")
+        .port()
+}
+
+/// `egoslam run --input INPUT --out OUT`, which must succeed; its report.json.
+pub fn run_report(input: &Path, out: &Path) -> serde_json::Value {
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(input)
+        .arg("--out")
+        .arg(out)
+        .status()
+        .expect("run");
+    assert!(status.success());
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
+        .expect("json")
+}

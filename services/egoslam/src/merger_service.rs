@@ -306,29 +306,15 @@ pub(crate) fn window_input(w: &pb::WindowSolution) -> WindowInput {
             .iter()
             .map(|p| (p.track_id, vec3_from_pb(&p.position)))
             .collect(),
-        observations: w
-            .observations
-            .iter()
-            .map(|o| {
-                (
-                    o.keyframe_id,
-                    o.track_id,
-                    Point2::new(f64::from(o.x), f64::from(o.y)),
-                )
-            })
-            .collect(),
-        weak_observations: w
-            .weak_observations
-            .iter()
-            .map(|o| {
-                (
-                    o.keyframe_id,
-                    o.track_id,
-                    Point2::new(f64::from(o.x), f64::from(o.y)),
-                )
-            })
-            .collect(),
+        observations: w.observations.iter().map(observation).collect(),
+        weak_observations: w.weak_observations.iter().map(observation).collect(),
     }
+}
+
+/// A wire observation as `(keyframe id, track id, undistorted pixel)`.
+fn observation(o: &pb::Observation) -> (u64, u64, Point2<f64>) {
+    let px = Point2::new(f64::from(o.x), f64::from(o.y));
+    (o.keyframe_id, o.track_id, px)
 }
 
 fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {

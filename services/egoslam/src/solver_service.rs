@@ -100,6 +100,22 @@ fn relative_translation(solution: &egoslam_solver::window_solver::WindowSolution
     reach / *depths.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
+/// `(keyframe index in the window, track, pixel)` triples as wire observations.
+fn observation_messages(
+    kfs: &[pb::Keyframe],
+    observations: &[(usize, u64, Point2<f64>)],
+) -> Vec<pb::Observation> {
+    observations
+        .iter()
+        .map(|(k, track, px)| pb::Observation {
+            keyframe_id: kfs[*k].keyframe_id,
+            track_id: *track,
+            x: px.x as f32,
+            y: px.y as f32,
+        })
+        .collect()
+}
+
 /// Solves one window and builds its message.
 fn solve(
     window_id: u64,
@@ -172,16 +188,7 @@ fn solve(
                 observations: p.observations,
             })
             .collect(),
-        observations: solution
-            .observations
-            .iter()
-            .map(|(k, track, px)| pb::Observation {
-                keyframe_id: kfs[*k].keyframe_id,
-                track_id: *track,
-                x: px.x as f32,
-                y: px.y as f32,
-            })
-            .collect(),
+        observations: observation_messages(kfs, &solution.observations),
         quality: Some(pb::SolutionQuality {
             status: status as i32,
             reason,
@@ -201,16 +208,7 @@ fn solve(
         end_of_stream: false,
         trailing_frames: Vec::new(),
         stream_id: 0, // set when published
-        weak_observations: solution
-            .weak_observations
-            .iter()
-            .map(|(k, track, px)| pb::Observation {
-                keyframe_id: kfs[*k].keyframe_id,
-                track_id: *track,
-                x: px.x as f32,
-                y: px.y as f32,
-            })
-            .collect(),
+        weak_observations: observation_messages(kfs, &solution.weak_observations),
         intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
             distortion: Vec::new(),
             ..i
