@@ -221,15 +221,33 @@ impl MapBuilder {
         let RefinementOutcome { job, result } = outcome;
         let carry = job.options.carry_keyframes.clamp(2, job.ids.len());
         let tail = job.ids.len() - carry;
+        // The job's keyframes must still be this segment's (a map reset meanwhile, e.g. a
+        // new solver stream, makes the result stale: it is dropped).
+        let current = job
+            .ids
+            .iter()
+            .all(|id| matches!(self.keyframes.get(id), Some((s, _)) if *s == job.segment));
+        if !current {
+            return RefinementReport {
+                keyframes: 0,
+                points: 0,
+                observations: 0,
+                outliers: 0,
+                rmse_px: result.rmse_px,
+                iterations: result.iterations,
+                carried_keyframes: 0,
+            };
+        }
+        let stamp = |id: &u64| self.keyframes.get(id).map_or(0.0, |(_, p)| p.timestamp);
         let before: Vec<StampedPose> = job.ids[tail..]
             .iter()
             .zip(&job.poses[tail..])
-            .map(|(id, p)| stamped(self.keyframes[id].1.timestamp, p))
+            .map(|(id, p)| stamped(stamp(id), p))
             .collect();
         let after: Vec<StampedPose> = job.ids[tail..]
             .iter()
             .zip(&result.poses[tail..])
-            .map(|(id, p)| stamped(self.keyframes[id].1.timestamp, p))
+            .map(|(id, p)| stamped(stamp(id), p))
             .collect();
         let moved_points: Vec<(Vector3<f64>, Vector3<f64>)> = job
             .points
@@ -359,6 +377,36 @@ mod tests {
         p.position += Vector3::new(0.002 * d, -0.001 * d, 0.003 * d);
         p.rotation = UnitQuaternion::from_euler_angles(0.0005 * d, -0.0004 * d, 0.0) * p.rotation;
         p
+    }
+
+    #[test]
+    fn a_job_whose_map_was_reset_meanwhile_changes_nothing() {
+        let camera = camera();
+        let mut parts = MapParts {
+            current_segment: Some(0),
+            segments: 1,
+            ..MapParts::default()
+        };
+        for i in 0..10u64 {
+            parts.keyframes.insert(i, (0, truth(i as usize)));
+            let x = Vector3::new(0.1 * i as f64, 0.0, 4.0);
+            parts.points.insert(i, (0, x));
+            for k in 0..10u64 {
+                let cam = camera_pose(&truth(k as usize));
+                if let Some(px) = camera.project_undistorted(&cam.to_camera(&x)) {
+                    parts.observations.insert((k, i), px);
+                }
+            }
+        }
+        let map = MapBuilder::from_parts(parts);
+        let job = map
+            .refinement_job(&camera, &RefinementOptions::default())
+            .expect("job");
+        let outcome = job.solve().expect("solved");
+        let mut reset = MapBuilder::new();
+        let report = reset.apply_refinement(outcome);
+        assert_eq!(report.keyframes, 0);
+        assert_eq!(reset.keyframes().count(), 0);
     }
 
     #[test]
