@@ -31,6 +31,8 @@ pub struct MergerState {
     pub finished: bool,
     pub windows: u64,
     pub unsolved_windows: u64,
+    /// frame id -> last revision published over zenoh.
+    pub revisions: std::collections::BTreeMap<u64, u32>,
 }
 
 impl MergerState {
@@ -121,6 +123,8 @@ impl MergerState {
                         .collect(),
                 })
                 .collect(),
+            revision_frame_ids: self.revisions.keys().copied().collect(),
+            revision_numbers: self.revisions.values().copied().collect(),
             weak_observations: parts
                 .weak
                 .iter()
@@ -153,8 +157,10 @@ impl MergerState {
                 m.format_version
             );
         }
-        if m.keyframe_ids.len() != m.keyframe_frame_ids.len() {
-            bail!("checkpoint keyframe index lists differ in length");
+        if m.keyframe_ids.len() != m.keyframe_frame_ids.len()
+            || m.revision_frame_ids.len() != m.revision_numbers.len()
+        {
+            bail!("checkpoint index lists differ in length");
         }
         let keyframes = m
             .keyframes
@@ -239,6 +245,12 @@ impl MergerState {
             finished: m.finished,
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
+            revisions: m
+                .revision_frame_ids
+                .iter()
+                .copied()
+                .zip(m.revision_numbers.iter().copied())
+                .collect(),
         })
     }
 
@@ -310,6 +322,7 @@ mod tests {
             },
         );
         state.last_sequence = Some(3);
+        state.revisions.insert(4, 2);
         state.windows = 4;
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join(FILE_NAME);
@@ -319,6 +332,7 @@ mod tests {
         assert_eq!(back.frames.frames, state.frames.frames);
         assert_eq!(back.frames.keyframe_frames, state.frames.keyframe_frames);
         assert_eq!(back.frames.pending, state.frames.pending);
+        assert_eq!(back.revisions, state.revisions);
         assert_eq!(back.frames.localized, state.frames.localized);
         assert_eq!(
             (back.stream_id, back.last_sequence, back.windows),

@@ -197,6 +197,23 @@ impl Revisions {
         out
     }
 
+    /// The last published revision of every frame (what a checkpoint keeps).
+    pub fn numbers(&self) -> BTreeMap<u64, u32> {
+        self.published.iter().map(|(f, (_, r))| (*f, *r)).collect()
+    }
+
+    /// Revisions of a restarted merger: the checkpointed numbers, with the resumed poses, so
+    /// that a pose that moves later is published with a higher revision than any the
+    /// clients already hold (they keep the highest).
+    pub fn resume(numbers: &BTreeMap<u64, u32>, state: &MapState) -> Self {
+        let published = state
+            .frames
+            .iter()
+            .filter_map(|f| numbers.get(&f.frame_id).map(|r| (f.frame_id, (f.pose, *r))))
+            .collect();
+        Self { published }
+    }
+
     fn revision(&self, frame_id: u64) -> u32 {
         self.published.get(&frame_id).map_or(0, |p| p.1)
     }
@@ -250,4 +267,42 @@ pub fn publish(
         status: Some(status.clone()),
     });
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::UnitQuaternion;
+
+    fn frame(id: u64, x: f64) -> PosedFrame {
+        PosedFrame {
+            frame_id: id,
+            segment: 0,
+            pose: StampedPose {
+                timestamp: id as f64,
+                position: Vector3::new(x, 0.0, 0.0),
+                rotation: UnitQuaternion::identity(),
+            },
+            interpolated: false,
+        }
+    }
+
+    #[test]
+    fn a_restarted_merger_keeps_counting_revisions_up() {
+        let mut before = Revisions::default();
+        assert_eq!(before.changed(&[frame(1, 0.0), frame(2, 0.0)]).len(), 2);
+        let moved = before.changed(&[frame(1, 0.5), frame(2, 0.0)]);
+        assert_eq!((moved.len(), moved[0].revision), (1, 1));
+        // Kill and restart: the checkpointed numbers and the resumed poses.
+        let state = MapState {
+            keyframes: Vec::new(),
+            frames: vec![frame(1, 0.5), frame(2, 0.0)],
+            points: Vec::new(),
+        };
+        let mut after = Revisions::resume(&before.numbers(), &state);
+        assert!(after.changed(&state.frames).is_empty(), "nothing moved");
+        let moved = after.changed(&[frame(1, 0.7), frame(2, 0.1), frame(3, 0.0)]);
+        let revisions: Vec<(u64, u32)> = moved.iter().map(|p| (p.frame_id, p.revision)).collect();
+        assert_eq!(revisions, vec![(1, 2), (2, 1), (3, 0)]);
+    }
 }

@@ -132,10 +132,8 @@ impl Merger {
             stats.add_time("localize_frames", start.elapsed().as_secs_f64() * 1e3);
         }
         self.state.last_sequence = Some(sequence);
-        let save_start = std::time::Instant::now();
-        self.state.save(&self.checkpoint_path())?;
-        self.stats
-            .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
+        // Publish first, then checkpoint (with the revisions just published): a kill in
+        // between re-applies this window from the journal, which publishes the same again.
         let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
         let write_start = std::time::Instant::now();
         let state = if self.state.finished {
@@ -146,6 +144,11 @@ impl Merger {
         self.emit(&changed, state)?;
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
+        self.state.revisions = self.outputs.revisions.numbers();
+        let save_start = std::time::Instant::now();
+        self.state.save(&self.checkpoint_path())?;
+        self.stats
+            .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }
 
@@ -386,6 +389,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
+        let resumed_poses = MapState::of(&state.map, &state.frames);
+        merger.outputs.revisions = Revisions::resume(&state.revisions, &resumed_poses);
         merger.state = state;
         merger.catch_up(None)?;
     }
