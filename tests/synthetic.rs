@@ -46,8 +46,8 @@ fn paper_egomotion_profile() {
     assert_eq!(report["segments"], 1);
     // Measured 6.1 mm over 3.9 m (0.16 %).
     assert!(ate < 0.005 * path, "ATE {ate} m over {path} m");
-    // Map against the rendered depth: measured median 6.8 cm over all 3513 points (RMSE
-    // 0.51 m: a tail of distant points; see docs/synth.md).
+    // Map against the rendered depth: measured median 6.1 cm over all 3513 points (RMSE
+    // 0.44 m: a tail of distant points; see docs/synth.md).
     let structure = &report["accuracy"]["structure"];
     assert!(structure["evaluated"].as_u64() > Some(1000), "{structure}");
     let median = structure["median_m"].as_f64().expect("median");

@@ -5,8 +5,8 @@
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use egoslam_geometry::{
-    absolute_trajectory_error, relative_pose_error, structure_error, AteReport, PinholeRadtan,
-    RpeReport, Similarity, StampedPose, StructureReport,
+    absolute_trajectory_error, alignment_from_poses, relative_pose_error, structure_error,
+    AteReport, PinholeRadtan, RpeReport, Similarity, StampedPose, StructureReport,
 };
 use egoslam_sources::ground_truth::read_tum_file;
 use egoslam_sources::load_ground_truth;
@@ -159,13 +159,16 @@ pub fn accuracy(
                     println!("{key}: {}", rpe_summary(&rpe));
                     entry["rpe"] = rpe_json(&rpe);
                 }
-                if key == "keyframes" {
+                // The map is aligned by the poses' orientations too: position-only alignment
+                // leaves a straight trajectory free to turn about itself.
+                let by_poses = alignment_from_poses(&est, &gt.poses, 0.02);
+                if let (true, Some(alignment)) = (key == "keyframes", by_poses) {
                     if let Some(s) = structure(
                         sequence,
                         &out.join("map.ply"),
                         camera,
                         &gt.poses,
-                        &r.alignment,
+                        &alignment,
                     )? {
                         println!(
                             "map: structure RMSE {:.4} m (median {:.4}) over {} of {} points",

@@ -13,5 +13,5 @@ pub use alignment::{
 };
 pub use camera::{CameraError, PinholeRadtan};
 pub use relative_pose_error::{relative_pose_error, RpeReport};
-pub use structure_error::{structure_error, StructureReport};
+pub use structure_error::{alignment_from_poses, structure_error, StructureReport};
 pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};

@@ -2,11 +2,64 @@
 //! RMSE"): each map point, brought into the ground-truth frame by the trajectory's Sim(3)
 //! alignment, is projected into ground-truth views; where it lands on a pixel with known
 //! depth, the error is the difference between its depth and that pixel's. A point hidden in
-//! one view is visible in another, so each point's error is its smallest over the views.
+//! one view is visible in another, so each point's error is its smallest over the views
+//! (and over the 3 x 3 pixels around its projection, for points on depth edges).
 
+use crate::alignment::{nearest_rotation, Similarity};
 use crate::camera::PinholeRadtan;
-use crate::trajectory::StampedPose;
-use nalgebra::Vector3;
+use crate::trajectory::{associate, StampedPose};
+use nalgebra::{Matrix3, Vector3};
+
+/// The similarity mapping an estimated trajectory onto the ground truth, with its rotation
+/// from the camera *orientations* (chordal mean of `R_gt R_est^T`) and scale and translation
+/// from the positions given that rotation. Unlike Umeyama on positions, it is determined for
+/// a straight-line trajectory (the paper's frontal and left-right profiles), where a
+/// rotation about the line moves the map but not the positions. `None` without two
+/// associated poses that moved.
+pub fn alignment_from_poses(
+    est: &[StampedPose],
+    gt: &[StampedPose],
+    max_dt: f64,
+) -> Option<Similarity> {
+    let pairs = associate(est, gt, max_dt);
+    if pairs.len() < 2 {
+        return None;
+    }
+    let sum: Matrix3<f64> = pairs
+        .iter()
+        .map(|&(e, g)| {
+            (gt[g].rotation.to_rotation_matrix() * est[e].rotation.inverse().to_rotation_matrix())
+                .into_inner()
+        })
+        .sum();
+    let rotation = nearest_rotation(&sum);
+    let n = pairs.len() as f64;
+    let p_mean = pairs
+        .iter()
+        .map(|&(e, _)| est[e].position)
+        .sum::<Vector3<f64>>()
+        / n;
+    let q_mean = pairs
+        .iter()
+        .map(|&(_, g)| gt[g].position)
+        .sum::<Vector3<f64>>()
+        / n;
+    let (mut num, mut den) = (0.0, 0.0);
+    for &(e, g) in &pairs {
+        let rp = rotation * (est[e].position - p_mean);
+        num += (gt[g].position - q_mean).dot(&rp);
+        den += rp.norm_squared();
+    }
+    if den < 1e-18 || num <= 0.0 {
+        return None;
+    }
+    let scale = num / den;
+    Some(Similarity {
+        scale,
+        rotation,
+        translation: q_mean - scale * (rotation * p_mean),
+    })
+}
 
 /// Structure error over the points that were seen in at least one view.
 #[derive(Debug, Clone, PartialEq)]
@@ -39,11 +92,19 @@ pub fn structure_error(
             if !camera.contains(px) {
                 continue;
             }
-            let Some(d) = depth(v, px.x as u32, px.y as u32) else {
-                continue;
-            };
-            let e = (pc.z - d).abs();
-            best = Some(best.map_or(e, |b: f64| b.min(e)));
+            // The 3 x 3 pixels around the projection: a point on a depth edge is compared
+            // with its own surface, not with the one behind it.
+            let (cx, cy) = (px.x as i64, px.y as i64);
+            for (dx, dy) in (-1..=1).flat_map(|dx| (-1..=1).map(move |dy| (dx, dy))) {
+                let (x, y) = (cx + dx, cy + dy);
+                if x < 0 || y < 0 || x >= i64::from(camera.width) || y >= i64::from(camera.height) {
+                    continue;
+                }
+                if let Some(d) = depth(v, x as u32, y as u32) {
+                    let e = (pc.z - d).abs();
+                    best = Some(best.map_or(e, |b: f64| b.min(e)));
+                }
+            }
         }
         errors.extend(best);
     }
@@ -87,5 +148,37 @@ mod tests {
         assert!((r.rmse_m - (0.01f64 / 3.0).sqrt()).abs() < 1e-9, "{r:?}");
         assert!(r.median_m.abs() < 1e-12);
         assert!(structure_error(&camera, &points, &[view], |_, _, _| None).is_none());
+    }
+
+    #[test]
+    fn alignment_from_poses_is_determined_on_a_straight_line() {
+        // A straight walk along z; the estimate is the truth seen through a similarity that
+        // includes a rotation about z (invisible to position-only alignment).
+        let g = Similarity {
+            scale: 0.3,
+            rotation: nalgebra::Rotation3::from_euler_angles(0.0, 0.0, 0.7),
+            translation: Vector3::new(1.0, -2.0, 0.5),
+        };
+        let truth: Vec<StampedPose> = (0..10)
+            .map(|i| StampedPose {
+                timestamp: i as f64,
+                position: Vector3::new(0.0, 0.0, 0.2 * i as f64),
+                rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * i as f64, 0.0),
+            })
+            .collect();
+        let inv = g.inverse();
+        let est: Vec<StampedPose> = truth
+            .iter()
+            .map(|p| StampedPose {
+                position: inv.apply(&p.position),
+                rotation: UnitQuaternion::from_rotation_matrix(&inv.rotation) * p.rotation,
+                ..*p
+            })
+            .collect();
+        let a = alignment_from_poses(&est, &truth, 0.01).expect("aligned");
+        assert!((a.scale - g.scale).abs() < 1e-9, "{a:?}");
+        assert!((a.rotation.matrix() - g.rotation.matrix()).norm() < 1e-9);
+        let x = Vector3::new(1.0, 2.0, 3.0);
+        assert!((a.apply(&inv.apply(&x)) - x).norm() < 1e-9);
     }
 }
