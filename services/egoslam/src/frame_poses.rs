@@ -8,14 +8,21 @@ use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{interpolate_between, localize_frame, LocalizationOptions, MapBuilder};
 
 /// Tries every pending frame whose bracketing keyframes are both posed in one segment;
-/// frames whose next keyframe is not yet in the map stay pending.
+/// frames whose next keyframe is not yet in the map stay pending, unless that keyframe is
+/// older than `oldest_live_keyframe` (no later window can pose it: it stays unposed).
 pub fn localize_pending(
     index: &mut FrameIndex,
     map: &MapBuilder,
     camera: &PinholeRadtan,
+    oldest_live_keyframe: u64,
     stats: &mut ServiceStats,
 ) {
     let options = LocalizationOptions::default();
+    let before = index.pending.len();
+    index.pending.retain(|_, p| {
+        p.next_keyframe >= oldest_live_keyframe || map.keyframe(p.next_keyframe).is_some()
+    });
+    stats.count("unposed_frames", (before - index.pending.len()) as u64);
     let ready: Vec<u64> = index
         .pending
         .iter()

@@ -128,7 +128,8 @@ impl Merger {
             let (frames, map) = (&mut self.state.frames, &self.state.map);
             let stats = &mut self.stats;
             let start = std::time::Instant::now();
-            frame_poses::localize_pending(frames, map, camera, stats);
+            let oldest = w.keyframe_ids.first().copied().unwrap_or(0);
+            frame_poses::localize_pending(frames, map, camera, oldest, stats);
             stats.add_time("localize_frames", start.elapsed().as_secs_f64() * 1e3);
         }
         self.state.last_sequence = Some(sequence);

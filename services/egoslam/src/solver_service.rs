@@ -134,6 +134,14 @@ fn solve(
         stats.add_time(stage, *ms);
     }
     let (status, reason) = match &solution.status {
+        WindowStatus::Solved if solution.keyframes.len() < kfs.len() => (
+            pb::SolveStatus::Solved,
+            format!(
+                "partial: {} of {} keyframes (view graph in pieces)",
+                solution.keyframes.len(),
+                kfs.len()
+            ),
+        ),
         WindowStatus::Solved => (pb::SolveStatus::Solved, String::new()),
         WindowStatus::RotationOnly => (
             pb::SolveStatus::Solved,
@@ -158,8 +166,14 @@ fn solve(
     stats
         .window_translations
         .push(relative_translation(&solution));
-    let poses = kfs
+    if solution.keyframes.len() < kfs.len() && !solution.keyframes.is_empty() {
+        stats.count("partial_windows", 1);
+    }
+    // Poses of the solved keyframes (all, or the largest connected piece of the window).
+    let poses = solution
+        .keyframes
         .iter()
+        .map(|k| &kfs[*k])
         .zip(&solution.poses)
         .map(|(k, p)| pb::KeyframePose {
             keyframe_id: k.keyframe_id,

@@ -10,7 +10,9 @@ use crate::translation_averaging::{
 use crate::triangulation::{
     triangulate_track, CameraPose, TriangulationFailure, TriangulationOptions,
 };
-use crate::view_graph::{build_view_graph, EdgeCache, KeyframeObservations, ViewGraphOptions};
+use crate::view_graph::{
+    build_view_graph, EdgeCache, KeyframeObservations, ViewEdge, ViewGraphOptions,
+};
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Point2, Rotation3, Vector3};
 use std::collections::BTreeMap;
@@ -77,6 +79,9 @@ pub struct SolvedPoint {
 #[derive(Debug, Clone, PartialEq)]
 pub struct WindowSolution {
     pub status: WindowStatus,
+    /// Indices of the window's keyframes that `poses` (and the observations' keyframe
+    /// indices) refer to: all of them, or the largest connected piece of the view graph.
+    pub keyframes: Vec<usize>,
     /// One per keyframe, in window order (empty when failed).
     pub poses: Vec<CameraPose>,
     pub points: Vec<SolvedPoint>,
@@ -104,6 +109,7 @@ impl WindowSolution {
     ) -> Self {
         Self {
             status: WindowStatus::RotationOnly,
+            keyframes: (0..rotations.len()).collect(),
             poses: rotations
                 .iter()
                 .map(|r| CameraPose {
@@ -125,6 +131,7 @@ impl WindowSolution {
     fn failed(reason: String, timings_ms: Vec<(&'static str, f64)>, edges: usize) -> Self {
         Self {
             status: WindowStatus::Failed(reason),
+            keyframes: Vec::new(),
             poses: Vec::new(),
             points: Vec::new(),
             observations: Vec::new(),
@@ -208,6 +215,91 @@ pub fn solve_window(
     for (i, j, e) in &failures {
         tracing::debug!(i, j, %e, "no edge");
     }
+    // A view graph in pieces (a dark second, a whip pan) is solved on its largest piece:
+    // the rest of the window is left unposed instead of failing the whole window, so the
+    // map continues wherever the piece still shares keyframes with the previous window.
+    let component = largest_component(n, &edges);
+    if component.len() < 2 {
+        return WindowSolution::failed(
+            "view graph has no edge: no keyframe pair could be related".into(),
+            timings,
+            edges.len(),
+        );
+    }
+    if component.len() == n {
+        return solve_connected(camera, keyframes, &edges, options, timings);
+    }
+    let mut index = vec![usize::MAX; n];
+    for (new, old) in component.iter().enumerate() {
+        index[*old] = new;
+    }
+    let sub_keyframes: Vec<KeyframeObservations> =
+        component.iter().map(|k| keyframes[*k].clone()).collect();
+    let sub_edges: Vec<ViewEdge> = edges
+        .iter()
+        .filter(|e| index[e.i] != usize::MAX && index[e.j] != usize::MAX)
+        .map(|e| ViewEdge {
+            i: index[e.i],
+            j: index[e.j],
+            ..*e
+        })
+        .collect();
+    tracing::info!(
+        solved = component.len(),
+        keyframes = n,
+        "view graph disconnected: solving its largest piece"
+    );
+    let mut solution = solve_connected(camera, &sub_keyframes, &sub_edges, options, timings);
+    let back = |k: &mut usize| *k = component[*k];
+    solution
+        .observations
+        .iter_mut()
+        .for_each(|o| back(&mut o.0));
+    solution
+        .weak_observations
+        .iter_mut()
+        .for_each(|o| back(&mut o.0));
+    solution.keyframes = component;
+    solution
+}
+
+/// Keyframe indices of the largest connected piece of the view graph, in order (ties: the
+/// piece with the earliest keyframe, which continues the previous window).
+fn largest_component(n: usize, edges: &[ViewEdge]) -> Vec<usize> {
+    let mut parent: Vec<usize> = (0..n).collect();
+    fn root(parent: &mut [usize], mut k: usize) -> usize {
+        while parent[k] != k {
+            parent[k] = parent[parent[k]];
+            k = parent[k];
+        }
+        k
+    }
+    for e in edges {
+        let (a, b) = (root(&mut parent, e.i), root(&mut parent, e.j));
+        if a != b {
+            parent[a.max(b)] = a.min(b);
+        }
+    }
+    let mut size = vec![0usize; n];
+    let roots: Vec<usize> = (0..n).map(|k| root(&mut parent, k)).collect();
+    for r in &roots {
+        size[*r] += 1;
+    }
+    let best = (0..n)
+        .max_by(|a, b| size[*a].cmp(&size[*b]).then(b.cmp(a)))
+        .unwrap_or(0);
+    (0..n).filter(|k| roots[*k] == best).collect()
+}
+
+/// Solves a window whose view graph is connected.
+fn solve_connected(
+    camera: &PinholeRadtan,
+    keyframes: &[KeyframeObservations],
+    edges: &[ViewEdge],
+    options: &WindowSolverOptions,
+    mut timings: Vec<(&'static str, f64)>,
+) -> WindowSolution {
+    let n = keyframes.len();
     let rel: Vec<RelativeRotation> = edges
         .iter()
         .map(|e| RelativeRotation {
@@ -323,6 +415,7 @@ pub fn solve_window(
     if points.len() < options.min_points {
         return WindowSolution {
             status: WindowStatus::Solved,
+            keyframes: (0..n).collect(),
             poses,
             points: Vec::new(),
             observations: Vec::new(),
@@ -372,6 +465,7 @@ pub fn solve_window(
         .collect();
     WindowSolution {
         status: WindowStatus::Solved,
+        keyframes: (0..n).collect(),
         poses: adjusted.poses,
         points: solved_points,
         observations: kept,
@@ -385,156 +479,5 @@ pub fn solve_window(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::test_support::gaussian;
-    use egoslam_geometry::umeyama;
-    use rand::rngs::StdRng;
-    use rand::{Rng, SeedableRng};
-
-    fn camera() -> PinholeRadtan {
-        PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera")
-    }
-
-    /// A head walking forward and looking around, 20 keyframes.
-    fn head_poses() -> Vec<CameraPose> {
-        (0..20)
-            .map(|i| {
-                let t = i as f64;
-                CameraPose {
-                    rotation: Rotation3::from_euler_angles(
-                        0.03 * (0.7 * t).sin(),
-                        0.12 * (0.3 * t).sin(),
-                        0.02 * t.cos(),
-                    ),
-                    centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
-                }
-            })
-            .collect()
-    }
-
-    fn random_points(rng: &mut StdRng, n: usize) -> Vec<Vector3<f64>> {
-        (0..n)
-            .map(|_| {
-                Vector3::new(
-                    rng.random_range(-6.0..6.0),
-                    rng.random_range(-3.0..3.0),
-                    rng.random_range(3.0..15.0),
-                )
-            })
-            .collect()
-    }
-
-    /// Tracks of every visible point in every keyframe, with Gaussian pixel noise `sigma`.
-    fn observe(
-        poses: &[CameraPose],
-        points: &[Vector3<f64>],
-        sigma: f64,
-        rng: &mut StdRng,
-    ) -> Vec<KeyframeObservations> {
-        let camera = camera();
-        poses
-            .iter()
-            .enumerate()
-            .map(|(k, pose)| {
-                let mut tracks = BTreeMap::new();
-                for (id, x) in points.iter().enumerate() {
-                    if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
-                        if camera.contains(p) {
-                            tracks.insert(
-                                id as u64,
-                                Point2::new(
-                                    p.x + sigma * gaussian(rng),
-                                    p.y + sigma * gaussian(rng),
-                                ),
-                            );
-                        }
-                    }
-                }
-                KeyframeObservations {
-                    id: k as u64,
-                    timestamp: k as f64 * 0.2,
-                    tracks,
-                }
-            })
-            .collect()
-    }
-
-    #[test]
-    fn whole_window_from_noisy_tracks_is_accurate() {
-        let mut rng = StdRng::seed_from_u64(21);
-        let truth = head_poses();
-        let points = random_points(&mut rng, 1500);
-        let keyframes = observe(&truth, &points, 1.0, &mut rng);
-        let solution = solve_window(
-            &camera(),
-            &keyframes,
-            &WindowSolverOptions::default(),
-            &mut EdgeCache::new(),
-        );
-        assert_eq!(solution.status, WindowStatus::Solved);
-        let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
-        let tru: Vec<_> = truth.iter().map(|p| p.centre).collect();
-        let sim = umeyama(&est, &tru).expect("aligned");
-        let rmse = (est
-            .iter()
-            .zip(&tru)
-            .map(|(e, t)| (sim.apply(e) - t).norm_squared())
-            .sum::<f64>()
-            / est.len() as f64)
-            .sqrt();
-        let path: f64 = tru.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
-        assert!(
-            rmse < 0.005 * path,
-            "keyframe ATE {rmse} over a {path} path"
-        );
-        assert!(
-            solution.rmse_px < 1.1,
-            "reprojection {} px",
-            solution.rmse_px
-        );
-        assert!(solution.points.len() > 500);
-        let stages: Vec<_> = solution.timings_ms.iter().map(|t| t.0).collect();
-        assert_eq!(
-            stages,
-            [
-                "relative_poses",
-                "rotation_averaging",
-                "translation_averaging",
-                "triangulation",
-                "bundle_adjustment"
-            ]
-        );
-    }
-
-    #[test]
-    fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
-        let mut rng = StdRng::seed_from_u64(22);
-        let mut truth = head_poses();
-        for p in &mut truth {
-            p.centre = Vector3::zeros();
-        }
-        let points = random_points(&mut rng, 800);
-        let keyframes = observe(&truth, &points, 0.5, &mut rng);
-        let solution = solve_window(
-            &camera(),
-            &keyframes,
-            &WindowSolverOptions::default(),
-            &mut EdgeCache::new(),
-        );
-        assert_eq!(solution.status, WindowStatus::RotationOnly);
-        for (est, tru) in solution.poses.iter().zip(&truth) {
-            // Camera 0 is the identity in the window frame.
-            let expected = tru.rotation * truth[0].rotation.inverse();
-            assert!(est.rotation.angle_to(&expected) < 0.2f64.to_radians());
-            assert_eq!(est.centre, Vector3::zeros());
-        }
-        let one = solve_window(
-            &camera(),
-            &keyframes[..1],
-            &WindowSolverOptions::default(),
-            &mut EdgeCache::new(),
-        );
-        assert!(matches!(one.status, WindowStatus::Failed(_)));
-    }
-}
+#[path = "window_solver_tests.rs"]
+mod tests;

@@ -1,0 +1,190 @@
+//! Tests of the window solver on synthetic truth (fixed seeds).
+
+use super::*;
+use crate::test_support::gaussian;
+use egoslam_geometry::umeyama;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+fn camera() -> PinholeRadtan {
+    PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera")
+}
+
+/// A head walking forward and looking around, 20 keyframes.
+fn head_poses() -> Vec<CameraPose> {
+    (0..20)
+        .map(|i| {
+            let t = i as f64;
+            CameraPose {
+                rotation: Rotation3::from_euler_angles(
+                    0.03 * (0.7 * t).sin(),
+                    0.12 * (0.3 * t).sin(),
+                    0.02 * t.cos(),
+                ),
+                centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
+            }
+        })
+        .collect()
+}
+
+fn random_points(rng: &mut StdRng, n: usize) -> Vec<Vector3<f64>> {
+    (0..n)
+        .map(|_| {
+            Vector3::new(
+                rng.random_range(-6.0..6.0),
+                rng.random_range(-3.0..3.0),
+                rng.random_range(3.0..15.0),
+            )
+        })
+        .collect()
+}
+
+/// Tracks of every visible point in every keyframe, with Gaussian pixel noise `sigma`.
+fn observe(
+    poses: &[CameraPose],
+    points: &[Vector3<f64>],
+    sigma: f64,
+    rng: &mut StdRng,
+) -> Vec<KeyframeObservations> {
+    let camera = camera();
+    poses
+        .iter()
+        .enumerate()
+        .map(|(k, pose)| {
+            let mut tracks = BTreeMap::new();
+            for (id, x) in points.iter().enumerate() {
+                if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
+                    if camera.contains(p) {
+                        tracks.insert(
+                            id as u64,
+                            Point2::new(p.x + sigma * gaussian(rng), p.y + sigma * gaussian(rng)),
+                        );
+                    }
+                }
+            }
+            KeyframeObservations {
+                id: k as u64,
+                timestamp: k as f64 * 0.2,
+                tracks,
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn whole_window_from_noisy_tracks_is_accurate() {
+    let mut rng = StdRng::seed_from_u64(21);
+    let truth = head_poses();
+    let points = random_points(&mut rng, 1500);
+    let keyframes = observe(&truth, &points, 1.0, &mut rng);
+    let solution = solve_window(
+        &camera(),
+        &keyframes,
+        &WindowSolverOptions::default(),
+        &mut EdgeCache::new(),
+    );
+    assert_eq!(solution.status, WindowStatus::Solved);
+    let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
+    let tru: Vec<_> = truth.iter().map(|p| p.centre).collect();
+    let sim = umeyama(&est, &tru).expect("aligned");
+    let rmse = (est
+        .iter()
+        .zip(&tru)
+        .map(|(e, t)| (sim.apply(e) - t).norm_squared())
+        .sum::<f64>()
+        / est.len() as f64)
+        .sqrt();
+    let path: f64 = tru.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+    assert!(
+        rmse < 0.005 * path,
+        "keyframe ATE {rmse} over a {path} path"
+    );
+    assert!(
+        solution.rmse_px < 1.1,
+        "reprojection {} px",
+        solution.rmse_px
+    );
+    assert!(solution.points.len() > 500);
+    let stages: Vec<_> = solution.timings_ms.iter().map(|t| t.0).collect();
+    assert_eq!(
+        stages,
+        [
+            "relative_poses",
+            "rotation_averaging",
+            "translation_averaging",
+            "triangulation",
+            "bundle_adjustment"
+        ]
+    );
+}
+
+#[test]
+fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
+    let mut rng = StdRng::seed_from_u64(22);
+    let mut truth = head_poses();
+    for p in &mut truth {
+        p.centre = Vector3::zeros();
+    }
+    let points = random_points(&mut rng, 800);
+    let keyframes = observe(&truth, &points, 0.5, &mut rng);
+    let solution = solve_window(
+        &camera(),
+        &keyframes,
+        &WindowSolverOptions::default(),
+        &mut EdgeCache::new(),
+    );
+    assert_eq!(solution.status, WindowStatus::RotationOnly);
+    for (est, tru) in solution.poses.iter().zip(&truth) {
+        // Camera 0 is the identity in the window frame.
+        let expected = tru.rotation * truth[0].rotation.inverse();
+        assert!(est.rotation.angle_to(&expected) < 0.2f64.to_radians());
+        assert_eq!(est.centre, Vector3::zeros());
+    }
+    let one = solve_window(
+        &camera(),
+        &keyframes[..1],
+        &WindowSolverOptions::default(),
+        &mut EdgeCache::new(),
+    );
+    assert!(matches!(one.status, WindowStatus::Failed(_)));
+}
+
+#[test]
+fn a_window_in_two_pieces_is_solved_on_the_larger_one() {
+    let mut rng = StdRng::seed_from_u64(23);
+    let truth = head_poses();
+    let points = random_points(&mut rng, 1500);
+    let mut keyframes = observe(&truth, &points, 0.5, &mut rng);
+    // Keyframes 6-8 are dark (no tracks); tracking restarts after them with new track ids,
+    // so nothing links keyframes 0-5 with 9-19.
+    for k in &mut keyframes[6..9] {
+        k.tracks.clear();
+    }
+    for k in &mut keyframes[9..] {
+        k.tracks = k
+            .tracks
+            .iter()
+            .map(|(id, p)| (id + 1_000_000, *p))
+            .collect();
+    }
+    let solution = solve_window(
+        &camera(),
+        &keyframes,
+        &WindowSolverOptions::default(),
+        &mut EdgeCache::new(),
+    );
+    assert_eq!(solution.status, WindowStatus::Solved);
+    assert_eq!(solution.keyframes, (9..20).collect::<Vec<_>>());
+    assert_eq!(solution.poses.len(), 11);
+    assert!(solution.observations.iter().all(|(k, _, _)| *k >= 9));
+    let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
+    let tru: Vec<_> = truth[9..].iter().map(|p| p.centre).collect();
+    let sim = umeyama(&est, &tru).expect("aligned");
+    let worst = est
+        .iter()
+        .zip(&tru)
+        .map(|(e, t)| (sim.apply(e) - t).norm())
+        .fold(0.0, f64::max);
+    let path: f64 = tru.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
+    assert!(worst < 0.01 * path, "worst {worst} over {path}");
+}
