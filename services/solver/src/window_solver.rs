@@ -37,6 +37,12 @@ pub struct WindowSolverOptions {
     pub max_averaging_tracks: usize,
     /// A window with fewer triangulated points is not bundle-adjusted (default 20).
     pub min_points: usize,
+    /// A window whose view graph falls into pieces is solved on its largest piece if that
+    /// holds at least this fraction of the keyframes, else it fails (default 0.5: on the
+    /// rendered shake, dark and Aria-replay sequences, smaller pieces each started a new
+    /// map segment, 5 instead of 2 on the shake; at 0.5 the breaks stay as when the window
+    /// failed whole while 4-11 % more frames get a pose).
+    pub min_piece_fraction: f64,
 }
 
 impl Default for WindowSolverOptions {
@@ -51,6 +57,7 @@ impl Default for WindowSolverOptions {
             min_track_views: 3,
             max_averaging_tracks: 800,
             min_points: 20,
+            min_piece_fraction: 0.5,
         }
     }
 }
@@ -219,9 +226,12 @@ pub fn solve_window(
     // the rest of the window is left unposed instead of failing the whole window, so the
     // map continues wherever the piece still shares keyframes with the previous window.
     let component = largest_component(n, &edges);
-    if component.len() < 2 {
+    if component.len() < 2 || (component.len() as f64) < options.min_piece_fraction * n as f64 {
         return WindowSolution::failed(
-            "view graph has no edge: no keyframe pair could be related".into(),
+            format!(
+                "view graph in pieces: the largest holds {} of {n} keyframes",
+                component.len()
+            ),
             timings,
             edges.len(),
         );
