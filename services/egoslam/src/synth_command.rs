@@ -178,6 +178,23 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut last_progress = Instant::now();
     let mut render_s = 0.0;
+    // PNG encoding runs on its own thread while the next frame renders.
+    let (to_writer, frames_in) = std::sync::mpsc::sync_channel::<(usize, egoslam_synth::Frame)>(4);
+    let (rgb_dir, depth_dir) = (out.join("rgb"), out.join("depth"));
+    let writer = std::thread::spawn(move || -> anyhow::Result<()> {
+        for (i, frame) in frames_in {
+            let name = format!("{i:06}.png");
+            let (w, h) = (frame.width as i32, frame.height as i32);
+            let grey = Mat::new_rows_cols_with_data(h, w, &frame.grey)?;
+            write_png(&rgb_dir.join(&name), &grey.try_clone()?)?;
+            let mut depth = Mat::new_rows_cols_with_default(h, w, CV_16UC1, 0.into())?;
+            for (d, z) in depth.data_typed_mut::<u16>()?.iter_mut().zip(&frame.depth) {
+                *d = (f64::from(*z) * 5000.0).round().clamp(0.0, 65535.0) as u16;
+            }
+            write_png(&depth_dir.join(&name), &depth)?;
+        }
+        Ok(())
+    });
     for (i, pose) in poses.iter().enumerate() {
         let shutter: Vec<_> = if sub > 1 {
             let half = ((sub as f64 * options.shutter) / 2.0).round() as usize;
@@ -195,23 +212,10 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         };
         let frame = render_frame(&scene, &camera, &shutter, i as u64, &frame_options);
         render_s += render_start.elapsed().as_secs_f64();
+        if to_writer.send((i, frame)).is_err() {
+            break; // the writer failed: its error is reported below
+        }
         let name = format!("{i:06}.png");
-        let grey =
-            Mat::new_rows_cols_with_data(args.height as i32, args.width as i32, &frame.grey)?;
-        write_png(&out.join("rgb").join(&name), &grey.try_clone()?)?;
-        let depth_mm: Vec<u16> = frame
-            .depth
-            .iter()
-            .map(|d| (f64::from(*d) * 5000.0).round().clamp(0.0, 65535.0) as u16)
-            .collect();
-        let mut depth = Mat::new_rows_cols_with_default(
-            args.height as i32,
-            args.width as i32,
-            CV_16UC1,
-            0.into(),
-        )?;
-        depth.data_typed_mut::<u16>()?.copy_from_slice(&depth_mm);
-        write_png(&out.join("depth").join(&name), &depth)?;
         rgb_index.push_str(&format!("{:.6} rgb/{name}\n", pose.timestamp));
         depth_index.push_str(&format!("{:.6} depth/{name}\n", pose.timestamp));
         if last_progress.elapsed().as_secs_f64() > 2.0 {
@@ -223,6 +227,11 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
                 poses.len()
             );
         }
+    }
+    drop(to_writer);
+    match writer.join() {
+        Ok(result) => result?,
+        Err(_) => bail!("the PNG writer thread panicked"),
     }
     write_atomically(&out.join("rgb.txt"), rgb_index.as_bytes())?;
     write_atomically(&out.join("depth.txt"), depth_index.as_bytes())?;
