@@ -76,14 +76,14 @@ fn launcher_stops_everything_when_a_service_dies() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("run");
-    // Find the frontend child and kill it.
+    // Find the replay child (the one service that is not restarted) and kill it.
     std::thread::sleep(Duration::from_millis(1500));
     let children = std::process::Command::new("pgrep")
-        .args(["-P", &run.id().to_string(), "-f", "egoslam frontend"])
+        .args(["-P", &run.id().to_string(), "-f", "egoslam replay"])
         .output()
         .expect("pgrep");
     let pid = String::from_utf8_lossy(&children.stdout).trim().to_string();
-    assert!(!pid.is_empty(), "frontend child not found");
+    assert!(!pid.is_empty(), "replay child not found");
     std::process::Command::new("kill")
         .args(["-9", &pid])
         .status()
@@ -104,7 +104,7 @@ fn launcher_stops_everything_when_a_service_dies() {
         .expect("pipe")
         .read_to_string(&mut stderr)
         .expect("read");
-    assert!(stderr.contains("frontend service failed"), "{stderr}");
+    assert!(stderr.contains("replay service failed"), "{stderr}");
     // No orphans: the other services were stopped.
     let left = std::process::Command::new("pgrep")
         .args(["-f", &format!("--out={}", out.path().display())])

@@ -18,6 +18,9 @@ pub struct Channel {
     pub buffer: usize,
     /// Initial slice size in bytes; messages grow it (power-of-two reallocation).
     pub initial_bytes: usize,
+    /// How long a consumer waits for a vanished producer to be restarted before it gives
+    /// up, seconds (0: the producer cannot be restarted; fail at once).
+    pub restart_grace_s: u64,
 }
 
 /// Decoded grey frames, replay -> frontend. Buffer of 4 frames: enough to absorb decode
@@ -26,6 +29,8 @@ pub const FRAMES: Channel = Channel {
     name: "frames",
     buffer: 4,
     initial_bytes: 640 * 480,
+    // The replay (or camera) is not restartable: a consumer fails as soon as it is gone.
+    restart_grace_s: 0,
 };
 
 /// Keyframes with their tracks, frontend -> solver (about 1000 tracks x 24 bytes).
@@ -33,6 +38,8 @@ pub const KEYFRAMES: Channel = Channel {
     name: "keyframes",
     buffer: 64,
     initial_bytes: 64 * 1024,
+    // A restarted frontend (launcher or systemd, RestartSec=1) comes back within seconds.
+    restart_grace_s: 10,
 };
 
 /// Window solutions, solver -> merger.
@@ -40,4 +47,5 @@ pub const WINDOWS: Channel = Channel {
     name: "windows",
     buffer: 16,
     initial_bytes: 256 * 1024,
+    restart_grace_s: 10,
 };

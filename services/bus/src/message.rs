@@ -91,7 +91,10 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
         let name = self.bus.service_name(&self.channel);
         let sequence = *sample.user_header();
         if let Some(expected) = self.expected {
-            if sequence != expected {
+            if sequence == 0 && expected > 0 {
+                // A restarted producer numbers from 0 again: a new stream, not a gap.
+                tracing::warn!(service = %name, after = expected, "producer restarted: a new stream begins");
+            } else if sequence != expected {
                 return Err(ReceiveError::Decode {
                     service: name,
                     reason: format!("sequence gap: expected {expected}, got {sequence}"),

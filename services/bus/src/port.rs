@@ -248,6 +248,7 @@ impl<H: Debug + ZeroCopySend> Inbox<H> {
     ) -> Result<Option<iceoryx2::sample::Sample<ipc::Service, [u8], H>>, ReceiveError> {
         let name = || bus.service_name(channel);
         let mut last_liveness_check = std::time::Instant::now();
+        let mut gone_since: Option<std::time::Instant> = None;
         loop {
             crate::record_activity();
             let got = self.subscriber.receive().map_err(|e| ReceiveError::Port {
@@ -262,7 +263,16 @@ impl<H: Debug + ZeroCopySend> Inbox<H> {
                 if producers_gone(bus, &self.service)
                     && !self.subscriber.has_samples().unwrap_or(false)
                 {
-                    return Err(ReceiveError::ProducerGone { service: name() });
+                    // A restartable producer gets `restart_grace_s` to come back.
+                    let since = *gone_since.get_or_insert_with(std::time::Instant::now);
+                    if since.elapsed() >= Duration::from_secs(channel.restart_grace_s) {
+                        return Err(ReceiveError::ProducerGone { service: name() });
+                    }
+                    if since.elapsed() < Duration::from_millis(1100) {
+                        tracing::warn!(service = %name(), grace_s = channel.restart_grace_s, "producer gone; waiting for it to be restarted");
+                    }
+                } else {
+                    gone_since = None;
                 }
             }
             if !bus.idle(Duration::ZERO) {

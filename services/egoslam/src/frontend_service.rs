@@ -23,6 +23,9 @@ fn reason(r: KeyframeReason) -> pb::KeyframeReason {
     }
 }
 
+/// File (in the output folder) with the ids a restarted frontend continues from.
+pub const ID_STATE_FILE: &str = "frontend.ids";
+
 /// Tracks sent with each frame between keyframes: enough for a PnP with RANSAC, a
 /// fraction of a keyframe's message.
 const TRACKS_PER_FRAME: usize = 300;
@@ -90,6 +93,25 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         ..TrackerOptions::default()
     };
     let mut tracker = Tracker::new(camera, options);
+    // A restarted frontend continues the ids of its predecessor (docs/durability.md).
+    let state_path = args.out.join(ID_STATE_FILE);
+    if let Ok(text) = std::fs::read_to_string(&state_path) {
+        let ids: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("{}: unreadable", state_path.display()))?;
+        let (Some(kf), Some(track)) = (
+            ids["next_keyframe_id"].as_u64(),
+            ids["next_track_id"].as_u64(),
+        ) else {
+            bail!("{}: missing ids", state_path.display())
+        };
+        tracing::warn!(
+            next_keyframe_id = kf,
+            next_track_id = track,
+            "resuming after a restart"
+        );
+        tracker.resume_ids(kf, track);
+        stats.count("restarts", 1);
+    }
     let bus = Bus::open(
         "frontend",
         BusOptions {
@@ -146,6 +168,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 );
                 stats.time("publish", || keyframes.send(&msg))?;
                 stats.keyframes += 1;
+                let (kf, track) = tracker.next_ids();
+                let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
+                crate::output::write_atomically(&state_path, ids.to_string().as_bytes())?;
                 tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
             }
             None => skipped.push(pb::FrameStamp {

@@ -62,9 +62,11 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
         .find_map(|d| load_ground_truth(d).ok())
 }
 
-/// Services that resume where a killed predecessor stopped (checkpoint + journal), and may
-/// therefore be restarted by the supervisor. The others hold state nothing recovers yet.
-const RESTARTABLE: &[&str] = &["merger"];
+/// Services the supervisor restarts when they die by a signal: the merger resumes exactly
+/// (checkpoint + journal); a restarted frontend continues its ids and a restarted solver
+/// starts a new stream, which the merger continues as a new map segment (the keyframes in
+/// flight are lost: docs/durability.md). The replay (camera) is not restarted.
+const RESTARTABLE: &[&str] = &["merger", "solver", "frontend"];
 
 /// Restarts allowed per service and run: a service that keeps dying has a real problem.
 const MAX_RESTARTS: u32 = 3;
@@ -185,6 +187,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "report.json",
         crate::checkpoint::FILE_NAME,
         crate::window_journal::FILE_NAME,
+        crate::frontend_service::ID_STATE_FILE,
     ] {
         let _ = std::fs::remove_file(out.join(stale));
     }

@@ -95,17 +95,31 @@ impl Merger {
         self.args.out.join(checkpoint::FILE_NAME)
     }
 
+    /// Makes `stream_id` the current solver stream. A new stream while the previous one
+    /// is unfinished means the solver was restarted mid-stream: the map goes on in a new
+    /// segment (keyframe ids stay unique: the frontend continues them). After a finished
+    /// stream, a new one starts a new map.
+    fn begin_stream(&mut self, stream_id: u64) {
+        if self.state.stream_id == Some(stream_id) {
+            return;
+        }
+        if self.state.stream_id.is_some() && !self.state.finished {
+            tracing::warn!(
+                stream = stream_id,
+                "a new solver stream: the map continues in a new segment"
+            );
+            self.state.stream_id = Some(stream_id);
+            self.state.last_sequence = None;
+            self.state.map.break_segment();
+            self.stats.count("solver_restarts", 1);
+        } else {
+            self.state = MergerState::for_stream(stream_id);
+        }
+    }
+
     /// Applies message `sequence`, checkpoints, and writes/publishes the results.
     fn apply(&mut self, sequence: u64, w: &pb::WindowSolution) -> anyhow::Result<()> {
-        if self.state.stream_id != Some(w.stream_id) {
-            if self.state.stream_id.is_some() {
-                tracing::warn!(
-                    stream = w.stream_id,
-                    "a new solver stream: the merger starts a new map"
-                );
-            }
-            self.state = MergerState::for_stream(w.stream_id);
-        }
+        self.begin_stream(w.stream_id);
         for k in &w.keyframes {
             self.state.frames.add_stamp(k);
         }
@@ -192,9 +206,7 @@ impl Merger {
             }
             return Ok(());
         };
-        if self.state.stream_id != Some(journal.stream_id) {
-            self.state = MergerState::for_stream(journal.stream_id);
-        }
+        self.begin_stream(journal.stream_id);
         let first = self.state.next_sequence();
         let last = until.map_or(journal.messages.len() as u64, |(s, _)| s);
         if last > journal.messages.len() as u64 {

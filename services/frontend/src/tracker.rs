@@ -158,6 +158,18 @@ impl Tracker {
         }
     }
 
+    /// The ids the next keyframe and the next new track will get.
+    pub fn next_ids(&self) -> (u64, u64) {
+        (self.next_keyframe_id, self.next_track_id)
+    }
+
+    /// Continues numbering after a restart: ids stay unique over the whole stream, so the
+    /// solver and merger never mistake a new keyframe or track for an old one.
+    pub fn resume_ids(&mut self, next_keyframe_id: u64, next_track_id: u64) {
+        self.next_keyframe_id = self.next_keyframe_id.max(next_keyframe_id);
+        self.next_track_id = self.next_track_id.max(next_track_id);
+    }
+
     /// Tracks into `image` (8-bit grey) and decides whether it is a keyframe.
     /// `image` is any 8-bit grey matrix, including one borrowed from shared memory.
     pub fn process(
