@@ -10,14 +10,14 @@ use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
 use crate::frame_poses;
-use crate::map_state::{self, FrameIndex, MapState, Revisions};
+use crate::map_state::{self, MapState, Revisions};
 use crate::stats::ServiceStats;
 use crate::window_journal;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{MapBuilder, WindowInput, WindowOutcome};
+use egoslam_merger::{WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
@@ -34,14 +34,17 @@ impl Outputs {
     fn emit(
         &mut self,
         out: &Path,
-        map: &MapBuilder,
-        index: &FrameIndex,
+        merger: &MergerState,
         changed_points: &[u64],
         state: pb::ServiceState,
         stats: &mut ServiceStats,
+        persist: bool,
     ) -> anyhow::Result<()> {
+        let (map, index) = (&merger.map, &merger.frames);
         let snapshot = MapState::of(map, index);
-        snapshot.write_files(out)?;
+        if persist {
+            snapshot.write_files(out)?;
+        }
         stats.frames = index.frames.len() as u64;
         stats.keyframes = snapshot.keyframes.len() as u64;
         stats
@@ -53,7 +56,9 @@ impl Outputs {
         stats
             .counters
             .insert("map_points".into(), snapshot.points.len() as u64);
-        stats.write(out)?;
+        if persist {
+            stats.write(out)?;
+        }
         if let Some(egress) = &self.egress {
             let status = pb::Status {
                 service: "merger".into(),
@@ -88,7 +93,14 @@ struct Merger {
     refiner: BackgroundRefiner,
     /// Camera of the observations (from the windows), for PnP.
     camera: Option<PinholeRadtan>,
+    /// When the files and checkpoint were last written.
+    last_persist: Option<std::time::Instant>,
 }
+
+/// Longest time between rewrites of the result files and the checkpoint. Rewriting both
+/// after every window made a 12,000-frame walk spend 370 of its 428 s there (they grow
+/// with the map); the journal makes waiting safe.
+const PERSIST_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
 
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
@@ -156,30 +168,50 @@ impl Merger {
         } else {
             pb::ServiceState::Running
         };
-        self.emit(&changed, state)?;
+        let persist = self.persist_due();
+        self.emit(&changed, state, persist)?;
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
-        self.state.revisions = self.outputs.revisions.numbers();
-        let save_start = std::time::Instant::now();
-        self.state.save(&self.checkpoint_path())?;
-        self.stats
-            .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
+        if persist {
+            self.state.revisions = self.outputs.revisions.numbers();
+            let save_start = std::time::Instant::now();
+            self.state.save(&self.checkpoint_path())?;
+            self.stats
+                .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
+            self.last_persist = Some(std::time::Instant::now());
+        }
         Ok(())
     }
 
-    fn emit(&mut self, changed: &[u64], state: pb::ServiceState) -> anyhow::Result<()> {
+    /// Publishes over zenoh; with `persist`, also rewrites the result files.
+    fn emit(
+        &mut self,
+        changed: &[u64],
+        state: pb::ServiceState,
+        persist: bool,
+    ) -> anyhow::Result<()> {
         self.stats.windows = self.state.windows;
         self.stats
             .counters
             .insert("unsolved_windows".into(), self.state.unsolved_windows);
         self.outputs.emit(
             &self.args.out,
-            &self.state.map,
-            &self.state.frames,
+            &self.state,
             changed,
             state,
             &mut self.stats,
+            persist,
         )
+    }
+
+    /// Whether the files and the checkpoint are due: at most every
+    /// [`PERSIST_INTERVAL`], and always at the end of the stream. Windows in between are
+    /// safe in the solver's journal, from which a restarted merger replays them.
+    fn persist_due(&self) -> bool {
+        self.state.finished
+            || self
+                .last_persist
+                .is_none_or(|t| t.elapsed() >= PERSIST_INTERVAL)
     }
 
     /// Applies the journal's messages from the next expected one up to (not including)
@@ -387,6 +419,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         stats: ServiceStats::new("merger"),
         refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes),
         camera: None,
+        last_persist: None,
     };
     let fault = if resumed.is_none() {
         injected_fault()
@@ -429,7 +462,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         }
         merger.apply(sequence, &w)?;
     }
-    merger.emit(&[], pb::ServiceState::Finished)?;
+    merger.emit(&[], pb::ServiceState::Finished, true)?;
     tracing::info!(
         windows = merger.state.windows,
         segments = merger.state.map.segments(),
