@@ -120,3 +120,53 @@ fn a_consumer_that_stops_reading_fails_the_producer_instead_of_hanging_it() {
         "{result:?}"
     );
 }
+
+#[test]
+fn live_frames_for_a_slow_consumer_are_dropped_and_counted_never_lost_silently() {
+    let opts = options("live");
+    let consumer_opts = opts.clone();
+    let consumer = std::thread::spawn(move || {
+        let bus = Bus::open("consumer", consumer_opts).expect("bus");
+        let sub = FrameSubscriber::create(&bus).expect("subscriber");
+        let mut ids = Vec::new();
+        loop {
+            let f = sub.receive().expect("receive").expect("not terminated");
+            if f.meta().is_end_of_stream() {
+                break;
+            }
+            ids.push(f.meta().frame_id);
+            // A consumer ten times slower than the camera.
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        ids
+    });
+    let bus = Bus::open("producer", opts).expect("bus");
+    let mut publisher =
+        FramePublisher::create(&bus, 64 * 48, Delivery::DropNewest).expect("publisher");
+    for id in 0..200u64 {
+        let meta = FrameMeta {
+            frame_id: id,
+            timestamp: id as f64 / 30.0,
+            width: 64,
+            height: 48,
+            ..Default::default()
+        };
+        publisher.send(meta, &[0u8; 64 * 48]).expect("send");
+        std::thread::sleep(Duration::from_micros(500));
+    }
+    publisher.finish(199).expect("end of stream is lossless");
+    let ids = consumer.join().expect("consumer thread");
+    let dropped = publisher.dropped();
+    assert!(
+        dropped > 50,
+        "a slow consumer must cost frames: {dropped} dropped"
+    );
+    // Every frame is either received or counted as dropped, and order is kept.
+    assert_eq!(
+        ids.len() as u64 + dropped,
+        200,
+        "{} received, {dropped} dropped",
+        ids.len()
+    );
+    assert!(ids.windows(2).all(|w| w[0] < w[1]));
+}
