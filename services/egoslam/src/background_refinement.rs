@@ -37,10 +37,10 @@ impl BackgroundRefiner {
         map: &MapBuilder,
         camera: &PinholeRadtan,
         new_keyframes: &[u64],
-        earlier_tracks: &BTreeSet<u64>,
+        new_tracks: &BTreeSet<u64>,
         stats: &mut ServiceStats,
     ) -> Option<f64> {
-        let error = map.cross_window_error(camera, new_keyframes, earlier_tracks)?;
+        let error = map.cross_window_error(camera, new_keyframes, new_tracks)?;
         let due = error > self.threshold_px && self.worker.is_none();
         tracing::debug!(cross_window_px = error, due, "cross-window error");
         if due {

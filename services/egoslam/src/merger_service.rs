@@ -40,6 +40,9 @@ impl Outputs {
         stats: &mut ServiceStats,
         persist: bool,
     ) -> anyhow::Result<()> {
+        if !persist && self.egress.is_none() {
+            return Ok(()); // nobody reads the poses of every frame now: don't compute them
+        }
         let (map, index) = (&merger.map, &merger.frames);
         let snapshot = MapState::of(map, index);
         if persist {
@@ -286,7 +289,15 @@ impl Merger {
             self.state.map.break_segment();
             return;
         }
-        let earlier_tracks: BTreeSet<u64> = self.state.map.points().map(|(t, _, _)| t).collect();
+        // The points this window brings (and re-triangulation adds): the cross-window error
+        // compares only the others. Collected from the window, not the whole map (O(map)
+        // per window was most of the merger's time on long runs).
+        let mut new_tracks: BTreeSet<u64> = input
+            .points
+            .iter()
+            .map(|(t, _)| *t)
+            .filter(|t| self.state.map.point(*t).is_none())
+            .collect();
         let map = &mut self.state.map;
         let outcome = self.stats.time("align", || map.add_window(&input));
         if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
@@ -295,14 +306,16 @@ impl Merger {
             let r = self.stats.time("retriangulate", || {
                 map.retriangulate(&camera, &options, *first)
             });
-            self.stats.count("retriangulated_points", r.added as u64);
+            self.stats
+                .count("retriangulated_points", r.added.len() as u64);
             tracing::debug!(
                 window = w.window_id,
                 tried = r.tried,
-                added = r.added,
+                added = r.added.len(),
                 dropped = r.dropped,
                 "weak tracks re-triangulated"
             );
+            new_tracks.extend(r.added);
         }
         match outcome {
             WindowOutcome::NewSegment { segment } => {
@@ -325,7 +338,7 @@ impl Merger {
                         &self.state.map,
                         &camera,
                         &ids,
-                        &earlier_tracks,
+                        &new_tracks,
                         &mut self.stats,
                     );
                     tracing::info!(window = w.window_id, cross_window_px = ?error, "window aligned");

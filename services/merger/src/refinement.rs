@@ -309,8 +309,9 @@ impl MapBuilder {
     }
 
     /// Cross-window reprojection error: the median pixel error of the observations made
-    /// from `keyframes` of points that were already in the map before them, with the map's
-    /// current poses and points. Within a window BA fits its observations to ~1 px; what
+    /// from `keyframes` of points that were already in the map before them (all but
+    /// `new_tracks`, the points the latest window brought), with the map's current poses
+    /// and points. Within a window BA fits its observations to ~1 px; what
     /// exceeds that here is disagreement between windows (drift). The median, because a
     /// few points near a camera's plane reproject hundreds of pixels off and would make an
     /// RMS say "drift" on a sound map. `None` without such observations.
@@ -318,7 +319,7 @@ impl MapBuilder {
         &self,
         camera: &PinholeRadtan,
         keyframes: &[u64],
-        earlier_tracks: &BTreeSet<u64>,
+        new_tracks: &BTreeSet<u64>,
     ) -> Option<f64> {
         let mut errors = Vec::new();
         for id in keyframes {
@@ -327,7 +328,7 @@ impl MapBuilder {
             };
             let cam = camera_pose(pose);
             for ((_, track), px) in self.observations.range((*id, 0)..=(*id, u64::MAX)) {
-                if !earlier_tracks.contains(track) {
+                if new_tracks.contains(track) {
                     continue;
                 }
                 let Some((s, x)) = self.points.get(track) else {

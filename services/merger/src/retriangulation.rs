@@ -15,12 +15,12 @@ use nalgebra::Point2;
 pub const MIN_VIEWS: usize = 3;
 
 /// What one pass did.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct RetriangulationReport {
     /// Tracks tried (all views posed in the current segment).
     pub tried: usize,
-    /// Points added to the map.
-    pub added: usize,
+    /// Tracks whose points were added to the map.
+    pub added: Vec<u64>,
     /// Tracks given up because they ended (not seen by the newest window).
     pub dropped: usize,
 }
@@ -90,7 +90,7 @@ impl MapBuilder {
             done.push(*track);
             added.push((*track, point.position, kept));
         }
-        report.added = added.len();
+        report.added = added.iter().map(|(track, _, _)| *track).collect();
         for (track, x, kept) in added {
             self.points.insert(track, (segment, x));
             for (kf, px) in kept {
@@ -138,10 +138,14 @@ mod tests {
         map.add_window(&window(0..7));
         let options = TriangulationOptions::default();
         let first = map.retriangulate(&camera, &options, 0);
-        assert_eq!((first.tried, first.added), (1, 0), "angle too small so far");
+        assert_eq!(
+            (first.tried, first.added.len()),
+            (1, 0),
+            "angle too small so far"
+        );
         map.add_window(&window(5..13));
         let second = map.retriangulate(&camera, &options, 5);
-        assert_eq!(second.added, 1);
+        assert_eq!(second.added, vec![77]);
         let (_, got) = map.point(77).expect("point added");
         assert!((got - x).norm() < 1e-6 * x.norm(), "{got:?}");
         assert_eq!(
