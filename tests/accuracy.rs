@@ -10,10 +10,6 @@ use egoslam_sources::ground_truth::read_tum_file;
 use egoslam_sources::load_ground_truth;
 use std::path::Path;
 
-fn run(input: &Path, out: &Path) -> serde_json::Value {
-    run_report(input, out)
-}
-
 /// Keyframe ATE (m) and its ground-truth path length.
 fn keyframe_ate(out: &Path, gt: &Path) -> (f64, f64) {
     let est = read_tum_file(&out.join("keyframes.tum")).expect("keyframes");
@@ -25,7 +21,7 @@ fn keyframe_ate(out: &Path, gt: &Path) -> (f64, f64) {
 #[test]
 fn tum_fixture_every_frame_posed_one_segment() {
     let out = tempfile::tempdir().expect("tempdir");
-    let report = run(&tum_fixture(), out.path());
+    let report = run_report(&tum_fixture(), out.path());
     assert_eq!(report["posed_frames"], 120);
     assert_eq!(report["segments"], 1);
     let (ate, path) = keyframe_ate(out.path(), &tum_fixture());
@@ -39,7 +35,7 @@ fn kitti_every_frame_posed_one_segment() {
         return;
     };
     let out = tempfile::tempdir().expect("tempdir");
-    let report = run(&input, out.path());
+    let report = run_report(&input, out.path());
     assert_eq!(report["posed_frames"], 150);
     assert_eq!(report["segments"], 1);
     let (ate, _) = keyframe_ate(out.path(), &input.join("dataset/poses/00.txt"));
@@ -62,7 +58,7 @@ fn euroc_standing_still_invents_no_motion_and_gets_rotations_right() {
         return;
     };
     let out = tempfile::tempdir().expect("tempdir");
-    let report = run(&input, out.path());
+    let report = run_report(&input, out.path());
     assert_eq!(report["posed_frames"], 95);
     assert_eq!(report["segments"], 1);
     let est = read_tum_file(&out.path().join("keyframes.tum")).expect("keyframes");

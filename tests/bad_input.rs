@@ -40,6 +40,33 @@ fn tum_copy(dir: &Path, n: usize) {
     std::fs::copy(src.join("camera.yaml"), dir.join("camera.yaml")).expect("copy calib");
 }
 
+/// The image file of frame `n` (0-based) of a TUM copy.
+fn frame_file(dir: &Path, n: usize) -> std::path::PathBuf {
+    let index = std::fs::read_to_string(dir.join("rgb.txt")).expect("read");
+    let file = index
+        .lines()
+        .nth(n)
+        .and_then(|l| l.split_whitespace().nth(1))
+        .expect("frame in rgb.txt");
+    dir.join(file)
+}
+
+/// Runs `egoslam run` on `input`, which must succeed; its stderr and report.json.
+fn run_ok(input: &Path) -> (String, serde_json::Value) {
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = egoslam()
+        .args(["run", "--input"])
+        .arg(input)
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{err}");
+    let report = std::fs::read_to_string(out.path().join("report.json")).expect("report");
+    (err, serde_json::from_str(&report).expect("json"))
+}
+
 #[test]
 fn missing_path() {
     let (ok, err) = run(Path::new("/nonexistent/sequence"), &[]);
@@ -72,26 +99,11 @@ fn empty_sequence() {
 fn truncated_image_mid_stream_is_skipped_named_and_counted() {
     let dir = tempfile::tempdir().expect("tempdir");
     tum_copy(dir.path(), 40);
-    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("read");
-    let victim = index
-        .lines()
-        .nth(20)
-        .and_then(|l| l.split_whitespace().nth(1))
-        .expect("21st")
-        .to_string();
-    let bytes = std::fs::read(dir.path().join(&victim)).expect("read");
-    std::fs::write(dir.path().join(&victim), &bytes[..bytes.len() / 4]).expect("truncate");
-    let out = tempfile::tempdir().expect("tempdir");
-    let o = egoslam()
-        .args(["run", "--input"])
-        .arg(dir.path())
-        .arg("--out")
-        .arg(out.path())
-        .output()
-        .expect("runs");
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    let name = Path::new(&victim)
+    let victim = frame_file(dir.path(), 20);
+    let bytes = std::fs::read(&victim).expect("read");
+    std::fs::write(&victim, &bytes[..bytes.len() / 4]).expect("truncate");
+    let (err, report) = run_ok(dir.path());
+    let name = victim
         .file_name()
         .expect("name")
         .to_string_lossy()
@@ -100,10 +112,6 @@ fn truncated_image_mid_stream_is_skipped_named_and_counted() {
         err.contains(&name) && err.contains("corrupt frame skipped"),
         "{err}"
     );
-    let report: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out.path().join("report.json")).expect("report"),
-    )
-    .expect("json");
     assert_eq!(report["corrupt_frames"], 1);
     assert_eq!(report["frames"], 39);
     assert_eq!(report["posed_frames"], 39);
@@ -149,14 +157,7 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
     use opencv::{imgcodecs, imgproc};
     let dir = tempfile::tempdir().expect("tempdir");
     tum_copy(dir.path(), 40);
-    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("read");
-    let victim = index
-        .lines()
-        .nth(15)
-        .and_then(|l| l.split_whitespace().nth(1))
-        .expect("16th")
-        .to_string();
-    let path = dir.path().join(&victim);
+    let path = frame_file(dir.path(), 15);
     let image = imgcodecs::imread(path.to_str().expect("utf-8"), imgcodecs::IMREAD_UNCHANGED)
         .expect("read");
     let mut small = Mat::default();
@@ -170,21 +171,8 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
     )
     .expect("resize");
     imgcodecs::imwrite(path.to_str().expect("utf-8"), &small, &Vector::new()).expect("write");
-    let out = tempfile::tempdir().expect("tempdir");
-    let o = egoslam()
-        .args(["run", "--input"])
-        .arg(dir.path())
-        .arg("--out")
-        .arg(out.path())
-        .output()
-        .expect("runs");
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
+    let (err, report) = run_ok(dir.path());
     assert!(err.contains("320x240") && err.contains("skipped"), "{err}");
-    let report: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out.path().join("report.json")).expect("report"),
-    )
-    .expect("json");
     assert_eq!(report["wrong_size_frames"], 1);
     assert_eq!(report["posed_frames"], 39);
 }

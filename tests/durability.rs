@@ -30,6 +30,16 @@ fn service_pid(service: &str, out: &Path) -> Option<u32> {
     })
 }
 
+/// SIGKILLs the `service` process writing to `out`.
+fn sigkill(service: &str, out: &Path) {
+    let pid = service_pid(service, out).expect("service pid");
+    let status = std::process::Command::new("kill")
+        .args(["-KILL", &pid.to_string()])
+        .status()
+        .expect("kill");
+    assert!(status.success());
+}
+
 fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
     let mut c = egoslam();
     // The background refinement folds in whenever it finishes, which varies from run to
@@ -67,12 +77,7 @@ fn a_killed_merger_resumes_and_loses_nothing() {
         assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
         std::thread::sleep(Duration::from_millis(5));
     }
-    let pid = service_pid("merger", killed.path()).expect("merger pid");
-    let status = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .expect("kill");
-    assert!(status.success());
+    sigkill("merger", killed.path());
     wait_success(run);
     let r = report(killed.path());
     assert_eq!(r["restarts"]["merger"], 1, "{r}");
@@ -104,12 +109,7 @@ fn kill_mid_run(service: &str, after: Duration) -> serde_json::Value {
         .spawn()
         .expect("run");
     std::thread::sleep(after);
-    let pid = service_pid(service, out.path()).expect("service pid");
-    let status = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .expect("kill");
-    assert!(status.success());
+    sigkill(service, out.path());
     wait_success(run);
     report(out.path())
 }

@@ -12,12 +12,14 @@ fn options(test: &str) -> BusOptions {
     }
 }
 
-#[test]
-fn frames_arrive_intact_in_order_with_end_of_stream() {
-    let opts = options("frames");
-    let consumer_opts = opts.clone();
-    let consumer = std::thread::spawn(move || {
-        let bus = Bus::open("consumer", consumer_opts).expect("bus");
+/// A consumer thread that reads frames until end of stream, calls `each` on every frame
+/// and returns the frame ids it saw.
+fn consume_frames(
+    opts: BusOptions,
+    each: impl Fn(&ReceivedFrame) + Send + 'static,
+) -> std::thread::JoinHandle<Vec<u64>> {
+    std::thread::spawn(move || {
+        let bus = Bus::open("consumer", opts).expect("bus");
         let sub = FrameSubscriber::create(&bus).expect("subscriber");
         let mut ids = Vec::new();
         loop {
@@ -25,12 +27,20 @@ fn frames_arrive_intact_in_order_with_end_of_stream() {
             if f.meta().is_end_of_stream() {
                 break;
             }
-            let expected = (f.meta().frame_id % 251) as u8;
-            assert!(f.pixels().iter().all(|&p| p == expected));
-            assert_eq!(f.pixels().len(), 64 * 48);
             ids.push(f.meta().frame_id);
+            each(&f);
         }
         ids
+    })
+}
+
+#[test]
+fn frames_arrive_intact_in_order_with_end_of_stream() {
+    let opts = options("frames");
+    let consumer = consume_frames(opts.clone(), |f| {
+        let expected = (f.meta().frame_id % 251) as u8;
+        assert!(f.pixels().iter().all(|&p| p == expected));
+        assert_eq!(f.pixels().len(), 64 * 48);
     });
     let bus = Bus::open("producer", opts).expect("bus");
     let mut publisher =
@@ -124,21 +134,9 @@ fn a_consumer_that_stops_reading_fails_the_producer_instead_of_hanging_it() {
 #[test]
 fn live_frames_for_a_slow_consumer_are_dropped_and_counted_never_lost_silently() {
     let opts = options("live");
-    let consumer_opts = opts.clone();
-    let consumer = std::thread::spawn(move || {
-        let bus = Bus::open("consumer", consumer_opts).expect("bus");
-        let sub = FrameSubscriber::create(&bus).expect("subscriber");
-        let mut ids = Vec::new();
-        loop {
-            let f = sub.receive().expect("receive").expect("not terminated");
-            if f.meta().is_end_of_stream() {
-                break;
-            }
-            ids.push(f.meta().frame_id);
-            // A consumer ten times slower than the camera.
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        ids
+    // A consumer ten times slower than the camera.
+    let consumer = consume_frames(opts.clone(), |_| {
+        std::thread::sleep(Duration::from_millis(5))
     });
     let bus = Bus::open("producer", opts).expect("bus");
     let mut publisher =

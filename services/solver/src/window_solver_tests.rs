@@ -10,6 +10,16 @@ fn camera() -> PinholeRadtan {
     PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera")
 }
 
+/// A window solved with default options and a fresh edge cache.
+fn solve(keyframes: &[KeyframeObservations]) -> WindowSolution {
+    solve_window(
+        &camera(),
+        keyframes,
+        &WindowSolverOptions::default(),
+        &mut EdgeCache::new(),
+    )
+}
+
 /// A head walking forward and looking around, 20 keyframes.
 fn head_poses() -> Vec<CameraPose> {
     (0..20)
@@ -77,12 +87,7 @@ fn whole_window_from_noisy_tracks_is_accurate() {
     let truth = head_poses();
     let points = random_points(&mut rng, 1500);
     let keyframes = observe(&truth, &points, 1.0, &mut rng);
-    let solution = solve_window(
-        &camera(),
-        &keyframes,
-        &WindowSolverOptions::default(),
-        &mut EdgeCache::new(),
-    );
+    let solution = solve(&keyframes);
     assert_eq!(solution.status, WindowStatus::Solved);
     let est: Vec<_> = solution.poses.iter().map(|p| p.centre).collect();
     let tru: Vec<_> = truth.iter().map(|p| p.centre).collect();
@@ -127,12 +132,7 @@ fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
     }
     let points = random_points(&mut rng, 800);
     let keyframes = observe(&truth, &points, 0.5, &mut rng);
-    let solution = solve_window(
-        &camera(),
-        &keyframes,
-        &WindowSolverOptions::default(),
-        &mut EdgeCache::new(),
-    );
+    let solution = solve(&keyframes);
     assert_eq!(solution.status, WindowStatus::RotationOnly);
     for (est, tru) in solution.poses.iter().zip(&truth) {
         // Camera 0 is the identity in the window frame.
@@ -140,12 +140,7 @@ fn turning_in_place_is_rotation_only_and_too_few_keyframes_fail() {
         assert!(est.rotation.angle_to(&expected) < 0.2f64.to_radians());
         assert_eq!(est.centre, Vector3::zeros());
     }
-    let one = solve_window(
-        &camera(),
-        &keyframes[..1],
-        &WindowSolverOptions::default(),
-        &mut EdgeCache::new(),
-    );
+    let one = solve(&keyframes[..1]);
     assert!(matches!(one.status, WindowStatus::Failed(_)));
 }
 
@@ -167,12 +162,7 @@ fn a_window_in_two_pieces_is_solved_on_the_larger_one() {
             .map(|(id, p)| (id + 1_000_000, *p))
             .collect();
     }
-    let solution = solve_window(
-        &camera(),
-        &keyframes,
-        &WindowSolverOptions::default(),
-        &mut EdgeCache::new(),
-    );
+    let solution = solve(&keyframes);
     assert_eq!(solution.status, WindowStatus::Solved);
     assert_eq!(solution.keyframes, (9..20).collect::<Vec<_>>());
     assert_eq!(solution.poses.len(), 11);
