@@ -8,6 +8,8 @@ use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts};
 use egoslam_messages::v1 as pb;
+use egoslam_relocalization::saved_map::{features_from_pb, features_to_pb};
+use egoslam_relocalization::MapFeature;
 use nalgebra::Point2;
 use prost::Message;
 use std::collections::BTreeMap;
@@ -33,6 +35,8 @@ pub struct MergerState {
     pub unsolved_windows: u64,
     /// frame id -> last revision published over zenoh.
     pub revisions: std::collections::BTreeMap<u64, u32>,
+    /// keyframe id -> its described tracks (relocalization map, --map-out).
+    pub features: BTreeMap<u64, Vec<MapFeature>>,
 }
 
 impl MergerState {
@@ -125,6 +129,11 @@ impl MergerState {
                 .collect(),
             revision_frame_ids: self.revisions.keys().copied().collect(),
             revision_numbers: self.revisions.values().copied().collect(),
+            keyframe_features: self
+                .features
+                .iter()
+                .map(|(k, f)| features_to_pb(*k, f))
+                .collect(),
             weak_observations: parts
                 .weak
                 .iter()
@@ -245,6 +254,17 @@ impl MergerState {
             finished: m.finished,
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
+            features: m
+                .keyframe_features
+                .iter()
+                .map(|f| match features_from_pb(f) {
+                    Some(features) => Ok((f.keyframe_id, features)),
+                    None => bail!(
+                        "checkpoint features of keyframe {} are inconsistent",
+                        f.keyframe_id
+                    ),
+                })
+                .collect::<anyhow::Result<_>>()?,
             revisions: m
                 .revision_frame_ids
                 .iter()

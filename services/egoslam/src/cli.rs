@@ -30,6 +30,11 @@ pub enum Command {
     Bench(crate::bench_command::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).
     Synth(crate::synth_command::SynthArgs),
+    /// Localize every frame of a sequence in a saved map (`run --map-out`).
+    Localize(crate::relocalization_commands::LocalizeArgs),
+    /// Vocabulary tree for relocalization.
+    #[command(subcommand)]
+    Vocab(VocabCommand),
     /// Service: publish a sequence's frames on the bus.
     Replay(ReplayArgs),
     /// Service: track frames, publish keyframes.
@@ -38,6 +43,12 @@ pub enum Command {
     Solver(ServiceArgs),
     /// Service: merge windows into one map, write the outputs.
     Merger(ServiceArgs),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum VocabCommand {
+    /// Train a vocabulary tree on the ORB descriptors of images.
+    Train(crate::relocalization_commands::VocabTrainArgs),
 }
 
 /// Options of the tracking and solving stages, shared by `run` and the services.
@@ -120,6 +131,20 @@ pub struct RunArgs {
     pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub egress: EgressArgs,
+    #[command(flatten)]
+    pub map: MapArgs,
+}
+
+/// The saved map (docs/relocalization.md).
+#[derive(Args, Debug, Clone, Default)]
+pub struct MapArgs {
+    /// Write the map (keyframes, poses, points, descriptors) here at the end of the run,
+    /// for `egoslam localize --map`.
+    #[arg(long)]
+    pub map_out: Option<PathBuf>,
+    /// Vocabulary tree file (`egoslam vocab train`); default: the one built into egoslam.
+    #[arg(long)]
+    pub vocabulary: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -161,4 +186,6 @@ pub struct ServiceArgs {
     pub pipeline: PipelineArgs,
     #[command(flatten)]
     pub egress: EgressArgs,
+    #[command(flatten)]
+    pub map: MapArgs,
 }

@@ -250,7 +250,11 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill_pipeline(c, m, &mut a.pipeline);
             fill_egress(c, m, &mut a.egress);
         }
-        Command::Eval(_) | Command::Synth(_) | Command::Bench(_) => {}
+        Command::Eval(_)
+        | Command::Synth(_)
+        | Command::Bench(_)
+        | Command::Localize(_)
+        | Command::Vocab(_) => {}
     }
 }
 

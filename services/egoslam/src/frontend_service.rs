@@ -9,8 +9,10 @@ use egoslam_frontend::{
     TrackerOptions,
 };
 use egoslam_messages::v1 as pb;
+use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_sources::calibration::read_calibration_file;
-use opencv::core::Mat;
+use opencv::core::{Mat, ToInputArray};
+use opencv::prelude::*;
 use std::time::Instant;
 
 fn reason(r: KeyframeReason) -> pb::KeyframeReason {
@@ -37,6 +39,32 @@ fn track_message(t: &TrackPoint) -> pb::TrackObservation {
         raw_y: t.raw.y,
         x: t.undistorted.x,
         y: t.undistorted.y,
+        descriptor: Vec::new(),
+    }
+}
+
+/// Attaches ORB descriptors (at the raw positions in `image`) to a keyframe's tracks, for
+/// relocalization (docs/relocalization.md). A failure costs the descriptors, not the
+/// keyframe.
+fn describe_tracks(
+    describer: &mut OrbDescriber,
+    image: &(impl MatTraitConst + ToInputArray),
+    message: &mut pb::Keyframe,
+) {
+    let corners: Vec<_> = message
+        .tracks
+        .iter()
+        .map(|t| nalgebra::Point2::new(t.raw_x, t.raw_y))
+        .collect();
+    match describer.describe(image, &corners) {
+        Ok(descriptors) => {
+            for (t, d) in message.tracks.iter_mut().zip(descriptors) {
+                if let Some(d) = d {
+                    t.descriptor = d.to_vec();
+                }
+            }
+        }
+        Err(e) => tracing::warn!(keyframe = message.keyframe_id, error = %e, "no descriptors"),
     }
 }
 
@@ -93,6 +121,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         ..TrackerOptions::default()
     };
     let mut tracker = Tracker::new(camera, options);
+    let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
     let state_path = args.out.join(ID_STATE_FILE);
     if let Ok(text) = std::fs::read_to_string(&state_path) {
@@ -124,6 +153,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     crate::systemd::ready("frontend");
     let mut skipped: Vec<pb::FrameStamp> = Vec::new();
     let mut last_stamp: Option<pb::FrameStamp> = None;
+    // The last frame, for the descriptors of the final keyframe (made after the stream).
+    let mut last_image = Mat::default();
     let started = Instant::now();
     loop {
         let Some(frame) = frames.receive()? else {
@@ -146,6 +177,16 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }
             Err(e) => return Err(e.into()),
         };
+        let mut described = None;
+        if let Some(k) = &outcome.keyframe {
+            let mut msg = keyframe_message(k, meta.timestamp, &intrinsics, Vec::new());
+            stats.time("describe", || {
+                describe_tracks(&mut describer, &image, &mut msg)
+            });
+            described = Some(msg);
+        } else {
+            image.copy_to(&mut last_image)?;
+        }
         drop(image);
         drop(frame);
         stats.frames += 1;
@@ -158,14 +199,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             timestamp_s: meta.timestamp,
             tracks: Vec::new(),
         };
-        match outcome.keyframe {
-            Some(k) => {
-                let msg = keyframe_message(
-                    &k,
-                    meta.timestamp,
-                    &intrinsics,
-                    std::mem::take(&mut skipped),
-                );
+        match (outcome.keyframe, described) {
+            (Some(k), Some(mut msg)) => {
+                msg.frames_since_previous = std::mem::take(&mut skipped);
                 stats.time("publish", || keyframes.send(&msg))?;
                 stats.keyframes += 1;
                 let (kf, track) = tracker.next_ids();
@@ -173,7 +209,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 crate::output::write_atomically(&state_path, ids.to_string().as_bytes())?;
                 tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
             }
-            None => skipped.push(pb::FrameStamp {
+            _ => skipped.push(pb::FrameStamp {
                 tracks: tracker
                     .sample_tracks(TRACKS_PER_FRAME)
                     .iter()
@@ -187,12 +223,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // The last frame becomes a keyframe so that every frame lies between two keyframes.
     if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {
         skipped.retain(|s| s.frame_id != last.frame_id);
-        let msg = keyframe_message(
+        let mut msg = keyframe_message(
             &k,
             last.timestamp_s,
             &intrinsics,
             std::mem::take(&mut skipped),
         );
+        if !last_image.empty() {
+            describe_tracks(&mut describer, &last_image, &mut msg);
+        }
         keyframes.send(&msg)?;
         stats.keyframes += 1;
     }

@@ -230,6 +230,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             .iter()
             .map(|e| format!("--zenoh-connect={e}")),
     );
+    if let Some(path) = &args.map.map_out {
+        merger_args.push(format!("--map-out={}", path.display()));
+    }
+    if let Some(path) = &args.map.vocabulary {
+        merger_args.push(format!("--vocabulary={}", path.display()));
+    }
     for (name, service_args) in [
         ("merger", &merger_args),
         ("solver", &common),

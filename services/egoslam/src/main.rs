@@ -15,9 +15,11 @@ mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
 mod launcher;
+mod map_file;
 mod map_state;
 mod merger_service;
 mod output;
+mod relocalization_commands;
 mod replay;
 mod solver_service;
 mod stats;
@@ -52,6 +54,10 @@ fn main() -> std::process::ExitCode {
         cli::Command::Eval(args) => eval::run(args),
         cli::Command::Synth(args) => synth_command::run(args),
         cli::Command::Bench(args) => bench_command::run(args),
+        cli::Command::Localize(args) => relocalization_commands::localize(args),
+        cli::Command::Vocab(cli::VocabCommand::Train(args)) => {
+            relocalization_commands::vocab_train(args)
+        }
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => frontend_service::run(args),
         cli::Command::Solver(args) => solver_service::run(args),

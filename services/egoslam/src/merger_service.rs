@@ -138,6 +138,20 @@ impl Merger {
         for k in &w.keyframes {
             self.state.frames.add_stamp(k);
         }
+        for f in &w.keyframe_features {
+            match egoslam_relocalization::saved_map::features_from_pb(f) {
+                Some(features) => {
+                    self.state.features.insert(f.keyframe_id, features);
+                }
+                None => {
+                    tracing::warn!(
+                        keyframe = f.keyframe_id,
+                        "inconsistent keyframe descriptors ignored"
+                    );
+                    self.stats.count("invalid_features", 1);
+                }
+            }
+        }
         for f in &w.trailing_frames {
             self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
         }
@@ -476,6 +490,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         merger.apply(sequence, &w)?;
     }
     merger.emit(&[], pb::ServiceState::Finished, true)?;
+    if let Some(path) = &merger.args.map.map_out {
+        let Some(camera) = &merger.camera else {
+            bail!("no window was received: there is no map to save")
+        };
+        let vocabulary = crate::map_file::load_vocabulary(merger.args.map.vocabulary.as_deref())?;
+        let map = crate::map_file::relocalization_map(&merger.state, camera);
+        let source = merger.args.out.display().to_string();
+        crate::map_file::write_map(path, &map, &vocabulary, &source)?;
+    }
     tracing::info!(
         windows = merger.state.windows,
         segments = merger.state.map.segments(),

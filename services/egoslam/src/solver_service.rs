@@ -116,6 +116,26 @@ fn observation_messages(
         .collect()
 }
 
+/// The described tracks of a keyframe, forwarded once (in the first window holding the
+/// keyframe) for the merger's relocalization map.
+fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
+    let described: Vec<&pb::TrackObservation> = k
+        .tracks
+        .iter()
+        .filter(|t| t.descriptor.len() == 32)
+        .collect();
+    pb::KeyframeFeatures {
+        keyframe_id: k.keyframe_id,
+        track_ids: described.iter().map(|t| t.track_id).collect(),
+        descriptors: described
+            .iter()
+            .flat_map(|t| t.descriptor.iter().copied())
+            .collect(),
+        x: described.iter().map(|t| t.x).collect(),
+        y: described.iter().map(|t| t.y).collect(),
+    }
+}
+
 /// Solves one window and builds its message.
 fn solve(
     window_id: u64,
@@ -223,6 +243,10 @@ fn solve(
         trailing_frames: Vec::new(),
         stream_id: 0, // set when published
         weak_observations: observation_messages(kfs, &solution.weak_observations),
+        keyframe_features: kfs[window.overlap.min(kfs.len())..]
+            .iter()
+            .map(keyframe_features)
+            .collect(),
         intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
             distortion: Vec::new(),
             ..i

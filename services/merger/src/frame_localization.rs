@@ -7,9 +7,8 @@
 //! interpolated prior is refused, and the caller keeps the interpolation (marked as such).
 
 use egoslam_geometry::{PinholeRadtan, StampedPose};
-use nalgebra::{Point2, Rotation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, Point2d, Point3d, TermCriteria, Vector};
-use opencv::prelude::*;
+use egoslam_relocalization::absolute_pose::{solve_pnp, PnpError, PnpOptions};
+use nalgebra::{Point2, Vector3};
 
 /// Acceptance thresholds; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,18 +68,6 @@ pub struct Localized {
     pub inliers: usize,
 }
 
-fn mat3(values: &[f64; 3]) -> Result<Mat, opencv::Error> {
-    Mat::from_slice(values).and_then(|m| m.try_clone())
-}
-
-fn vec3_of(m: &Mat) -> Result<Vector3<f64>, opencv::Error> {
-    Ok(Vector3::new(
-        *m.at::<f64>(0)?,
-        *m.at::<f64>(1)?,
-        *m.at::<f64>(2)?,
-    ))
-}
-
 /// Localizes one frame from `(map point, undistorted pixel)` correspondences, starting at
 /// `prior` (the interpolated pose, world_from_camera).
 pub fn localize_frame(
@@ -89,102 +76,41 @@ pub fn localize_frame(
     prior: &StampedPose,
     options: &LocalizationOptions,
 ) -> Result<Localized, LocalizationError> {
-    if correspondences.len() < options.min_inliers.max(4) {
-        return Err(LocalizationError::TooFewCorrespondences(
-            correspondences.len(),
-        ));
-    }
-    let cv = |e: opencv::Error| LocalizationError::OpenCv(e.to_string());
-    let objects: Vector<Point3d> = correspondences
-        .iter()
-        .map(|(x, _)| Point3d::new(x.x, x.y, x.z))
-        .collect();
-    let pixels: Vector<Point2d> = correspondences
-        .iter()
-        .map(|(_, p)| Point2d::new(p.x, p.y))
-        .collect();
-    let k = Mat::from_slice_2d(&[
-        [camera.fx, 0.0, camera.cx],
-        [0.0, camera.fy, camera.cy],
-        [0.0, 0.0, 1.0],
-    ])
-    .map_err(cv)?;
-    let no_distortion = Mat::default();
-    // Prior as camera_from_world: R = R_wc^T, t = -R C.
-    let r_cw = prior.rotation.inverse().to_rotation_matrix();
-    let t_cw = -(r_cw * prior.position);
-    let axis = r_cw.scaled_axis();
-    let mut rvec = mat3(&[axis.x, axis.y, axis.z]).map_err(cv)?;
-    let mut tvec = mat3(&[t_cw.x, t_cw.y, t_cw.z]).map_err(cv)?;
-    let mut inliers = Vector::<i32>::new();
-    let found = opencv::calib3d::solve_pnp_ransac(
-        &objects,
-        &pixels,
-        &k,
-        &no_distortion,
-        &mut rvec,
-        &mut tvec,
-        true,
-        options.ransac_iterations,
-        options.ransac_threshold_px as f32,
-        0.999,
-        &mut inliers,
-        opencv::calib3d::SOLVEPNP_ITERATIVE,
-    )
-    .map_err(cv)?;
-    let needed = options
-        .min_inliers
-        .max((options.min_inlier_ratio * correspondences.len() as f64).ceil() as usize);
-    if !found || inliers.len() < needed {
-        return Err(LocalizationError::TooFewInliers {
-            inliers: inliers.len(),
-            correspondences: correspondences.len(),
-        });
-    }
-    let inlier_objects: Vector<Point3d> = inliers
-        .iter()
-        .filter_map(|i| objects.get(i as usize).ok())
-        .collect();
-    let inlier_pixels: Vector<Point2d> = inliers
-        .iter()
-        .filter_map(|i| pixels.get(i as usize).ok())
-        .collect();
-    let criteria = TermCriteria::new(
-        opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
-        20,
-        f64::EPSILON,
-    )
-    .map_err(cv)?;
-    opencv::calib3d::solve_pnp_refine_lm(
-        &inlier_objects,
-        &inlier_pixels,
-        &k,
-        &no_distortion,
-        &mut rvec,
-        &mut tvec,
-        criteria,
-    )
-    .map_err(cv)?;
-    let r_cw = Rotation3::from_scaled_axis(vec3_of(&rvec).map_err(cv)?);
-    let t_cw = vec3_of(&tvec).map_err(cv)?;
-    let rotation = UnitQuaternion::from_rotation_matrix(&r_cw.inverse());
-    let deviation = rotation.angle_to(&prior.rotation).to_degrees();
+    let pnp = PnpOptions {
+        min_inliers: options.min_inliers,
+        min_inlier_ratio: options.min_inlier_ratio,
+        ransac_threshold_px: options.ransac_threshold_px,
+        ransac_iterations: options.ransac_iterations,
+    };
+    let solution = solve_pnp(camera, correspondences, Some(prior), &pnp).map_err(|e| match e {
+        PnpError::TooFewCorrespondences(n) => LocalizationError::TooFewCorrespondences(n),
+        PnpError::TooFewInliers {
+            inliers,
+            correspondences,
+        } => LocalizationError::TooFewInliers {
+            inliers,
+            correspondences,
+        },
+        PnpError::OpenCv(m) => LocalizationError::OpenCv(m),
+    })?;
+    let deviation = solution
+        .pose
+        .rotation
+        .angle_to(&prior.rotation)
+        .to_degrees();
     if !deviation.is_finite() || deviation > options.max_rotation_from_prior_deg {
         return Err(LocalizationError::FarFromPrior(deviation));
     }
     Ok(Localized {
-        pose: StampedPose {
-            timestamp: prior.timestamp,
-            position: -(r_cw.inverse() * t_cw),
-            rotation,
-        },
-        inliers: inliers.len(),
+        pose: solution.pose,
+        inliers: solution.inliers.len(),
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     #[test]
     fn recovers_a_frame_from_noisy_correspondences_with_outliers() {

@@ -1,0 +1,111 @@
+//! Reading and writing saved maps and vocabularies (the file side of
+//! egoslam_relocalization::saved_map; format in docs/relocalization.md).
+
+use crate::checkpoint::MergerState;
+use crate::output::write_atomically;
+use anyhow::{bail, Context};
+use egoslam_geometry::PinholeRadtan;
+use egoslam_relocalization::{
+    decode_map, default_vocabulary, encode_map, MapKeyframe, RelocalizationMap, Vocabulary,
+};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// Largest map or vocabulary file read (a bound on what is read from outside: 4 GiB holds
+/// ~100,000 keyframes with their descriptors).
+const MAX_FILE_BYTES: u64 = 4 << 30;
+
+fn read_bounded(path: &Path, what: &str) -> anyhow::Result<Vec<u8>> {
+    let meta = std::fs::metadata(path)
+        .with_context(|| format!("{what} {}: cannot be read", path.display()))?;
+    if !meta.is_file() {
+        bail!("{what} {}: not a file", path.display());
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        bail!(
+            "{what} {}: {} bytes, more than the {} accepted",
+            path.display(),
+            meta.len(),
+            MAX_FILE_BYTES
+        );
+    }
+    std::fs::read(path).with_context(|| format!("{what} {}: cannot be read", path.display()))
+}
+
+/// The vocabulary at `path`, or the built-in one.
+pub fn load_vocabulary(path: Option<&Path>) -> anyhow::Result<Vocabulary> {
+    match path {
+        Some(p) => Vocabulary::from_bytes(&read_bounded(p, "vocabulary")?)
+            .with_context(|| format!("vocabulary {}", p.display())),
+        None => default_vocabulary().context("the built-in vocabulary"),
+    }
+}
+
+/// The relocalization map of the merger's state: every keyframe of the map with its
+/// described tracks that are map points of its segment, and the points.
+pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> RelocalizationMap {
+    let points: HashMap<u64, (u32, nalgebra::Vector3<f64>)> = state
+        .map
+        .points()
+        .map(|(track, segment, x)| (track, (segment, *x)))
+        .collect();
+    let keyframes = state
+        .map
+        .keyframes()
+        .map(|(id, segment, pose)| MapKeyframe {
+            keyframe_id: id,
+            segment,
+            pose: *pose,
+            features: state
+                .features
+                .get(&id)
+                .map(|f| {
+                    f.iter()
+                        .filter(|f| points.get(&f.track_id).is_some_and(|(s, _)| *s == segment))
+                        .copied()
+                        .collect()
+                })
+                .unwrap_or_default(),
+        })
+        .collect();
+    RelocalizationMap {
+        camera: *camera,
+        keyframes,
+        points,
+    }
+}
+
+/// Writes the map file atomically.
+pub fn write_map(
+    path: &Path,
+    map: &RelocalizationMap,
+    vocabulary: &Vocabulary,
+    source: &str,
+) -> anyhow::Result<()> {
+    let bytes = encode_map(map, vocabulary.id(), source);
+    write_atomically(path, &bytes).with_context(|| format!("map {}", path.display()))?;
+    tracing::info!(
+        path = %path.display(),
+        keyframes = map.keyframes.len(),
+        points = map.points.len(),
+        bytes = bytes.len(),
+        "map saved"
+    );
+    Ok(())
+}
+
+/// Reads a map file and checks that it was made for `vocabulary`.
+pub fn read_map(path: &Path, vocabulary: &Vocabulary) -> anyhow::Result<RelocalizationMap> {
+    let bytes = read_bounded(path, "map")?;
+    let (map, vocabulary_id) =
+        decode_map(&bytes).with_context(|| format!("map {}", path.display()))?;
+    if vocabulary_id != vocabulary.id() {
+        bail!(
+            "map {} was built for vocabulary {vocabulary_id:016x}, not {:016x} (pass the \
+             same --vocabulary as the run that saved it)",
+            path.display(),
+            vocabulary.id()
+        );
+    }
+    Ok(map)
+}

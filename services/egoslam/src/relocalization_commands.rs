@@ -1,0 +1,312 @@
+//! `egoslam vocab train` and `egoslam localize` (docs/relocalization.md).
+
+use crate::map_file::{load_vocabulary, read_map};
+use crate::output::write_atomically;
+use anyhow::{bail, Context};
+use clap::Args;
+use egoslam_geometry::{absolute_trajectory_error, associate, PinholeRadtan, StampedPose};
+use egoslam_relocalization::descriptors::{detect_corners, DescriberOptions, QueryCornerOptions};
+use egoslam_relocalization::{
+    Descriptor, OrbDescriber, QueryFeatures, Relocalizer, RelocalizerOptions, Vocabulary,
+    VocabularyOptions,
+};
+use egoslam_sources::{detect_layout, load_calibration, load_ground_truth, open_source};
+use opencv::core::Mat;
+use opencv::prelude::*;
+use serde_json::json;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args, Debug)]
+pub struct VocabTrainArgs {
+    /// Images, or folders of images (png, jpg), to learn the words from.
+    #[arg(required = true)]
+    pub images: Vec<PathBuf>,
+    /// Vocabulary file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Use every n-th image of the list (consecutive video frames repeat each other).
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    /// Children per node, k.
+    #[arg(long, default_value_t = VocabularyOptions::default().branching)]
+    pub branching: usize,
+    /// Levels, L (k^L words).
+    #[arg(long, default_value_t = VocabularyOptions::default().depth)]
+    pub depth: usize,
+}
+
+#[derive(Args, Debug)]
+pub struct LocalizeArgs {
+    /// Map saved by `egoslam run --map-out`.
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Sequence to localize (TUM/KITTI/EuRoC folder, video or image folder).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Output folder: trajectory.tum (the map's frame) and report.json.
+    #[arg(long, default_value = "localized")]
+    pub out: PathBuf,
+    /// Calibration of the input; default: the dataset's own.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// Ground truth for the report (default: found next to the input).
+    #[arg(long)]
+    pub gt: Option<PathBuf>,
+    /// Frame rate assumed for image folders.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Vocabulary the map was built with (default: the built-in one).
+    #[arg(long)]
+    pub vocabulary: Option<PathBuf>,
+}
+
+/// A query's features: GFTT corners, their ORB descriptors, undistorted positions.
+pub fn query_features(
+    describer: &mut OrbDescriber,
+    image: &Mat,
+    camera: &PinholeRadtan,
+) -> anyhow::Result<QueryFeatures> {
+    let corners = detect_corners(image, &QueryCornerOptions::default())?;
+    let descriptors = describer.describe(image, &corners)?;
+    let mut q = QueryFeatures::default();
+    for (c, d) in corners.iter().zip(descriptors) {
+        if let Some(d) = d {
+            let raw = nalgebra::Point2::new(f64::from(c.x), f64::from(c.y));
+            q.pixels.push(camera.undistort_pixel(raw));
+            q.descriptors.push(d);
+        }
+    }
+    Ok(q)
+}
+
+fn image_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for p in inputs {
+        if p.is_dir() {
+            let mut inside: Vec<PathBuf> = std::fs::read_dir(p)
+                .with_context(|| format!("{}: cannot be listed", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| {
+                    f.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+                        matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg")
+                    })
+                })
+                .collect();
+            inside.sort();
+            files.extend(inside);
+        } else if p.is_file() {
+            files.push(p.clone());
+        } else {
+            bail!("{}: no such image or folder", p.display());
+        }
+    }
+    Ok(files)
+}
+
+pub fn vocab_train(args: VocabTrainArgs) -> anyhow::Result<()> {
+    let files: Vec<PathBuf> = image_files(&args.images)?
+        .into_iter()
+        .step_by(args.every.max(1))
+        .collect();
+    if files.is_empty() {
+        bail!("no images found in {:?}", args.images);
+    }
+    let mut describer = OrbDescriber::new(DescriberOptions::default())?;
+    let mut images: Vec<Vec<Descriptor>> = Vec::new();
+    for (i, f) in files.iter().enumerate() {
+        let image = match egoslam_sources::reader::decode_grey(f) {
+            Ok(m) => m,
+            Err(e) => {
+                tracing::warn!(error = %e, "image skipped");
+                continue;
+            }
+        };
+        let corners = detect_corners(&image, &QueryCornerOptions::default())?;
+        images.push(
+            describer
+                .describe(&image, &corners)?
+                .into_iter()
+                .flatten()
+                .collect(),
+        );
+        if (i + 1) % 50 == 0 || i + 1 == files.len() {
+            tracing::info!("described {} of {} images", i + 1, files.len());
+        }
+    }
+    let options = VocabularyOptions {
+        branching: args.branching,
+        depth: args.depth,
+        ..VocabularyOptions::default()
+    };
+    let started = Instant::now();
+    let vocabulary = Vocabulary::train(&images, &options)?;
+    write_atomically(&args.out, &vocabulary.to_bytes())?;
+    println!(
+        "vocabulary {}: {} words from {} descriptors of {} images in {:.1} s (id {:016x})",
+        args.out.display(),
+        vocabulary.words(),
+        images.iter().map(Vec::len).sum::<usize>(),
+        images.len(),
+        started.elapsed().as_secs_f64(),
+        vocabulary.id()
+    );
+    Ok(())
+}
+
+/// The paper's relocalization error (Table 5): the map is aligned to ground truth by its
+/// keyframes (Sim(3)), and each localized frame is compared in that frame.
+fn relocalization_error(
+    keyframes: &[StampedPose],
+    localized: &[StampedPose],
+    gt: &[StampedPose],
+) -> anyhow::Result<serde_json::Value> {
+    let ate = absolute_trajectory_error(keyframes, gt, 0.02)
+        .map_err(|e| anyhow::anyhow!("map keyframes cannot be aligned to ground truth: {e}"))?;
+    let s = &ate.alignment;
+    let mut position = Vec::new();
+    let mut rotation = Vec::new();
+    for (e, g) in associate(localized, gt, 0.02) {
+        let (e, g) = (&localized[e], &gt[g]);
+        position.push((s.apply(&e.position) - g.position).norm());
+        let r = nalgebra::UnitQuaternion::from_rotation_matrix(&s.rotation) * e.rotation;
+        rotation.push(r.angle_to(&g.rotation).to_degrees());
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied()
+    };
+    Ok(json!({
+        "map_keyframe_ate_m": ate.rmse,
+        "evaluated": position.len(),
+        "median_position_m": median(&mut position),
+        "median_rotation_deg": median(&mut rotation),
+    }))
+}
+
+pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
+    let vocabulary = load_vocabulary(args.vocabulary.as_deref())?;
+    let map = read_map(&args.map, &vocabulary)?;
+    let layout = detect_layout(&args.input)?;
+    let calibration = load_calibration(&layout, args.calib.as_deref())?;
+    let mut source = open_source(&args.input, args.fps)?;
+    let total = source.len_hint();
+    let relocalizer = Relocalizer::new(vocabulary, map);
+    let options = RelocalizerOptions::default();
+    let mut describer = OrbDescriber::new(DescriberOptions::default())?;
+    let keyframe_stamps: Vec<f64> = relocalizer
+        .map()
+        .keyframes
+        .iter()
+        .map(|k| k.pose.timestamp)
+        .collect();
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let mut localized: BTreeMap<u32, Vec<StampedPose>> = BTreeMap::new();
+    let mut failures: BTreeMap<String, u64> = BTreeMap::new();
+    let mut query_ms = Vec::new();
+    let (mut frames, mut non_keyframes, mut non_keyframes_localized) = (0u64, 0u64, 0u64);
+    let mut camera: Option<PinholeRadtan> = None;
+    while let Some(frame) = source.next_frame() {
+        let frame = match frame {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::warn!(error = %e, "frame skipped");
+                *failures.entry("unreadable frame".into()).or_default() += 1;
+                continue;
+            }
+        };
+        frames += 1;
+        let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
+        let camera = match camera {
+            Some(c) => c,
+            None => *camera.insert(calibration.camera_for(w, h)?),
+        };
+        let is_keyframe = keyframe_stamps
+            .iter()
+            .any(|t| (t - frame.timestamp).abs() < 1e-6);
+        non_keyframes += u64::from(!is_keyframe);
+        let started = Instant::now();
+        let result = query_features(&mut describer, &frame.image, &camera)
+            .map(|q| relocalizer.relocalize(&q, &options));
+        query_ms.push(started.elapsed().as_secs_f64() * 1e3);
+        match result? {
+            Ok(r) => {
+                non_keyframes_localized += u64::from(!is_keyframe);
+                localized.entry(r.segment).or_default().push(StampedPose {
+                    timestamp: frame.timestamp,
+                    ..r.pose
+                });
+            }
+            Err(e) => *failures.entry(e.to_string()).or_default() += 1,
+        }
+        if frames % 100 == 0 {
+            tracing::info!(frames, total = ?total, "localizing");
+        }
+    }
+    if frames == 0 {
+        bail!("{}: no frames", args.input.display());
+    }
+    let mut text = String::new();
+    for poses in localized.values() {
+        text.push_str(&crate::output::tum_text(poses));
+    }
+    write_atomically(&args.out.join("trajectory.tum"), text.as_bytes())?;
+    query_ms.sort_by(f64::total_cmp);
+    let count: usize = localized.values().map(Vec::len).sum();
+    let mut report = json!({
+        "map": args.map.display().to_string(),
+        "input": args.input.display().to_string(),
+        "frames": frames,
+        "localized": count,
+        "non_keyframes": non_keyframes,
+        "non_keyframes_localized": non_keyframes_localized,
+        "failures": failures,
+        "query_ms_median": query_ms[query_ms.len() / 2],
+        "query_ms_p90": query_ms[query_ms.len() * 9 / 10],
+    });
+    println!(
+        "localized {count} of {frames} frames ({non_keyframes_localized} of {non_keyframes} non-keyframes); query median {:.1} ms",
+        query_ms[query_ms.len() / 2]
+    );
+    let gt = match &args.gt {
+        Some(p) => Some(load_ground_truth(p)?),
+        None => layout
+            .root()
+            .ancestors()
+            .take(3)
+            .find_map(|d| load_ground_truth(d).ok()),
+    };
+    // Evaluated on the largest segment (other segments are in frames of their own).
+    let segment = localized
+        .iter()
+        .max_by_key(|(_, v)| v.len())
+        .map(|(s, _)| *s);
+    if let (Some(gt), Some(segment)) = (gt, segment) {
+        let keyframes: Vec<StampedPose> = relocalizer
+            .map()
+            .keyframes
+            .iter()
+            .filter(|k| k.segment == segment)
+            .map(|k| k.pose)
+            .collect();
+        match relocalization_error(&keyframes, &localized[&segment], &gt.poses) {
+            Ok(e) => {
+                println!(
+                    "relocalization error: median {:.4} m, {:.3} deg over {} frames",
+                    e["median_position_m"].as_f64().unwrap_or(f64::NAN),
+                    e["median_rotation_deg"].as_f64().unwrap_or(f64::NAN),
+                    e["evaluated"]
+                );
+                report["accuracy"] = e;
+            }
+            Err(e) => println!("not evaluated: {e}"),
+        }
+    }
+    write_atomically(
+        &args.out.join("report.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+    Ok(())
+}

@@ -1,0 +1,281 @@
+//! ORB descriptors at tracked corners (Rublee et al., "ORB: an efficient alternative to SIFT
+//! or SURF", ICCV 2011).
+//!
+//! Tracking stays KLT (the paper's choice); descriptors are only computed on keyframes, at
+//! the corners the tracker already follows, so that every map point (a track) gets a
+//! descriptor without a second detector. Query frames use the same corners (GFTT) and the
+//! same descriptor, so map and query features are comparable. The orientation is ORB's
+//! intensity centroid (computed here, because OpenCV's `compute` with provided keypoints
+//! keeps the given angle), which makes the binary test pattern follow head roll.
+
+use nalgebra::Point2;
+use opencv::core::{KeyPoint, Mat, Ptr, ToInputArray, Vector, CV_8UC1};
+use opencv::features2d::ORB;
+use opencv::prelude::*;
+
+/// A 256-bit ORB descriptor.
+pub type Descriptor = [u8; 32];
+
+/// Hamming distance between two descriptors (number of differing bits).
+#[inline]
+pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
+    let mut d = 0;
+    for i in 0..4 {
+        let x = u64::from_le_bytes(a[8 * i..8 * i + 8].try_into().unwrap_or([0; 8]));
+        let y = u64::from_le_bytes(b[8 * i..8 * i + 8].try_into().unwrap_or([0; 8]));
+        d += (x ^ y).count_ones();
+    }
+    d
+}
+
+/// Why descriptors could not be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum DescriptorError {
+    /// The image is not 8-bit single channel.
+    #[error("descriptors need an 8-bit grey image, got OpenCV type {0}")]
+    NotGrey(i32),
+    /// An OpenCV call failed.
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+}
+
+/// Settings of the ORB describer; defaults are ORB's own.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DescriberOptions {
+    /// Side of the sampling patch, pixels (default 31, ORB's; the orientation uses the
+    /// inscribed disc of radius 15).
+    pub patch_size: i32,
+    /// Corners closer than this to the border get no descriptor (default 16: half the patch
+    /// plus one, so that the rotated pattern stays inside the image).
+    pub border_px: f32,
+}
+
+impl Default for DescriberOptions {
+    fn default() -> Self {
+        Self {
+            patch_size: 31,
+            border_px: 16.0,
+        }
+    }
+}
+
+/// Computes ORB descriptors at given corners.
+pub struct OrbDescriber {
+    orb: Ptr<ORB>,
+    options: DescriberOptions,
+}
+
+impl OrbDescriber {
+    /// A describer with one pyramid level: the corners come from the full-resolution image.
+    pub fn new(options: DescriberOptions) -> Result<Self, DescriptorError> {
+        let orb = ORB::create(
+            1,
+            1.2,
+            1,
+            options.patch_size,
+            0,
+            2,
+            opencv::features2d::ORB_ScoreType::HARRIS_SCORE,
+            options.patch_size,
+            20,
+        )?;
+        Ok(Self { orb, options })
+    }
+
+    /// Descriptors at `corners` (raw pixels of `image`): `None` where a corner lies too
+    /// close to the border.
+    pub fn describe(
+        &mut self,
+        image: &(impl MatTraitConst + ToInputArray),
+        corners: &[Point2<f32>],
+    ) -> Result<Vec<Option<Descriptor>>, DescriptorError> {
+        if image.typ() != CV_8UC1 {
+            return Err(DescriptorError::NotGrey(image.typ()));
+        }
+        let (w, h) = (image.cols() as f32, image.rows() as f32);
+        let m = self.options.border_px;
+        let mut keypoints = Vector::<KeyPoint>::new();
+        for (i, p) in corners.iter().enumerate() {
+            if !(p.x >= m && p.y >= m && p.x < w - m && p.y < h - m) {
+                continue;
+            }
+            let angle = intensity_centroid_angle(image, p.x.round() as i32, p.y.round() as i32)?;
+            keypoints.push(KeyPoint::new_coords(
+                p.x,
+                p.y,
+                self.options.patch_size as f32,
+                angle,
+                0.0,
+                0,
+                i as i32,
+            )?);
+        }
+        let mut out = vec![None; corners.len()];
+        if keypoints.is_empty() {
+            return Ok(out);
+        }
+        let mut descriptors = Mat::default();
+        self.orb.compute(image, &mut keypoints, &mut descriptors)?;
+        for (row, kp) in keypoints.iter().enumerate() {
+            let bytes = descriptors.at_row::<u8>(row as i32)?;
+            if let (Ok(d), Some(slot)) = (
+                <Descriptor>::try_from(bytes),
+                out.get_mut(kp.class_id() as usize),
+            ) {
+                *slot = Some(d);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// ORB's orientation: the angle (degrees, OpenCV's convention) of the vector from the corner
+/// to the intensity centroid of the disc of radius 15 around it (Rosin 1999).
+fn intensity_centroid_angle(
+    image: &impl MatTraitConst,
+    cx: i32,
+    cy: i32,
+) -> Result<f32, opencv::Error> {
+    const R: i32 = 15;
+    let step = image
+        .mat_step()
+        .get(0)
+        .copied()
+        .unwrap_or(image.cols() as usize);
+    let data = image.data_bytes()?;
+    let (mut m01, mut m10) = (0i64, 0i64);
+    for dy in -R..=R {
+        let half = ((R * R - dy * dy) as f64).sqrt() as i32;
+        let row = (cy + dy) as usize * step;
+        for dx in -half..=half {
+            let v = data[row + (cx + dx) as usize] as i64;
+            m10 += dx as i64 * v;
+            m01 += dy as i64 * v;
+        }
+    }
+    let a = (m01 as f32).atan2(m10 as f32).to_degrees();
+    Ok(if a < 0.0 { a + 360.0 } else { a })
+}
+
+/// Settings of corner detection on query frames (the tracker's detector, full resolution).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QueryCornerOptions {
+    /// Corners per frame (default 1000: the tracker's track count, so a query sees as many
+    /// features as a keyframe).
+    pub max_corners: i32,
+    /// GFTT quality relative to the best corner (default 0.001, the tracker's).
+    pub quality: f64,
+    /// Minimum distance between corners, pixels (default 10, the tracker's).
+    pub min_distance_px: f64,
+}
+
+impl Default for QueryCornerOptions {
+    fn default() -> Self {
+        Self {
+            max_corners: 1000,
+            quality: 0.001,
+            min_distance_px: 10.0,
+        }
+    }
+}
+
+/// GFTT corners of a query frame (raw pixels).
+pub fn detect_corners(
+    image: &Mat,
+    options: &QueryCornerOptions,
+) -> Result<Vec<Point2<f32>>, DescriptorError> {
+    if image.typ() != CV_8UC1 {
+        return Err(DescriptorError::NotGrey(image.typ()));
+    }
+    let mut corners = Vector::<opencv::core::Point2f>::new();
+    opencv::imgproc::good_features_to_track(
+        image,
+        &mut corners,
+        options.max_corners,
+        options.quality,
+        options.min_distance_px,
+        &opencv::core::no_array(),
+        3,
+        false,
+        0.04,
+    )?;
+    Ok(corners.iter().map(|c| Point2::new(c.x, c.y)).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{Point2f, Scalar};
+
+    fn textured(w: i32, h: i32, seed: u64) -> Mat {
+        let mut state = seed;
+        let mut img =
+            Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("image");
+        // Blocks of random grey: corners everywhere, deterministic.
+        for by in 0..h / 8 {
+            for bx in 0..w / 8 {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let v = (state >> 56) as f64;
+                opencv::imgproc::rectangle(
+                    &mut img,
+                    opencv::core::Rect::new(bx * 8, by * 8, 8, 8),
+                    Scalar::all(v),
+                    -1,
+                    opencv::imgproc::LINE_8,
+                    0,
+                )
+                .expect("draw");
+            }
+        }
+        let mut blurred = Mat::default();
+        opencv::imgproc::gaussian_blur_def(&img, &mut blurred, opencv::core::Size::new(5, 5), 1.0)
+            .expect("blur");
+        blurred
+    }
+
+    #[test]
+    fn descriptors_follow_the_corner_under_rotation_and_refuse_the_border() {
+        let img = textured(320, 240, 3);
+        let corners = detect_corners(&img, &QueryCornerOptions::default()).expect("corners");
+        assert!(corners.len() > 200, "{}", corners.len());
+        let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
+        let mut probe = corners.clone();
+        probe.push(Point2::new(3.0, 3.0));
+        let d = describer.describe(&img, &probe).expect("describe");
+        assert!(
+            d.last().expect("probe").is_none(),
+            "border corner described"
+        );
+        // Rotate the image 20 deg about its centre: the same corner keeps a close descriptor
+        // thanks to the orientation, while other corners are far.
+        let centre = Point2f::new(160.0, 120.0);
+        let rot = opencv::imgproc::get_rotation_matrix_2d(centre, 20.0, 1.0).expect("rot");
+        let mut rotated = Mat::default();
+        opencv::imgproc::warp_affine_def(&img, &mut rotated, &rot, img.size().expect("size"))
+            .expect("warp");
+        let (a, b) = (20.0f32.to_radians().cos(), 20.0f32.to_radians().sin());
+        let mut close = 0;
+        let mut tried = 0;
+        for (c, desc) in corners.iter().zip(&d) {
+            let (dx, dy) = (c.x - 160.0, c.y - 120.0);
+            if dx * dx + dy * dy > 70.0 * 70.0 {
+                continue;
+            }
+            let Some(desc) = desc else { continue };
+            // warpAffine with a positive angle turns the image counter-clockwise.
+            let moved = Point2::new(160.0 + a * dx + b * dy, 120.0 - b * dx + a * dy);
+            let Some(Some(other)) = describer.describe(&rotated, &[moved]).expect("d").pop() else {
+                continue;
+            };
+            tried += 1;
+            if hamming(desc, &other) < 64 {
+                close += 1;
+            }
+        }
+        assert!(tried > 30, "{tried}");
+        assert!(close * 10 >= tried * 7, "{close} of {tried} within 64 bits");
+        assert_eq!(hamming(&[0xff; 32], &[0; 32]), 256);
+    }
+}

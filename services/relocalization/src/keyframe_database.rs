@@ -1,0 +1,98 @@
+//! Inverted index of keyframe bags of words (Nister and Stewenius 2006, section 4; Sivic and
+//! Zisserman's "Video Google", ICCV 2003): each word lists the keyframes containing it, so a
+//! query touches only keyframes that share a word with it, and its cost grows with the
+//! number of matching entries, not with the map.
+
+use crate::vocabulary::BowVector;
+use std::collections::HashMap;
+
+/// A keyframe returned by a query, best first.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Candidate {
+    pub keyframe_id: u64,
+    /// L1 similarity in [0, 1] (1: identical bags of words).
+    pub score: f32,
+}
+
+/// Keyframes searchable by bag of words.
+#[derive(Debug, Clone, Default)]
+pub struct KeyframeDatabase {
+    keyframes: Vec<u64>,
+    /// word -> (index into `keyframes`, weight).
+    inverted: HashMap<u32, Vec<(u32, f32)>>,
+}
+
+impl KeyframeDatabase {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds a keyframe's (L1-normalised) bag of words.
+    pub fn add(&mut self, keyframe_id: u64, bow: &BowVector) {
+        let index = self.keyframes.len() as u32;
+        self.keyframes.push(keyframe_id);
+        for &(word, weight) in bow {
+            self.inverted.entry(word).or_default().push((index, weight));
+        }
+    }
+
+    /// Number of keyframes indexed.
+    pub fn len(&self) -> usize {
+        self.keyframes.len()
+    }
+
+    /// Whether no keyframe is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.keyframes.is_empty()
+    }
+
+    /// The `max_results` keyframes most similar to `bow` by the L1 score
+    /// `1 - |q - d|_1 / 2 = sum over shared words of (|q_i| + |d_i| - |q_i - d_i|) / 2`,
+    /// which needs only the shared words.
+    pub fn query(&self, bow: &BowVector, max_results: usize) -> Vec<Candidate> {
+        let mut scores: HashMap<u32, f32> = HashMap::new();
+        for &(word, q) in bow {
+            let Some(list) = self.inverted.get(&word) else {
+                continue;
+            };
+            for &(entry, d) in list {
+                *scores.entry(entry).or_default() += q.abs() + d.abs() - (q - d).abs();
+            }
+        }
+        let mut out: Vec<Candidate> = scores
+            .into_iter()
+            .map(|(entry, s)| Candidate {
+                keyframe_id: self.keyframes[entry as usize],
+                score: 0.5 * s,
+            })
+            .collect();
+        out.sort_by(|a, b| {
+            b.score
+                .total_cmp(&a.score)
+                .then(a.keyframe_id.cmp(&b.keyframe_id))
+        });
+        out.truncate(max_results);
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_identical_bag_scores_one_and_disjoint_bags_are_not_returned() {
+        let mut db = KeyframeDatabase::new();
+        db.add(7, &vec![(1, 0.5), (4, 0.5)]);
+        db.add(8, &vec![(1, 0.25), (9, 0.75)]);
+        db.add(9, &vec![(2, 1.0)]);
+        let got = db.query(&vec![(1, 0.5), (4, 0.5)], 5);
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0].keyframe_id, 7);
+        assert!((got[0].score - 1.0).abs() < 1e-6);
+        assert_eq!(got[1].keyframe_id, 8);
+        assert!((got[1].score - 0.25).abs() < 1e-6);
+        assert_eq!(db.query(&vec![(1, 1.0)], 1).len(), 1);
+        assert_eq!(db.len(), 3);
+    }
+}
