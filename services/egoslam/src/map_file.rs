@@ -42,7 +42,7 @@ pub fn load_vocabulary(path: Option<&Path>) -> anyhow::Result<Vocabulary> {
 }
 
 /// The relocalization map of the merger's state: every keyframe of the map with its
-/// described tracks that are map points of its segment, and the points.
+/// described tracks, and the points.
 pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> RelocalizationMap {
     let points: HashMap<u64, (u32, nalgebra::Vector3<f64>)> = state
         .map
@@ -56,16 +56,9 @@ pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> Reloca
             keyframe_id: id,
             segment,
             pose: *pose,
-            features: state
-                .features
-                .get(&id)
-                .map(|f| {
-                    f.iter()
-                        .filter(|f| points.get(&f.track_id).is_some_and(|(s, _)| *s == segment))
-                        .copied()
-                        .collect()
-                })
-                .unwrap_or_default(),
+            // Every described track: all of them make the keyframe's bag of words, those
+            // that are points give the matches.
+            features: state.features.get(&id).cloned().unwrap_or_default(),
         })
         .collect();
     RelocalizationMap {

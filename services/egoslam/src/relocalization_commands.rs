@@ -4,7 +4,7 @@ use crate::map_file::{load_vocabulary, read_map};
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use clap::Args;
-use egoslam_geometry::{absolute_trajectory_error, associate, PinholeRadtan, StampedPose};
+use egoslam_geometry::{absolute_trajectory_error, alignment_from_poses, associate, PinholeRadtan, StampedPose};
 use egoslam_relocalization::descriptors::{detect_corners, DescriberOptions, QueryCornerOptions};
 use egoslam_relocalization::{
     Descriptor, OrbDescriber, QueryFeatures, Relocalizer, RelocalizerOptions, Vocabulary,
@@ -164,21 +164,30 @@ fn relocalization_error(
 ) -> anyhow::Result<serde_json::Value> {
     let ate = absolute_trajectory_error(keyframes, gt, 0.02)
         .map_err(|e| anyhow::anyhow!("map keyframes cannot be aligned to ground truth: {e}"))?;
-    let s = &ate.alignment;
-    let mut position = Vec::new();
-    let mut rotation = Vec::new();
-    for (e, g) in associate(localized, gt, 0.02) {
-        let (e, g) = (&localized[e], &gt[g]);
-        position.push((s.apply(&e.position) - g.position).norm());
-        let r = nalgebra::UnitQuaternion::from_rotation_matrix(&s.rotation) * e.rotation;
-        rotation.push(r.angle_to(&g.rotation).to_degrees());
-    }
+    // Aligned by the keyframes' orientations as well as positions: a position-only fit of
+    // a short, rotation-heavy path leaves the rotation ill-determined.
+    let s = &alignment_from_poses(keyframes, gt, 0.02)
+        .context("map keyframes cannot be aligned to ground truth by their poses")?;
+    let errors = |poses: &[StampedPose]| {
+        let (mut position, mut rotation) = (Vec::new(), Vec::new());
+        for (e, g) in associate(poses, gt, 0.02) {
+            let (e, g) = (&poses[e], &gt[g]);
+            position.push((s.apply(&e.position) - g.position).norm());
+            let r = nalgebra::UnitQuaternion::from_rotation_matrix(&s.rotation) * e.rotation;
+            rotation.push(r.angle_to(&g.rotation).to_degrees());
+        }
+        (position, rotation)
+    };
     let median = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v.get(v.len() / 2).copied()
     };
+    let (mut position, mut rotation) = errors(localized);
+    let (mut map_position, mut map_rotation) = errors(keyframes);
     Ok(json!({
         "map_keyframe_ate_m": ate.rmse,
+        "map_keyframe_median_position_m": median(&mut map_position),
+        "map_keyframe_median_rotation_deg": median(&mut map_rotation),
         "evaluated": position.len(),
         "median_position_m": median(&mut position),
         "median_rotation_deg": median(&mut rotation),
