@@ -4,7 +4,9 @@ use crate::map_file::{load_vocabulary, read_map};
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use clap::Args;
-use egoslam_geometry::{absolute_trajectory_error, alignment_from_poses, associate, PinholeRadtan, StampedPose};
+use egoslam_geometry::{
+    absolute_trajectory_error, alignment_from_poses, associate, PinholeRadtan, StampedPose,
+};
 use egoslam_relocalization::descriptors::{detect_corners, DescriberOptions, QueryCornerOptions};
 use egoslam_relocalization::{
     Descriptor, OrbDescriber, QueryFeatures, Relocalizer, RelocalizerOptions, Vocabulary,

@@ -283,7 +283,9 @@ impl Relocalizer {
                     }
                 }
                 if best.0 <= options.max_projection_hamming {
-                    let slot = best_of_query.entry(best.1).or_insert((u32::MAX, f.track_id));
+                    let slot = best_of_query
+                        .entry(best.1)
+                        .or_insert((u32::MAX, f.track_id));
                     if best.0 < slot.0 {
                         *slot = (best.0, f.track_id);
                     }
@@ -358,7 +360,9 @@ impl Relocalizer {
                     d(a).total_cmp(&d(b))
                 });
             let Some(nearest) = nearest else { continue };
-            let angle = axis(&solution.pose).angle(&axis(&nearest.pose)).to_degrees();
+            let angle = axis(&solution.pose)
+                .angle(&axis(&nearest.pose))
+                .to_degrees();
             if angle > options.max_view_angle_deg {
                 continue;
             }
@@ -370,11 +374,11 @@ impl Relocalizer {
                 ransac_threshold_px: options.refine_threshold_px,
                 ..options.pnp
             };
-            let (pose, inliers) =
-                match solve_pnp(camera, &projected, Some(&solution.pose), &refine) {
-                    Ok(s) if s.inliers.len() >= solution.inliers.len() => (s.pose, s.inliers.len()),
-                    _ => (solution.pose, solution.inliers.len()),
-                };
+            let (pose, inliers) = match solve_pnp(camera, &projected, Some(&solution.pose), &refine)
+            {
+                Ok(s) if s.inliers.len() >= solution.inliers.len() => (s.pose, s.inliers.len()),
+                _ => (solution.pose, solution.inliers.len()),
+            };
             return Ok(Relocalization {
                 pose,
                 segment: *segment,
