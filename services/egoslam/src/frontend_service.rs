@@ -190,6 +190,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         drop(image);
         drop(frame);
         stats.frames += 1;
+        if outcome.blind {
+            stats.count("blind_frames", 1);
+        }
         stats.count(
             "rejected_forward_backward",
             outcome.rejected_forward_backward as u64,

@@ -293,6 +293,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "windows": solver.windows,
         "unsolved_windows": counter(merger, "unsolved_windows"),
         "segments": counter(merger, "segments"),
+        // Breaks (segments started) that relocalization linked back (docs/relocalization.md):
+        // breaks left = segments - 1.
+        "breaks_healed": counter(merger, "breaks_healed"),
+        "blind_frames": counter(frontend, "blind_frames"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
         "peak_rss_mib": peak_memory(&stats),
@@ -308,12 +312,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
     println!(
-        "frames {} (posed {}), keyframes {}, windows {}, segments {}; results in {}",
+        "frames {} (posed {}), keyframes {}, windows {}, segments {} ({} breaks healed); results in {}",
         replay.frames,
         counter(merger, "posed_frames"),
         frontend.keyframes,
         solver.windows,
         counter(merger, "segments"),
+        counter(merger, "breaks_healed"),
         out.display()
     );
     Ok(())

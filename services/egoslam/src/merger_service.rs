@@ -17,7 +17,8 @@ use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{WindowInput, WindowOutcome};
+use egoslam_merger::{find_link, LinkOptions, WindowInput, WindowOutcome};
+use egoslam_relocalization::Vocabulary;
 use egoslam_messages::v1 as pb;
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
@@ -55,7 +56,7 @@ impl Outputs {
             .insert("posed_frames".into(), snapshot.frames.len() as u64);
         stats
             .counters
-            .insert("segments".into(), u64::from(map.segments()));
+            .insert("segments".into(), map.live_segments() as u64);
         stats
             .counters
             .insert("map_points".into(), snapshot.points.len() as u64);
@@ -71,7 +72,7 @@ impl Outputs {
                 windows: stats.windows,
                 message: format!(
                     "{} segment(s), {} map points",
-                    map.segments(),
+                    map.live_segments(),
                     snapshot.points.len()
                 ),
             };
@@ -98,7 +99,14 @@ struct Merger {
     camera: Option<PinholeRadtan>,
     /// When the files and checkpoint were last written.
     last_persist: Option<std::time::Instant>,
+    /// For relocalization: linking segments after a break, and the saved map.
+    vocabulary: Vocabulary,
 }
+
+/// A segment is tried for linking to older ones while it has at most this many keyframes
+/// (three windows): after a break the first windows decide; a segment that found no link
+/// by then stays a segment of its own (linking costs a relocalizer over the older map).
+const LINK_ATTEMPT_KEYFRAMES: usize = 60;
 
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
 /// after every window made a 12,000-frame walk spend 370 of its 428 s there (they grow
@@ -331,6 +339,12 @@ impl Merger {
             );
             new_tracks.extend(r.added);
         }
+        let segment = match &outcome {
+            WindowOutcome::NewSegment { segment } | WindowOutcome::Aligned { segment, .. } => {
+                *segment
+            }
+        };
+        self.try_link(w.window_id, segment);
         match outcome {
             WindowOutcome::NewSegment { segment } => {
                 tracing::info!(window = w.window_id, segment, "new map segment")
@@ -358,6 +372,46 @@ impl Merger {
                     tracing::info!(window = w.window_id, cross_window_px = ?error, "window aligned");
                 }
             }
+        }
+    }
+}
+
+impl Merger {
+    /// Links a young segment to an older one by relocalizing its keyframes, and merges it
+    /// when they agree (docs/relocalization.md, "Segment linking"). After a merge the other
+    /// young segments are tried again: a segment that saw nothing of the older map may see
+    /// what the merged one brought.
+    fn try_link(&mut self, window_id: u64, segment: u32) {
+        let Some(camera) = self.camera else {
+            return;
+        };
+        let mut queue = vec![segment];
+        while let Some(segment) = queue.pop() {
+            let map = &self.state.map;
+            let young = map.segment_keyframes(segment).len() <= LINK_ATTEMPT_KEYFRAMES;
+            if !young || map.live_segments() < 2 {
+                continue;
+            }
+            let options = LinkOptions::default();
+            let (features, vocabulary) = (&self.state.features, &self.vocabulary);
+            let link = self.stats.time("link_segments", || {
+                find_link(map, features, &camera, vocabulary, segment, &options)
+            });
+            let Some(link) = link else { continue };
+            tracing::info!(
+                window = window_id,
+                from = link.from,
+                to = link.to,
+                keyframes = link.keyframes,
+                shared_points = link.shared_points,
+                scale = link.transform.scale,
+                "break healed: segment linked by relocalization"
+            );
+            self.state.map.merge_segment(&link);
+            self.stats.count("breaks_healed", 1);
+            let live: std::collections::BTreeSet<u32> =
+                self.state.map.keyframes().map(|(_, s, _)| s).collect();
+            queue = live.into_iter().filter(|s| *s != link.to).collect();
         }
     }
 }
@@ -437,6 +491,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     crate::systemd::ready("merger");
+    let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
     let (global_ba_px, refine_keyframes) =
         (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
     let mut merger = Merger {
@@ -447,6 +502,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes),
         camera: None,
         last_persist: None,
+        vocabulary,
     };
     let fault = if resumed.is_none() {
         injected_fault()
@@ -494,10 +550,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let Some(camera) = &merger.camera else {
             bail!("no window was received: there is no map to save")
         };
-        let vocabulary = crate::map_file::load_vocabulary(merger.args.map.vocabulary.as_deref())?;
         let map = crate::map_file::relocalization_map(&merger.state, camera);
         let source = merger.args.out.display().to_string();
-        crate::map_file::write_map(path, &map, &vocabulary, &source)?;
+        crate::map_file::write_map(path, &map, &merger.vocabulary, &source)?;
     }
     tracing::info!(
         windows = merger.state.windows,

@@ -37,6 +37,9 @@ pub enum PathKind {
     Shake,
     /// Robustness: a walk with 1 s of darkness.
     Dark,
+    /// Robustness: the walker stops in a 2 s blackout, then walks on (tracking lost;
+    /// relocalization links the map).
+    Blackout,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -140,8 +143,13 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         PathKind::Static => CameraPath::Event(RobustnessEvent::Static),
         PathKind::Shake => CameraPath::Event(RobustnessEvent::Shake),
         PathKind::Dark => CameraPath::Event(RobustnessEvent::Dark),
+        PathKind::Blackout => CameraPath::Event(RobustnessEvent::Blackout),
     };
-    let dark = (args.path == PathKind::Dark).then(|| RobustnessEvent::Dark.window());
+    let dark = match args.path {
+        PathKind::Dark => Some(RobustnessEvent::Dark.window()),
+        PathKind::Blackout => Some(RobustnessEvent::Blackout.window()),
+        _ => None,
+    };
     let scene_kind = args.scene.unwrap_or(match args.path {
         PathKind::Frontal | PathKind::LeftRight | PathKind::Egomotion => SceneKind::Planes,
         _ => SceneKind::Room,

@@ -59,6 +59,14 @@ pub struct TrackerOptions {
     /// Between keyframes, new corners are detected when fewer than this fraction of
     /// `target_tracks` are alive (default 0.7); at keyframes the count is always topped up.
     pub replenish_below_fraction: f64,
+    /// Frames whose grey-level standard deviation is below this are treated as blind
+    /// (default 4: a lens covered or lights off leaves sensor noise of ~2 levels, while the
+    /// dimmest real sequences here measure > 20). GFTT's quality level is relative to the
+    /// best corner, so on such a frame it would pick "corners" in the noise and LK would
+    /// track them, building a map of noise; instead all tracks end and no keyframe is made
+    /// until the view returns, where a new one starts (the merger then links it back by
+    /// relocalization).
+    pub min_contrast: f64,
     /// Keyframe rule (P, m).
     pub keyframes: KeyframePolicy,
 }
@@ -74,6 +82,7 @@ impl Default for TrackerOptions {
             max_forward_backward_px: 1.0,
             border_px: 5.0,
             replenish_below_fraction: 0.7,
+            min_contrast: 4.0,
             keyframes: KeyframePolicy::default(),
         }
     }
@@ -110,6 +119,8 @@ pub struct FrameOutcome {
     pub rejected_forward_backward: usize,
     /// Mean flow since the last keyframe, pixels.
     pub mean_flow_px: f64,
+    /// The frame had too little contrast to track (see `TrackerOptions::min_contrast`).
+    pub blind: bool,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -194,6 +205,24 @@ impl Tracker {
             });
         }
         let err = cv_err(frame_id);
+        let (mut mean, mut deviation) = (Mat::default(), Mat::default());
+        opencv::core::mean_std_dev(image, &mut mean, &mut deviation, &opencv::core::no_array())
+            .map_err(&err)?;
+        let contrast = *deviation.at::<f64>(0).map_err(&err)?;
+        if contrast < self.options.min_contrast {
+            // Blind frame: every track ends, nothing is detected, no keyframe is made.
+            let lost = self.tracks.len();
+            self.tracks.clear();
+            self.previous_pyramid = None;
+            tracing::debug!(frame_id, contrast, lost, "blind frame");
+            return Ok(FrameOutcome {
+                keyframe: None,
+                live_tracks: 0,
+                rejected_forward_backward: 0,
+                mean_flow_px: 0.0,
+                blind: true,
+            });
+        }
         let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
         let mut pyramid = Vector::<Mat>::new();
         video::build_optical_flow_pyramid_def(
@@ -235,6 +264,7 @@ impl Tracker {
             live_tracks: self.tracks.len(),
             rejected_forward_backward: rejected,
             mean_flow_px: mean_flow,
+            blind: false,
         })
     }
 

@@ -164,7 +164,7 @@ pub fn align_shared(
     (transform, residual)
 }
 
-fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
+pub(crate) fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
     StampedPose {
         timestamp: p.timestamp,
         position: t.apply(&p.position),

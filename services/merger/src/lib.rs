@@ -7,9 +7,11 @@ pub mod frame_localization;
 pub mod interpolation;
 pub mod refinement;
 pub mod retriangulation;
+pub mod segment_linking;
 
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use retriangulation::RetriangulationReport;
+pub use segment_linking::{find_link, LinkOptions, SegmentLink};

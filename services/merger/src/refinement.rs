@@ -130,7 +130,7 @@ impl RefinementJob {
 
 impl MapBuilder {
     /// Keyframe ids of a segment, in order.
-    fn segment_keyframes(&self, segment: u32) -> Vec<u64> {
+    pub fn segment_keyframes(&self, segment: u32) -> Vec<u64> {
         self.keyframes
             .iter()
             .filter(|(_, (s, _))| *s == segment)

@@ -132,8 +132,8 @@ pub struct Relocalization {
     pub segment: u32,
     /// The candidate keyframe whose matches gave the pose.
     pub keyframe_id: u64,
-    /// Inlier correspondences of the final refinement.
-    pub inliers: usize,
+    /// Inlier matches of the final refinement: `(map track, query feature index)`.
+    pub inliers: Vec<(u64, usize)>,
 }
 
 /// A map ready for queries: the map, its vocabulary and the keyframes' inverted index.
@@ -253,7 +253,7 @@ impl Relocalizer {
         keyframes: &[usize],
         pose: &StampedPose,
         options: &RelocalizerOptions,
-    ) -> Vec<(Vector3<f64>, Point2<f64>)> {
+    ) -> Vec<(u64, usize)> {
         const CELL: f64 = 16.0;
         let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
         for (i, p) in query.pixels.iter().enumerate() {
@@ -299,10 +299,19 @@ impl Relocalizer {
         }
         best_of_query
             .into_iter()
-            .filter_map(|(qi, (_, track))| {
-                let (_, x) = self.map.points.get(&track)?;
-                Some((*x, query.pixels[qi]))
-            })
+            .map(|(qi, (_, track))| (track, qi))
+            .collect()
+    }
+
+    /// `(point, query pixel)` of `(track, query feature)` matches.
+    fn correspondences(
+        &self,
+        query: &QueryFeatures,
+        matches: &[(u64, usize)],
+    ) -> Vec<(Vector3<f64>, Point2<f64>)> {
+        matches
+            .iter()
+            .filter_map(|(t, qi)| Some((self.map.points.get(t)?.1, query.pixels[*qi])))
             .collect()
     }
 
@@ -337,11 +346,9 @@ impl Relocalizer {
         let mut best_inliers = 0;
         for (segment, group) in &groups {
             let local = self.local_keyframes(group, options.neighbours);
-            let matches = self.match_appearance(query, group, options);
-            let correspondences: Vec<(Vector3<f64>, Point2<f64>)> = matches
-                .iter()
-                .filter_map(|(t, qi)| Some((self.map.points.get(t)?.1, query.pixels[*qi])))
-                .collect();
+            let mut matches = self.match_appearance(query, group, options);
+            matches.retain(|(t, _)| self.map.points.contains_key(t));
+            let correspondences = self.correspondences(query, &matches);
             let solved = solve_pnp(camera, &correspondences, None, &options.pnp);
             tracing::debug!(
                 segment,
@@ -372,17 +379,28 @@ impl Relocalizer {
                 continue;
             }
             // Pose-only refinement on the matches found by projection.
-            let projected = self.match_projection(query, &local, &solution.pose, options);
+            let mut projected = self.match_projection(query, &local, &solution.pose, options);
+            projected.retain(|(t, _)| self.map.points.contains_key(t));
             let refine = PnpOptions {
                 min_inlier_ratio: 0.0,
                 ransac_iterations: 50,
                 ransac_threshold_px: options.refine_threshold_px,
                 ..options.pnp
             };
-            let (pose, inliers) = match solve_pnp(camera, &projected, Some(&solution.pose), &refine)
-            {
-                Ok(s) if s.inliers.len() >= solution.inliers.len() => (s.pose, s.inliers.len()),
-                _ => (solution.pose, solution.inliers.len()),
+            let refined = solve_pnp(
+                camera,
+                &self.correspondences(query, &projected),
+                Some(&solution.pose),
+                &refine,
+            );
+            let (pose, inliers) = match refined {
+                Ok(s) if s.inliers.len() >= solution.inliers.len() => {
+                    (s.pose, s.inliers.iter().map(|&i| projected[i]).collect())
+                }
+                _ => (
+                    solution.pose,
+                    solution.inliers.iter().map(|&i| matches[i]).collect(),
+                ),
             };
             return Ok(Relocalization {
                 pose,

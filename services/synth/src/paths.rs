@@ -94,6 +94,11 @@ pub enum RobustnessEvent {
     /// The image goes dark for 1 s (lens covered, lights off): the renderer's job, the
     /// path is the plain walk.
     Dark,
+    /// The wearer stops and the image goes dark for 2 s (lights off, lens covered), then
+    /// the walk goes on from where it stopped: tracking is lost for certain, and the view
+    /// after it is the view before it (issue 7's forced blackout, for relocalization and
+    /// segment linking).
+    Blackout,
 }
 
 impl RobustnessEvent {
@@ -104,6 +109,7 @@ impl RobustnessEvent {
             RobustnessEvent::Static => 5.0,
             RobustnessEvent::Shake => 2.0,
             RobustnessEvent::Dark => 1.0,
+            RobustnessEvent::Blackout => 2.0,
         };
         (3.0, duration)
     }
@@ -272,7 +278,9 @@ fn with_event(event: RobustnessEvent, frames: usize, fps: f64) -> Vec<StampedPos
                 yaw(60f64.to_radians() * (PI * s).sin()) * at.rotation,
             ),
             RobustnessEvent::Spin => pose(t, at.position, yaw(TAU * s) * at.rotation),
-            RobustnessEvent::Static => pose(t, at.position, at.rotation),
+            RobustnessEvent::Static | RobustnessEvent::Blackout => {
+                pose(t, at.position, at.rotation)
+            }
             RobustnessEvent::Shake => {
                 let w = walk[begin + k];
                 pose(
@@ -498,6 +506,7 @@ mod tests {
             RobustnessEvent::Static,
             RobustnessEvent::Shake,
             RobustnessEvent::Dark,
+            RobustnessEvent::Blackout,
         ] {
             let p = CameraPath::Event(event).poses(450, fps);
             assert_eq!(p.len(), 450, "{event:?}");
@@ -522,6 +531,7 @@ mod tests {
                 RobustnessEvent::Static => assert!(moved < 1e-9 && turned < 1e-9),
                 RobustnessEvent::Shake => assert!(moved > 1.0 && turned > 400.0, "{turned}"),
                 RobustnessEvent::Dark => assert!(moved > 0.5),
+                RobustnessEvent::Blackout => assert!(moved < 1e-9 && turned < 1e-9),
             }
             let after: f64 = p[300..]
                 .windows(2)

@@ -1,0 +1,298 @@
+//! Segment linking: a global loop closure after a tracking break (issue 7; the paper notes
+//! that "relocalization also facilitates global loop closures").
+//!
+//! When a break started a new map segment, the new segment's keyframes are relocalized
+//! against the older segments with their own descriptors (no image needed). Keyframes that
+//! land in the same older segment give, for each of them, its pose in both frames, and the
+//! relocalization inliers that are points of the new segment too give 3-D/3-D pairs. From
+//! those the similarity new -> old is estimated the way windows are chained
+//! ([`align_shared`]: rotation from the keyframe orientations, scale from camera-to-point
+//! distance ratios), checked against every keyframe, and the new segment is merged into
+//! the old one.
+
+use crate::chaining::{align_shared, transform_pose, MapBuilder};
+use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
+use egoslam_relocalization::{
+    MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap, Relocalizer, RelocalizerOptions,
+    Vocabulary,
+};
+use nalgebra::{Point2, Vector3};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// When a link is accepted; defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkOptions {
+    /// Keyframes of the new segment that must relocalize, consistently, into the same older
+    /// segment (default 3: one keyframe can be a wrong place that looks alike; three that
+    /// agree on one similarity cannot, by chance).
+    pub min_keyframes: usize,
+    /// Largest rotation between a keyframe's relocalized orientation and its orientation
+    /// mapped by the link, degrees (default 3: relocalization is within ~1.5 deg of the map
+    /// on TUM, docs/relocalization.md).
+    pub max_rotation_deg: f64,
+    /// Largest position disagreement, as a fraction of the median camera-to-point distance
+    /// (default 0.05: 5 cm at 1 m, the scale of the relocalization error).
+    pub max_position_fraction: f64,
+    pub relocalizer: RelocalizerOptions,
+}
+
+impl Default for LinkOptions {
+    fn default() -> Self {
+        Self {
+            min_keyframes: 3,
+            max_rotation_deg: 3.0,
+            max_position_fraction: 0.05,
+            relocalizer: RelocalizerOptions::default(),
+        }
+    }
+}
+
+/// A link found between two segments.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SegmentLink {
+    /// The newer segment, merged into `to`.
+    pub from: u32,
+    pub to: u32,
+    /// Maps `from`'s frame onto `to`'s.
+    pub transform: Similarity,
+    /// Keyframes of `from` that relocalized consistently.
+    pub keyframes: usize,
+    /// 3-D/3-D pairs that gave the scale.
+    pub shared_points: usize,
+}
+
+/// One relocalized keyframe of the new segment.
+struct Relocalized {
+    in_new: StampedPose,
+    in_old: StampedPose,
+    segment: u32,
+    /// (new-segment point, old-segment point).
+    pairs: Vec<(Vector3<f64>, Vector3<f64>)>,
+}
+
+fn query_of(features: &[MapFeature]) -> QueryFeatures {
+    QueryFeatures {
+        pixels: features
+            .iter()
+            .map(|f| Point2::new(f64::from(f.pixel.x), f64::from(f.pixel.y)))
+            .collect(),
+        descriptors: features.iter().map(|f| f.descriptor).collect(),
+    }
+}
+
+/// Searches a link from `segment` to an older segment; `None` when its keyframes do not
+/// relocalize consistently enough.
+pub fn find_link(
+    map: &MapBuilder,
+    features: &BTreeMap<u64, Vec<MapFeature>>,
+    camera: &PinholeRadtan,
+    vocabulary: &Vocabulary,
+    segment: u32,
+    options: &LinkOptions,
+) -> Option<SegmentLink> {
+    let _span = tracing::info_span!("find_link", segment).entered();
+    let older: Vec<MapKeyframe> = map
+        .keyframes()
+        .filter(|(_, s, _)| *s != segment)
+        .filter_map(|(id, s, pose)| {
+            Some(MapKeyframe {
+                keyframe_id: id,
+                segment: s,
+                pose: *pose,
+                features: features.get(&id)?.clone(),
+            })
+        })
+        .collect();
+    if older.is_empty() {
+        return None;
+    }
+    let points: HashMap<u64, (u32, Vector3<f64>)> = map
+        .points()
+        .filter(|(_, s, _)| *s != segment)
+        .map(|(t, s, x)| (t, (s, *x)))
+        .collect();
+    let relocalizer = Relocalizer::new(
+        vocabulary.clone(),
+        RelocalizationMap {
+            camera: *camera,
+            keyframes: older,
+            points,
+        },
+    );
+    let mut found: Vec<Relocalized> = Vec::new();
+    for (id, s, in_new) in map.keyframes() {
+        let Some(kf_features) = features.get(&id).filter(|_| s == segment) else {
+            continue;
+        };
+        let Ok(r) = relocalizer.relocalize(&query_of(kf_features), &options.relocalizer) else {
+            continue;
+        };
+        let pairs = r
+            .inliers
+            .iter()
+            .filter_map(|(old_track, qi)| {
+                let (ps, x_new) = map.point(kf_features[*qi].track_id)?;
+                let (_, x_old) = relocalizer.map().points.get(old_track)?;
+                (ps == segment).then_some((*x_new, *x_old))
+            })
+            .collect();
+        found.push(Relocalized {
+            in_new: *in_new,
+            in_old: r.pose,
+            segment: r.segment,
+            pairs,
+        });
+    }
+    // The older segment most keyframes relocalized into.
+    let mut votes: BTreeMap<u32, usize> = BTreeMap::new();
+    for f in &found {
+        *votes.entry(f.segment).or_default() += 1;
+    }
+    tracing::debug!(relocalized = found.len(), ?votes, "keyframes of the segment relocalized");
+    let (&to, _) = votes.iter().max_by_key(|(_, n)| **n)?;
+    let mut group: Vec<&Relocalized> = found.iter().filter(|f| f.segment == to).collect();
+    for _ in 0..2 {
+        if group.len() < options.min_keyframes {
+            return None;
+        }
+        let (transform, shared) = link_transform(&group);
+        let depth = median_depth(&group)?;
+        let consistent: Vec<&Relocalized> = group
+            .iter()
+            .copied()
+            .filter(|f| {
+                let mapped = transform_pose(&transform, &f.in_new);
+                mapped.rotation.angle_to(&f.in_old.rotation).to_degrees()
+                    <= options.max_rotation_deg
+                    && (mapped.position - f.in_old.position).norm()
+                        <= options.max_position_fraction * depth
+            })
+            .collect();
+        tracing::debug!(
+            to,
+            relocalized = group.len(),
+            consistent = consistent.len(),
+            shared,
+            "link candidate"
+        );
+        if consistent.len() == group.len() {
+            return Some(SegmentLink {
+                from: segment,
+                to,
+                transform,
+                keyframes: group.len(),
+                shared_points: shared,
+            });
+        }
+        group = consistent;
+    }
+    None
+}
+
+fn link_transform(group: &[&Relocalized]) -> (Similarity, usize) {
+    let new: Vec<StampedPose> = group.iter().map(|f| f.in_new).collect();
+    let old: Vec<StampedPose> = group.iter().map(|f| f.in_old).collect();
+    let mut seen = BTreeSet::new();
+    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = group
+        .iter()
+        .flat_map(|f| f.pairs.iter())
+        .filter(|(a, _)| seen.insert([a.x.to_bits(), a.y.to_bits(), a.z.to_bits()]))
+        .copied()
+        .collect();
+    (align_shared(&new, &old, &pairs).0, pairs.len())
+}
+
+/// Median distance from the relocalized cameras to their matched old points: the scene's
+/// scale in the old segment's units.
+fn median_depth(group: &[&Relocalized]) -> Option<f64> {
+    let mut d: Vec<f64> = group
+        .iter()
+        .flat_map(|f| f.pairs.iter().map(|(_, x)| (x - f.in_old.position).norm()))
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let mid = d.len() / 2;
+    Some(*d.select_nth_unstable_by(mid, f64::total_cmp).1)
+}
+
+impl MapBuilder {
+    /// Merges segment `link.from` into `link.to`: its keyframes and points are mapped by the
+    /// link's similarity and relabelled, and new windows continue in `to` if they were
+    /// continuing `from`.
+    pub fn merge_segment(&mut self, link: &SegmentLink) {
+        for (segment, pose) in self.keyframes.values_mut() {
+            if *segment == link.from {
+                *segment = link.to;
+                *pose = transform_pose(&link.transform, pose);
+            }
+        }
+        for (segment, x) in self.points.values_mut() {
+            if *segment == link.from {
+                *segment = link.to;
+                *x = link.transform.apply(x);
+            }
+        }
+        if self.current_segment == Some(link.from) {
+            self.current_segment = Some(link.to);
+        }
+    }
+
+    /// Segments that still hold keyframes (created segments minus those merged away).
+    pub fn live_segments(&self) -> usize {
+        self.keyframes
+            .values()
+            .map(|(s, _)| *s)
+            .collect::<BTreeSet<_>>()
+            .len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::WindowInput;
+    use nalgebra::{Rotation3, UnitQuaternion};
+
+    #[test]
+    fn merging_maps_the_segment_and_continues_in_the_old_one() {
+        let pose = |x: f64| StampedPose {
+            timestamp: x,
+            position: Vector3::new(x, 0.0, 0.0),
+            rotation: UnitQuaternion::identity(),
+        };
+        let mut map = MapBuilder::new();
+        let window = |ids: std::ops::Range<u64>, track: u64| WindowInput {
+            poses: ids.map(|i| (i, pose(i as f64))).collect(),
+            points: vec![(track, Vector3::new(0.0, 0.0, 5.0))],
+            ..WindowInput::default()
+        };
+        map.add_window(&window(0..3, 100));
+        map.break_segment();
+        map.add_window(&window(10..13, 200));
+        assert_eq!(map.live_segments(), 2);
+        let link = SegmentLink {
+            from: 1,
+            to: 0,
+            transform: Similarity {
+                scale: 2.0,
+                rotation: Rotation3::from_euler_angles(0.0, 0.3, 0.0),
+                translation: Vector3::new(1.0, 2.0, 3.0),
+            },
+            keyframes: 3,
+            shared_points: 0,
+        };
+        map.merge_segment(&link);
+        assert_eq!(map.live_segments(), 1);
+        let (segment, p) = map.keyframe(11).expect("keyframe");
+        assert_eq!(segment, 0);
+        assert!((p.position - link.transform.apply(&Vector3::new(11.0, 0.0, 0.0))).norm() < 1e-12);
+        let (segment, x) = map.point(200).expect("point");
+        assert_eq!(segment, 0);
+        assert!((x - link.transform.apply(&Vector3::new(0.0, 0.0, 5.0))).norm() < 1e-12);
+        assert_eq!(map.keyframe(1).expect("kept").1.position, Vector3::new(1.0, 0.0, 0.0));
+        // The next window sharing keyframes with the merged part aligns to segment 0.
+        let next = map.add_window(&window(11..15, 300));
+        assert!(matches!(next, crate::WindowOutcome::Aligned { segment: 0, .. }), "{next:?}");
+    }
+}
