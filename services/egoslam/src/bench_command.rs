@@ -81,7 +81,14 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
     rendered("synth_left_right", "left-right", 150, &[]);
     rendered("synth_egomotion", "egomotion", 150, &[]);
     rendered("synth_walker_300", "walker", 300, &[]);
-    for case in ["pure-rotation", "spin", "static", "shake", "dark", "blackout"] {
+    for case in [
+        "pure-rotation",
+        "spin",
+        "static",
+        "shake",
+        "dark",
+        "blackout",
+    ] {
         rendered(&format!("synth_{}", case.replace('-', "_")), case, 330, &[]);
     }
     let aria = args.shared.join(

@@ -68,6 +68,8 @@ struct Relocalized {
     segment: u32,
     /// (new-segment point, old-segment point).
     pairs: Vec<(Vector3<f64>, Vector3<f64>)>,
+    /// Distances from the relocalized camera to its inlier old points.
+    depths: Vec<f64>,
 }
 
 fn query_of(features: &[MapFeature]) -> QueryFeatures {
@@ -136,11 +138,18 @@ pub fn find_link(
                 (ps == segment).then_some((*x_new, *x_old))
             })
             .collect();
+        let depths = r
+            .inliers
+            .iter()
+            .filter_map(|(old_track, _)| relocalizer.map().points.get(old_track))
+            .map(|(_, x)| (x - r.pose.position).norm())
+            .collect();
         found.push(Relocalized {
             in_new: *in_new,
             in_old: r.pose,
             segment: r.segment,
             pairs,
+            depths,
         });
     }
     // The older segment most keyframes relocalized into.
@@ -148,7 +157,11 @@ pub fn find_link(
     for f in &found {
         *votes.entry(f.segment).or_default() += 1;
     }
-    tracing::debug!(relocalized = found.len(), ?votes, "keyframes of the segment relocalized");
+    tracing::debug!(
+        relocalized = found.len(),
+        ?votes,
+        "keyframes of the segment relocalized"
+    );
     let (&to, _) = votes.iter().max_by_key(|(_, n)| **n)?;
     let mut group: Vec<&Relocalized> = found.iter().filter(|f| f.segment == to).collect();
     for _ in 0..2 {
@@ -202,12 +215,12 @@ fn link_transform(group: &[&Relocalized]) -> (Similarity, usize) {
     (align_shared(&new, &old, &pairs).0, pairs.len())
 }
 
-/// Median distance from the relocalized cameras to their matched old points: the scene's
+/// Median distance from the relocalized cameras to their inlier old points: the scene's
 /// scale in the old segment's units.
 fn median_depth(group: &[&Relocalized]) -> Option<f64> {
     let mut d: Vec<f64> = group
         .iter()
-        .flat_map(|f| f.pairs.iter().map(|(_, x)| (x - f.in_old.position).norm()))
+        .flat_map(|f| f.depths.iter().copied())
         .collect();
     if d.is_empty() {
         return None;
@@ -290,9 +303,15 @@ mod tests {
         let (segment, x) = map.point(200).expect("point");
         assert_eq!(segment, 0);
         assert!((x - link.transform.apply(&Vector3::new(0.0, 0.0, 5.0))).norm() < 1e-12);
-        assert_eq!(map.keyframe(1).expect("kept").1.position, Vector3::new(1.0, 0.0, 0.0));
+        assert_eq!(
+            map.keyframe(1).expect("kept").1.position,
+            Vector3::new(1.0, 0.0, 0.0)
+        );
         // The next window sharing keyframes with the merged part aligns to segment 0.
         let next = map.add_window(&window(11..15, 300));
-        assert!(matches!(next, crate::WindowOutcome::Aligned { segment: 0, .. }), "{next:?}");
+        assert!(
+            matches!(next, crate::WindowOutcome::Aligned { segment: 0, .. }),
+            "{next:?}"
+        );
     }
 }
