@@ -33,6 +33,10 @@ pub struct LinkOptions {
     /// Largest position disagreement, as a fraction of the median camera-to-point distance
     /// (default 0.05: 5 cm at 1 m, the scale of the relocalization error).
     pub max_position_fraction: f64,
+    /// Keyframes of the segment relocalized per attempt, evenly spread over it (default 12:
+    /// 3 must agree, and each query costs ~20 ms; the segment is tried after each of its
+    /// first windows, so all of them would make linking the merger's largest cost).
+    pub max_queries: usize,
     pub relocalizer: RelocalizerOptions,
 }
 
@@ -42,6 +46,7 @@ impl Default for LinkOptions {
             min_keyframes: 3,
             max_rotation_deg: 3.0,
             max_position_fraction: 0.05,
+            max_queries: 12,
             relocalizer: RelocalizerOptions::default(),
         }
     }
@@ -122,8 +127,14 @@ pub fn find_link(
         },
     );
     let mut found: Vec<Relocalized> = Vec::new();
-    for (id, s, in_new) in map.keyframes() {
-        let Some(kf_features) = features.get(&id).filter(|_| s == segment) else {
+    let young: Vec<(u64, &StampedPose)> = map
+        .keyframes()
+        .filter(|(id, s, _)| *s == segment && features.contains_key(id))
+        .map(|(id, _, pose)| (id, pose))
+        .collect();
+    let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
+    for &(id, in_new) in young.iter().step_by(stride) {
+        let Some(kf_features) = features.get(&id) else {
             continue;
         };
         let Ok(r) = relocalizer.relocalize(&query_of(kf_features), &options.relocalizer) else {

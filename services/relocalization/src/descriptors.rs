@@ -149,12 +149,21 @@ impl OrbDescriber {
         }
         let (w, h) = (image.cols() as f32, image.rows() as f32);
         let m = self.options.border_px;
+        let inside: Vec<usize> = (0..corners.len())
+            .filter(|&i| {
+                let p = corners[i];
+                p.x >= m && p.y >= m && p.x < w - m && p.y < h - m
+            })
+            .collect();
+        let step = image
+            .mat_step()
+            .first()
+            .copied()
+            .unwrap_or(image.cols() as usize);
+        let angles = intensity_centroid_angles(image.data_bytes()?, step, corners, &inside);
         let mut keypoints = Vector::<KeyPoint>::new();
-        for (i, p) in corners.iter().enumerate() {
-            if !(p.x >= m && p.y >= m && p.x < w - m && p.y < h - m) {
-                continue;
-            }
-            let angle = intensity_centroid_angle(image, p.x.round() as i32, p.y.round() as i32)?;
+        for (&i, angle) in inside.iter().zip(angles) {
+            let p = corners[i];
             keypoints.push(KeyPoint::new_coords(
                 p.x,
                 p.y,
@@ -185,31 +194,40 @@ impl OrbDescriber {
 }
 
 /// ORB's orientation: the angle (degrees, OpenCV's convention) of the vector from the corner
-/// to the intensity centroid of the disc of radius 15 around it (Rosin 1999).
-fn intensity_centroid_angle(
-    image: &impl MatTraitConst,
-    cx: i32,
-    cy: i32,
-) -> Result<f32, opencv::Error> {
+/// to the intensity centroid of the disc of radius 15 around it (Rosin 1999), for the
+/// corners `which` (at least 16 px inside the image). Not generic over the image type, so
+/// that it is compiled optimised in this crate whatever the caller's profile.
+fn intensity_centroid_angles(
+    data: &[u8],
+    step: usize,
+    corners: &[Point2<f32>],
+    which: &[usize],
+) -> Vec<f32> {
     const R: i32 = 15;
-    let step = image
-        .mat_step()
-        .first()
-        .copied()
-        .unwrap_or(image.cols() as usize);
-    let data = image.data_bytes()?;
-    let (mut m01, mut m10) = (0i64, 0i64);
-    for dy in -R..=R {
-        let half = ((R * R - dy * dy) as f64).sqrt() as i32;
-        let row = (cy + dy) as usize * step;
-        for dx in -half..=half {
-            let v = data[row + (cx + dx) as usize] as i64;
-            m10 += dx as i64 * v;
-            m01 += dy as i64 * v;
-        }
-    }
-    let a = (m01 as f32).atan2(m10 as f32).to_degrees();
-    Ok(if a < 0.0 { a + 360.0 } else { a })
+    let half: Vec<i32> = (-R..=R)
+        .map(|dy| f64::from(R * R - dy * dy).sqrt() as i32)
+        .collect();
+    which
+        .iter()
+        .map(|&i| {
+            let (cx, cy) = (corners[i].x.round() as i32, corners[i].y.round() as i32);
+            let (mut m01, mut m10) = (0i64, 0i64);
+            for (dy, &half) in (-R..=R).zip(&half) {
+                let row = &data[(cy + dy) as usize * step..];
+                for dx in -half..=half {
+                    let v = i64::from(row[(cx + dx) as usize]);
+                    m10 += i64::from(dx) * v;
+                    m01 += i64::from(dy) * v;
+                }
+            }
+            let a = (m01 as f32).atan2(m10 as f32).to_degrees();
+            if a < 0.0 {
+                a + 360.0
+            } else {
+                a
+            }
+        })
+        .collect()
 }
 
 /// Settings of corner detection on query frames (the tracker's detector, full resolution).
