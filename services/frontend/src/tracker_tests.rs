@@ -176,3 +176,34 @@ mod pyramid_tests {
         );
     }
 }
+
+#[test]
+fn a_blind_frame_ends_every_track_and_the_view_restarts_with_new_ones() {
+    let big = texture(600, 300);
+    let (w, h) = (320, 240);
+    let mut tracker = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let first = tracker.process(0, &crop(&big, 0, 30, w, h)).expect("frame");
+    let before: Vec<u64> = first
+        .keyframe
+        .expect("first keyframe")
+        .tracks
+        .iter()
+        .map(|t| t.track_id)
+        .collect();
+    // Lens covered: a dark frame with sensor noise (sigma 2 grey levels).
+    let mut dark = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).expect("mat");
+    opencv::core::randn(&mut dark, &Scalar::all(8.0), &Scalar::all(2.0)).expect("noise");
+    for i in 1..5 {
+        let out = tracker.process(i, &dark).expect("dark frame");
+        assert!(
+            out.blind && out.live_tracks == 0 && out.keyframe.is_none(),
+            "{out:?}"
+        );
+    }
+    // The view returns: a keyframe with only new tracks.
+    let back = tracker.process(5, &crop(&big, 0, 30, w, h)).expect("frame");
+    assert!(!back.blind);
+    let k = back.keyframe.expect("a keyframe once the view returns");
+    assert!(k.tracks.len() > 100, "{}", k.tracks.len());
+    assert!(k.tracks.iter().all(|t| !before.contains(&t.track_id)));
+}
