@@ -8,7 +8,6 @@ use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts};
 use egoslam_messages::v1 as pb;
-use egoslam_relocalization::saved_map::{features_from_pb, features_to_pb};
 use egoslam_relocalization::MapFeature;
 use nalgebra::Point2;
 use prost::Message;
@@ -35,7 +34,8 @@ pub struct MergerState {
     pub unsolved_windows: u64,
     /// frame id -> last revision published over zenoh.
     pub revisions: std::collections::BTreeMap<u64, u32>,
-    /// keyframe id -> its described tracks (relocalization map, --map-out).
+    /// keyframe id -> its described tracks (relocalization map, --map-out). Not in the
+    /// checkpoint: kept in the append-only features log (features_log.rs).
     pub features: BTreeMap<u64, Vec<MapFeature>>,
 }
 
@@ -129,11 +129,6 @@ impl MergerState {
                 .collect(),
             revision_frame_ids: self.revisions.keys().copied().collect(),
             revision_numbers: self.revisions.values().copied().collect(),
-            keyframe_features: self
-                .features
-                .iter()
-                .map(|(k, f)| features_to_pb(*k, f))
-                .collect(),
             weak_observations: parts
                 .weak
                 .iter()
@@ -254,17 +249,7 @@ impl MergerState {
             finished: m.finished,
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
-            features: m
-                .keyframe_features
-                .iter()
-                .map(|f| match features_from_pb(f) {
-                    Some(features) => Ok((f.keyframe_id, features)),
-                    None => bail!(
-                        "checkpoint features of keyframe {} are inconsistent",
-                        f.keyframe_id
-                    ),
-                })
-                .collect::<anyhow::Result<_>>()?,
+            features: BTreeMap::new(),
             revisions: m
                 .revision_frame_ids
                 .iter()

@@ -10,6 +10,7 @@ mod cli;
 mod config;
 mod convert;
 mod eval;
+mod features_log;
 mod frame_poses;
 mod frontend_service;
 #[cfg(test)]

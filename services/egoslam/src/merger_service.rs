@@ -9,6 +9,7 @@ use crate::background_refinement::BackgroundRefiner;
 use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
+use crate::features_log::FeaturesLog;
 use crate::frame_poses;
 use crate::map_state::{self, MapState, Revisions};
 use crate::stats::ServiceStats;
@@ -19,7 +20,7 @@ use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{find_link, LinkOptions, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
-use egoslam_relocalization::Vocabulary;
+use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
 use std::collections::BTreeSet;
@@ -101,6 +102,10 @@ struct Merger {
     last_persist: Option<std::time::Instant>,
     /// For relocalization: linking segments after a break, and the saved map.
     vocabulary: Vocabulary,
+    /// Where keyframe descriptors are persisted (not in the checkpoint).
+    features_log: FeaturesLog,
+    /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
+    database: KeyframeDatabase,
 }
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
@@ -122,9 +127,9 @@ impl Merger {
     /// is unfinished means the solver was restarted mid-stream: the map goes on in a new
     /// segment (keyframe ids stay unique: the frontend continues them). After a finished
     /// stream, a new one starts a new map.
-    fn begin_stream(&mut self, stream_id: u64) {
+    fn begin_stream(&mut self, stream_id: u64) -> anyhow::Result<()> {
         if self.state.stream_id == Some(stream_id) {
-            return;
+            return Ok(());
         }
         if self.state.stream_id.is_some() && !self.state.finished {
             tracing::warn!(
@@ -137,18 +142,24 @@ impl Merger {
             self.stats.count("solver_restarts", 1);
         } else {
             self.state = MergerState::for_stream(stream_id);
+            self.features_log.truncate()?;
         }
+        Ok(())
     }
 
     /// Applies message `sequence`, checkpoints, and writes/publishes the results.
     fn apply(&mut self, sequence: u64, w: &pb::WindowSolution) -> anyhow::Result<()> {
-        self.begin_stream(w.stream_id);
+        self.begin_stream(w.stream_id)?;
         for k in &w.keyframes {
             self.state.frames.add_stamp(k);
         }
         for f in &w.keyframe_features {
             match egoslam_relocalization::saved_map::features_from_pb(f) {
                 Some(features) => {
+                    self.features_log.append(f)?;
+                    if !self.state.features.contains_key(&f.keyframe_id) {
+                        self.index_keyframe(f.keyframe_id, &features);
+                    }
                     self.state.features.insert(f.keyframe_id, features);
                 }
                 None => {
@@ -200,6 +211,7 @@ impl Merger {
         if persist {
             self.state.revisions = self.outputs.revisions.numbers();
             let save_start = std::time::Instant::now();
+            self.features_log.sync()?;
             self.state.save(&self.checkpoint_path())?;
             self.stats
                 .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
@@ -263,7 +275,7 @@ impl Merger {
             }
             return Ok(());
         };
-        self.begin_stream(journal.stream_id);
+        self.begin_stream(journal.stream_id)?;
         let first = self.state.next_sequence();
         let last = until.map_or(journal.messages.len() as u64, |(s, _)| s);
         if last > journal.messages.len() as u64 {
@@ -377,6 +389,13 @@ impl Merger {
 }
 
 impl Merger {
+    /// Adds a keyframe's bag of words to the linking index.
+    fn index_keyframe(&mut self, keyframe: u64, features: &[MapFeature]) {
+        let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
+        self.database
+            .add(keyframe, &self.vocabulary.bag_of_words(&descriptors));
+    }
+
     /// Links a young segment to an older one by relocalizing its keyframes, and merges it
     /// when they agree (docs/relocalization.md, "Segment linking"). After a merge the other
     /// young segments are tried again: a segment that saw nothing of the older map may see
@@ -394,8 +413,11 @@ impl Merger {
             }
             let options = LinkOptions::default();
             let (features, vocabulary) = (&self.state.features, &self.vocabulary);
+            let database = &self.database;
             let link = self.stats.time("link_segments", || {
-                find_link(map, features, &camera, vocabulary, segment, &options)
+                find_link(
+                    map, features, database, &camera, vocabulary, segment, &options,
+                )
             });
             let Some(link) = link else { continue };
             tracing::info!(
@@ -492,6 +514,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     crate::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
+    let features_log = FeaturesLog::open(&args.out)?;
     let (global_ba_px, refine_keyframes) =
         (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
     let mut merger = Merger {
@@ -503,13 +526,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         camera: None,
         last_persist: None,
         vocabulary,
+        features_log,
+        database: KeyframeDatabase::new(),
     };
     let fault = if resumed.is_none() {
         injected_fault()
     } else {
         None
     };
-    if let Some(state) = resumed {
+    if let Some(mut state) = resumed {
         tracing::info!(
             windows = state.windows,
             keyframes = state.map.keyframes().count(),
@@ -518,6 +543,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
+        state.features = crate::features_log::read(&merger.args.out)?;
+        for (keyframe, features) in &state.features {
+            merger.index_keyframe(*keyframe, features);
+        }
         let resumed_poses = MapState::of(&state.map, &state.frames);
         merger.outputs.revisions = Revisions::resume(&state.revisions, &resumed_poses);
         merger.state = state;

@@ -13,8 +13,8 @@
 use crate::chaining::{align_shared, transform_pose, MapBuilder};
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_relocalization::{
-    MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap, Relocalizer, RelocalizerOptions,
-    Vocabulary,
+    KeyframeDatabase, MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap, Relocalizer,
+    RelocalizerOptions, Vocabulary,
 };
 use nalgebra::{Point2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -88,20 +88,52 @@ fn query_of(features: &[MapFeature]) -> QueryFeatures {
 }
 
 /// Searches a link from `segment` to an older segment; `None` when its keyframes do not
-/// relocalize consistently enough.
+/// relocalize consistently enough. `database` indexes every keyframe's bag of words.
 pub fn find_link(
     map: &MapBuilder,
     features: &BTreeMap<u64, Vec<MapFeature>>,
+    database: &KeyframeDatabase,
     camera: &PinholeRadtan,
     vocabulary: &Vocabulary,
     segment: u32,
     options: &LinkOptions,
 ) -> Option<SegmentLink> {
     let _span = tracing::info_span!("find_link", segment).entered();
-    let older: Vec<MapKeyframe> = map
+    let young: Vec<(u64, &StampedPose)> = map
+        .keyframes()
+        .filter(|(id, s, _)| *s == segment && features.contains_key(id))
+        .map(|(id, _, pose)| (id, pose))
+        .collect();
+    let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
+    let queries: Vec<(u64, &StampedPose)> = young.iter().step_by(stride).copied().collect();
+    // The older keyframes worth matching: each query's best candidates in the whole map's
+    // index, with their neighbours. A relocalizer over these few is cheap; one over the
+    // whole older map cost seconds per attempt on a 7,000-keyframe walk.
+    let older_ids: Vec<u64> = map
         .keyframes()
         .filter(|(_, s, _)| *s != segment)
-        .filter_map(|(id, s, pose)| {
+        .map(|(id, _, _)| id)
+        .collect();
+    let mut chosen = BTreeSet::new();
+    for (id, _) in &queries {
+        let descriptors: Vec<_> = features[id].iter().map(|f| f.descriptor).collect();
+        let bow = vocabulary.bag_of_words(&descriptors);
+        let candidates = database
+            .query(&bow, 4 * options.relocalizer.candidates)
+            .into_iter()
+            .filter(|c| matches!(map.keyframe(c.keyframe_id), Some((s, _)) if s != segment))
+            .take(options.relocalizer.candidates);
+        for c in candidates {
+            let at = older_ids.partition_point(|k| *k < c.keyframe_id);
+            let lo = at.saturating_sub(options.relocalizer.neighbours);
+            let hi = (at + options.relocalizer.neighbours + 1).min(older_ids.len());
+            chosen.extend(&older_ids[lo..hi]);
+        }
+    }
+    let older: Vec<MapKeyframe> = chosen
+        .iter()
+        .filter_map(|&id| {
+            let (s, pose) = map.keyframe(id)?;
             Some(MapKeyframe {
                 keyframe_id: id,
                 segment: s,
@@ -113,10 +145,13 @@ pub fn find_link(
     if older.is_empty() {
         return None;
     }
-    let points: HashMap<u64, (u32, Vector3<f64>)> = map
-        .points()
-        .filter(|(_, s, _)| *s != segment)
-        .map(|(t, s, x)| (t, (s, *x)))
+    let points: HashMap<u64, (u32, Vector3<f64>)> = older
+        .iter()
+        .flat_map(|k| k.features.iter())
+        .filter_map(|f| {
+            let (s, x) = map.point(f.track_id)?;
+            (s != segment).then_some((f.track_id, (s, *x)))
+        })
         .collect();
     let relocalizer = Relocalizer::new(
         vocabulary.clone(),
@@ -127,13 +162,7 @@ pub fn find_link(
         },
     );
     let mut found: Vec<Relocalized> = Vec::new();
-    let young: Vec<(u64, &StampedPose)> = map
-        .keyframes()
-        .filter(|(id, s, _)| *s == segment && features.contains_key(id))
-        .map(|(id, _, pose)| (id, pose))
-        .collect();
-    let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
-    for &(id, in_new) in young.iter().step_by(stride) {
+    for &(id, in_new) in &queries {
         let Some(kf_features) = features.get(&id) else {
             continue;
         };
