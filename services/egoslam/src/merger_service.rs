@@ -110,7 +110,7 @@ struct Merger {
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
 /// (three windows): after a break the first windows decide; a segment that found no link
-/// by then stays a segment of its own (linking costs a relocalizer over the older map).
+/// by then stays a segment of its own (each attempt relocalizes up to 12 keyframes).
 const LINK_ATTEMPT_KEYFRAMES: usize = 60;
 
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
@@ -356,7 +356,6 @@ impl Merger {
                 *segment
             }
         };
-        self.try_link(w.window_id, segment);
         match outcome {
             WindowOutcome::NewSegment { segment } => {
                 tracing::info!(window = w.window_id, segment, "new map segment")
@@ -385,6 +384,7 @@ impl Merger {
                 }
             }
         }
+        self.try_link(w.window_id, segment);
     }
 }
 
