@@ -1,7 +1,8 @@
 //! Relocalization of a frame in a map without any tracking prior (paper, section 5
 //! "Relocalization"): bag-of-words candidates from the vocabulary tree, descriptor matches
-//! to the candidates' map points, outliers rejected with the candidates' known poses, PnP in
-//! RANSAC, then a pose-only refinement on every candidate's inlier matches.
+//! to the candidates' map points, PnP in RANSAC, outliers rejected with the candidates'
+//! known poses, then a pose-only refinement on the matches found by projecting the points
+//! of the candidates and their neighbours.
 
 use crate::absolute_pose::{solve_pnp, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
@@ -11,7 +12,8 @@ use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::{Point2, Vector3};
 use std::collections::HashMap;
 
-/// A keyframe feature that is a map point.
+/// A described track of a keyframe; it gives matches when the map has its track as a
+/// point, and makes the keyframe's bag of words either way.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapFeature {
     pub track_id: u64,
@@ -53,7 +55,7 @@ pub struct QueryFeatures {
 pub struct RelocalizerOptions {
     /// Keyframes tried per query, best bag-of-words score first (default 5: neighbouring
     /// keyframes of a video look alike, so the right place is almost always among the top
-    /// few; each costs one matching pass and one RANSAC).
+    /// few). Their points are matched together, one RANSAC per map segment.
     pub candidates: usize,
     /// Largest Hamming distance of an accepted match (default 64 of 256 bits: ORB-SLAM's
     /// strict threshold is 50, its loose one 100).
@@ -66,9 +68,10 @@ pub struct RelocalizerOptions {
     /// tracks; 1000 AP3P draws find an all-inlier sample at 20 % inliers with p > 0.8 and
     /// cost ~5 ms).
     pub pnp: PnpOptions,
-    /// Keyframes on each side of a candidate whose points are matched too (default 2: a
-    /// candidate's neighbours see the same place, and together they describe more of its
-    /// points than the candidate alone, whose tracks are only those alive at that frame).
+    /// Keyframes on each side of a candidate whose points join the matching by projection
+    /// (default 2: a candidate's neighbours see the same place, and together they hold more
+    /// of its points than the candidate alone, whose tracks are only those alive at that
+    /// frame; in the appearance matching they doubled the cost for no gain).
     pub neighbours: usize,
     /// Descriptors of one point compared per query (default 3: from the best-ranked
     /// keyframes seeing it; measured on TUM fr1_rpy, 1 loses 5 % of the relocalized frames
@@ -169,9 +172,9 @@ impl Relocalizer {
         &self.map
     }
 
-    /// The keyframes whose features are matched for a group of candidates: the candidates
-    /// (best first), then their `neighbours` on each side in keyframe order, within the
-    /// segment.
+    /// The keyframes whose points are matched by projection for a group of candidates: the
+    /// candidates (best first), then their `neighbours` on each side in keyframe order,
+    /// within the segment.
     fn local_keyframes(&self, group: &[usize], neighbours: usize) -> Vec<usize> {
         let mut out: Vec<usize> = group.to_vec();
         for &i in group {
