@@ -32,7 +32,17 @@ fn service_pid(service: &str, out: &Path) -> Option<u32> {
 
 /// SIGKILLs the `service` process writing to `out`.
 fn sigkill(service: &str, out: &Path) {
-    let pid = service_pid(service, out).expect("service pid");
+    // Under load the launcher may not have started the service yet: look for up to 5 s.
+    let deadline = std::time::Instant::now() + Duration::from_secs(5);
+    let pid = loop {
+        match service_pid(service, out) {
+            Some(pid) => break pid,
+            None if std::time::Instant::now() < deadline => {
+                std::thread::sleep(Duration::from_millis(50))
+            }
+            None => panic!("no {service} process writing to {}", out.display()),
+        }
+    };
     let status = std::process::Command::new("kill")
         .args(["-KILL", &pid.to_string()])
         .status()
@@ -97,12 +107,18 @@ fn a_killed_merger_resumes_and_loses_nothing() {
     assert_eq!(keyframes(aborted.path()), expected, "results differ");
 }
 
-/// Runs the clip in real time, SIGKILLs `service` after `after`, and returns the report of
-/// the run, which must complete.
-fn kill_mid_run(service: &str, after: Duration) -> serde_json::Value {
+/// Runs the clip (in real time with `realtime`), SIGKILLs `service` after `after`, and
+/// returns the report of the run, which must complete, with the number of keyframes in
+/// keyframes.tum.
+fn kill_mid_run(service: &str, after: Duration, realtime: bool) -> (serde_json::Value, usize) {
     let out = tempfile::tempdir().expect("tempdir");
-    let run = egoslam()
-        .args(["run", "--realtime", "--input"])
+    let mut command = egoslam();
+    command.arg("run");
+    if realtime {
+        command.arg("--realtime");
+    }
+    let run = command
+        .arg("--input")
         .arg(tum_fixture())
         .arg("--out")
         .arg(out.path())
@@ -111,23 +127,38 @@ fn kill_mid_run(service: &str, after: Duration) -> serde_json::Value {
     std::thread::sleep(after);
     sigkill(service, out.path());
     wait_success(run);
-    report(out.path())
+    let keyframes = std::fs::read_to_string(out.path().join("keyframes.tum"))
+        .expect("keyframes.tum")
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .count();
+    (report(out.path()), keyframes)
 }
 
 #[test]
 fn a_killed_frontend_or_solver_is_restarted_and_the_run_completes() {
-    // The frontend continues its ids; the map goes on (in a new segment when the restart
-    // broke the tracks). What the killed process held is lost: a frontend's few frames
-    // (measured 94-104 of 120 posed), a solver's open window and input buffer (measured
-    // 52-84 of 120 on this clip, where nearly every frame is a keyframe).
-    for (service, at_least) in [("frontend", 80), ("solver", 40)] {
-        let r = kill_mid_run(service, Duration::from_millis(1800));
-        assert_eq!(r["restarts"][service], 1, "{service}: {r}");
-        let posed = r["posed_frames"].as_u64().expect("posed");
-        assert!(
-            posed >= at_least,
-            "{service}: only {posed} of 120 frames posed: {r}"
-        );
-        assert!(r["segments"].as_u64() >= Some(1), "{r}");
-    }
+    // The frontend continues its ids; what the killed frontend held is lost (its few
+    // frames in flight; measured 94-104 of 120 posed). The map goes on, in a new segment
+    // when the restart broke the tracks, which relocalization may link back.
+    let (r, _) = kill_mid_run("frontend", Duration::from_millis(1800), true);
+    assert_eq!(r["restarts"]["frontend"], 1, "{r}");
+    let posed = r["posed_frames"].as_u64().expect("posed");
+    assert!(
+        posed >= 80,
+        "frontend: only {posed} of 120 frames posed: {r}"
+    );
+    // A killed solver loses nothing: the restarted one continues its stream from its
+    // journal and replays the frontend's keyframe log, so every keyframe the frontend made
+    // (95: lossless replay, no frame dropped) is in the map, in one segment, every frame is
+    // posed, and the keyframe ATE is that of an undisturbed run (measured 0.0251 m both).
+    let (r, keyframes) = kill_mid_run("solver", Duration::from_millis(1500), false);
+    assert_eq!(r["restarts"]["solver"], 1, "{r}");
+    assert_eq!(r["keyframes"], 95, "{r}");
+    assert_eq!(keyframes, 95, "{r}");
+    assert_eq!(r["segments"], 1, "{r}");
+    assert_eq!(r["posed_frames"], 120, "{r}");
+    let ate = r["accuracy"]["keyframes"]["ate_rmse_m"]
+        .as_f64()
+        .expect("ate");
+    assert!((ate - 0.0251).abs() < 0.05 * 0.0251, "keyframe ATE {ate} m");
 }

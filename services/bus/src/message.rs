@@ -27,6 +27,14 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         })
     }
 
+    /// Numbers the next message `sequence` instead of continuing from 0: a restarted
+    /// producer that resumes its stream (the solver, from its journal) goes on where its
+    /// predecessor stopped, so that the consumer sees no new stream and no gap.
+    pub fn continue_at(mut self, sequence: u64) -> Self {
+        self.sequence = sequence;
+        self
+    }
+
     /// Encodes and sends; blocks while the consumer is full, fails if it stays full past the
     /// delivery timeout.
     pub fn send(&mut self, message: &M) -> Result<(), SendError> {
@@ -53,11 +61,13 @@ impl<M> MessagePublisher<'_, M> {
     }
 }
 
-/// Receives protobuf messages of type `M`. The header carries the producer's sequence number:
-/// from the first message received on, a gap (which the lossless QoS forbids) is reported
-/// rather than passed on silently. The first number need not be 0: a consumer restarted
-/// mid-stream joins where the producer is, and fills what it missed from the producer's
-/// journal (see docs/durability.md).
+/// Receives protobuf messages of type `M`. The header carries the producer's sequence number,
+/// handed to the consumer with each message. The lossless QoS allows a forward gap only when
+/// a producer died after journaling a message and before sending it, and its successor
+/// continued the numbering: the gap is logged and passed on, and the consumer fills it from
+/// the producer's journal (the merger does; docs/durability.md). A number going backwards
+/// (other than a restart from 0) is an error. The first number need not be 0: a consumer
+/// restarted mid-stream joins where the producer is.
 pub struct MessageSubscriber<'a, M> {
     bus: &'a Bus,
     channel: Channel,
@@ -94,10 +104,12 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
             if sequence == 0 && expected > 0 {
                 // A restarted producer numbers from 0 again: a new stream, not a gap.
                 tracing::warn!(service = %name, after = expected, "producer restarted: a new stream begins");
-            } else if sequence != expected {
+            } else if sequence > expected {
+                tracing::warn!(service = %name, expected, got = sequence, "sequence gap: the consumer fills it from the producer's journal");
+            } else if sequence < expected {
                 return Err(ReceiveError::Decode {
                     service: name,
-                    reason: format!("sequence gap: expected {expected}, got {sequence}"),
+                    reason: format!("sequence went back: expected {expected}, got {sequence}"),
                 });
             }
         }

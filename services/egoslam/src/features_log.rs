@@ -20,19 +20,29 @@ use std::path::{Path, PathBuf};
 /// File name in the output folder.
 pub const FILE_NAME: &str = "keyframe_features.log";
 
-/// Largest record accepted when reading back (a keyframe of 10,000 tracks is ~500 KB).
+/// Largest record accepted when reading back (a keyframe message of 10,000 tracks with
+/// descriptors is ~700 KB).
 const MAX_RECORD_BYTES: usize = 16 << 20;
 
-/// The open log.
-pub struct FeaturesLog {
+/// An append-only file of length-delimited protobuf records (the features log here, the
+/// frontend's keyframe log in keyframe_log.rs).
+pub struct RecordLog {
     path: PathBuf,
     writer: std::io::BufWriter<std::fs::File>,
 }
 
-impl FeaturesLog {
+/// The features log.
+pub type FeaturesLog = RecordLog;
+
+impl RecordLog {
     /// Opens `dir/keyframe_features.log` for appending (created if absent).
     pub fn open(dir: &Path) -> anyhow::Result<Self> {
-        let path = dir.join(FILE_NAME);
+        Self::open_file(&dir.join(FILE_NAME))
+    }
+
+    /// Opens the log at `path` for appending (created if absent).
+    pub fn open_file(path: &Path) -> anyhow::Result<Self> {
+        let path = path.to_path_buf();
         let file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -44,11 +54,18 @@ impl FeaturesLog {
         })
     }
 
-    /// Appends one keyframe's features (buffered; see [`FeaturesLog::sync`]).
-    pub fn append(&mut self, features: &pb::KeyframeFeatures) -> anyhow::Result<()> {
+    /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]).
+    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<()> {
         self.writer
-            .write_all(&features.encode_length_delimited_to_vec())
+            .write_all(&record.encode_length_delimited_to_vec())
             .with_context(|| format!("appending to {}", self.path.display()))
+    }
+
+    /// Hands everything appended to the kernel: it survives the process being killed.
+    pub fn flush(&mut self) -> anyhow::Result<()> {
+        self.writer
+            .flush()
+            .with_context(|| format!("writing {}", self.path.display()))
     }
 
     /// Makes everything appended so far durable (before a checkpoint names it applied).
@@ -70,38 +87,48 @@ impl FeaturesLog {
     }
 }
 
-/// The features in the log at `dir`, later records replacing earlier ones; an absent log
-/// is empty, a torn or oversized final record is dropped with a warning.
-pub fn read(dir: &Path) -> anyhow::Result<BTreeMap<u64, Vec<MapFeature>>> {
-    let path = dir.join(FILE_NAME);
-    let bytes = match std::fs::read(&path) {
+/// The records of the log at `path` in order; an absent log is empty, a torn or oversized
+/// final record (a kill mid-append) is dropped with a warning, an undecodable one skipped.
+pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>> {
+    let bytes = match std::fs::read(path) {
         Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(BTreeMap::new()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
         Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
     };
-    let mut out = BTreeMap::new();
+    let mut out = Vec::new();
     let mut rest = &bytes[..];
     while !rest.is_empty() {
         let mut probe = rest;
         let length = match prost::encoding::decode_varint(&mut probe) {
             Ok(l) if (l as usize) <= MAX_RECORD_BYTES && (l as usize) <= probe.len() => l as usize,
             _ => {
-                tracing::warn!(path = %path.display(), bytes = rest.len(), "torn record at the end of the features log ignored");
+                tracing::warn!(path = %path.display(), bytes = rest.len(), "torn record at the end of a log ignored");
                 break;
             }
         };
-        let record = pb::KeyframeFeatures::decode(&probe[..length]);
+        match M::decode(&probe[..length]) {
+            Ok(record) => out.push(record),
+            Err(e) => {
+                tracing::warn!(path = %path.display(), error = %e, "invalid record in a log skipped")
+            }
+        }
         rest = &probe[length..];
-        match record
-            .ok()
-            .and_then(|r| Some((r.keyframe_id, features_from_pb(&r)?)))
-        {
-            Some((keyframe, features)) => {
-                out.insert(keyframe, features);
+    }
+    Ok(out)
+}
+
+/// The features in the log at `dir`, later records replacing earlier ones.
+pub fn read(dir: &Path) -> anyhow::Result<BTreeMap<u64, Vec<MapFeature>>> {
+    let mut out = BTreeMap::new();
+    for r in read_records::<pb::KeyframeFeatures>(&dir.join(FILE_NAME))? {
+        match features_from_pb(&r) {
+            Some(features) => {
+                out.insert(r.keyframe_id, features);
             }
-            None => {
-                tracing::warn!(path = %path.display(), "invalid record in the features log skipped")
-            }
+            None => tracing::warn!(
+                keyframe = r.keyframe_id,
+                "inconsistent features in the log skipped"
+            ),
         }
     }
     Ok(out)

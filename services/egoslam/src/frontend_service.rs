@@ -1,6 +1,7 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
 use crate::cli::ServiceArgs;
+use crate::features_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
@@ -23,6 +24,24 @@ fn reason(r: KeyframeReason) -> pb::KeyframeReason {
         KeyframeReason::TrackLoss => pb::KeyframeReason::TrackLoss,
         KeyframeReason::Last => pb::KeyframeReason::Last,
     }
+}
+
+/// Every keyframe message sent, in order (length-delimited): a restarted solver replays the
+/// ones its predecessor had not turned into windows (docs/durability.md).
+pub const KEYFRAME_LOG: &str = "keyframes.log";
+
+/// Logs a keyframe message, then sends it: whatever the solver may have received is in the
+/// log. Flushed to the kernel (not synced): the threat is a killed process, and the page
+/// cache survives it.
+fn log_and_send(
+    log: &mut RecordLog,
+    publisher: &mut MessagePublisher<pb::Keyframe>,
+    message: &pb::Keyframe,
+) -> anyhow::Result<()> {
+    log.append(message)?;
+    log.flush()?;
+    publisher.send(message)?;
+    Ok(())
 }
 
 /// File (in the output folder) with the ids a restarted frontend continues from.
@@ -124,6 +143,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
     let state_path = args.out.join(ID_STATE_FILE);
+    let mut keyframe_log = RecordLog::open_file(&args.out.join(KEYFRAME_LOG))?;
+    let resuming = state_path.exists();
+    if !resuming {
+        keyframe_log.truncate()?;
+    }
     if let Ok(text) = std::fs::read_to_string(&state_path) {
         let ids: serde_json::Value = serde_json::from_str(&text)
             .with_context(|| format!("{}: unreadable", state_path.display()))?;
@@ -205,7 +229,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         match (outcome.keyframe, described) {
             (Some(k), Some(mut msg)) => {
                 msg.frames_since_previous = std::mem::take(&mut skipped);
-                stats.time("publish", || keyframes.send(&msg))?;
+                stats.time("publish", || {
+                    log_and_send(&mut keyframe_log, &mut keyframes, &msg)
+                })?;
                 stats.keyframes += 1;
                 let (kf, track) = tracker.next_ids();
                 let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
@@ -235,14 +261,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         if !last_image.empty() {
             describe_tracks(&mut describer, &last_image, &mut msg);
         }
-        keyframes.send(&msg)?;
+        log_and_send(&mut keyframe_log, &mut keyframes, &msg)?;
         stats.keyframes += 1;
     }
-    keyframes.send(&pb::Keyframe {
+    let end = pb::Keyframe {
         end_of_stream: true,
         trailing_frames: skipped,
         ..Default::default()
-    })?;
+    };
+    log_and_send(&mut keyframe_log, &mut keyframes, &end)?;
     let secs = started.elapsed().as_secs_f64();
     tracing::info!(
         frames = stats.frames,

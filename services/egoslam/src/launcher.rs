@@ -188,6 +188,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         crate::checkpoint::FILE_NAME,
         crate::window_journal::FILE_NAME,
         crate::features_log::FILE_NAME,
+        crate::frontend_service::KEYFRAME_LOG,
         crate::frontend_service::ID_STATE_FILE,
     ] {
         let _ = std::fs::remove_file(out.join(stale));

@@ -22,6 +22,7 @@ mod merger_service;
 mod output;
 mod relocalization_commands;
 mod replay;
+mod solver_resume;
 mod solver_service;
 mod stats;
 mod synth_command;

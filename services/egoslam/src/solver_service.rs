@@ -282,10 +282,10 @@ fn new_stream_id() -> u64 {
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("solver");
-    let mut builder = WindowBuilder::new(WindowOptions {
+    let window_options = WindowOptions {
         size: usize::from(args.pipeline.window),
         overlap: args.pipeline.overlap,
-    })?;
+    };
     let mut options = WindowSolverOptions::default();
     options.view_graph.loop_closure_span = usize::from(args.pipeline.loop_closures);
     let mut cache = EdgeCache::new();
@@ -296,11 +296,45 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
-    let stream_id = new_stream_id();
     std::fs::create_dir_all(&args.out)?;
-    let mut journal = JournalWriter::create(&args.out.join(window_journal::FILE_NAME), stream_id)?;
+    let journal_path = args.out.join(window_journal::FILE_NAME);
+    // A restarted solver continues its predecessor's stream (docs/durability.md).
+    let resume = crate::solver_resume::find(&args.out, args.pipeline.overlap)?;
+    let (stream_id, mut journal, mut builder, next_sequence, replay, skip_up_to) = match resume {
+        Some(r) => {
+            tracing::warn!(
+                windows = r.windows(),
+                replayed_keyframes = r.replay.len(),
+                "resuming the stream of a previous solver"
+            );
+            stats.count("restarts", 1);
+            stats.count("replayed_keyframes", r.replay.len() as u64);
+            stats.windows = r.windows();
+            let last = r.last_keyframe_id();
+            (
+                r.journal.stream_id,
+                JournalWriter::resume(&journal_path, &r.journal)?,
+                WindowBuilder::resume(window_options, r.tail)?,
+                r.journal.messages.len() as u64,
+                r.replay,
+                last,
+            )
+        }
+        None => {
+            let stream_id = new_stream_id();
+            (
+                stream_id,
+                JournalWriter::create(&journal_path, stream_id)?,
+                WindowBuilder::new(window_options)?,
+                0,
+                Vec::new(),
+                None,
+            )
+        }
+    };
     let mut keyframes = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
-    let mut windows = MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    let mut windows =
+        MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?.continue_at(next_sequence);
     crate::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
@@ -314,9 +348,20 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         Ok(())
     };
     let mut trailing = Vec::new();
+    let mut replay = replay.into_iter();
     loop {
-        let Some(k) = keyframes.receive()? else {
-            bail!("terminated by signal")
+        let k = match replay.next() {
+            Some(k) => k,
+            None => {
+                let Some(k) = keyframes.receive()? else {
+                    bail!("terminated by signal")
+                };
+                // Keyframes the replay already took (sent before this solver started).
+                if !k.end_of_stream && skip_up_to.is_some_and(|last| k.keyframe_id <= last) {
+                    continue;
+                }
+                k
+            }
         };
         let end_of_stream = k.end_of_stream;
         let window = if end_of_stream {

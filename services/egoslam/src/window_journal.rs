@@ -43,6 +43,23 @@ impl JournalWriter {
         })
     }
 
+    /// Reopens the journal of a stream that a restarted solver continues: anything after
+    /// the last complete record (`journal.valid_len`) is cut, then messages are appended.
+    pub fn resume(path: &Path, journal: &Journal) -> anyhow::Result<Self> {
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(path)
+            .with_context(|| format!("reopening the window journal {}", path.display()))?;
+        file.set_len(journal.valid_len)
+            .and_then(|()| std::io::Seek::seek(&mut file, std::io::SeekFrom::End(0)))
+            .with_context(|| format!("trimming {}", path.display()))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+            buffer: Vec::new(),
+        })
+    }
+
     /// Appends one message and hands it to the kernel (and the disk) before returning, so
     /// that a message is in the journal before anyone can have received it.
     pub fn append(&mut self, message: &pb::WindowSolution) -> anyhow::Result<()> {
@@ -61,6 +78,8 @@ pub struct Journal {
     pub stream_id: u64,
     /// Messages in sequence order (index = bus sequence number).
     pub messages: Vec<pb::WindowSolution>,
+    /// Bytes up to the end of the last complete record (what a resumed writer keeps).
+    pub valid_len: u64,
 }
 
 /// Reads a journal. A last record cut short (the solver died while appending) is dropped:
@@ -101,6 +120,7 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
     Ok(Journal {
         stream_id,
         messages,
+        valid_len: (bytes.len() - rest.len()) as u64,
     })
 }
 

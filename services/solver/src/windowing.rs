@@ -64,6 +64,15 @@ impl<K: Clone> WindowBuilder<K> {
     }
 
     /// Adds a keyframe; returns a window when K keyframes are collected.
+    /// A builder that continues after a window already emitted (by a predecessor process):
+    /// `tail` are that window's last `overlap` keyframes, shared with the next window.
+    pub fn resume(options: WindowOptions, tail: Vec<K>) -> Result<Self, WindowOptionsError> {
+        let mut builder = Self::new(options)?;
+        builder.carried = tail.len();
+        builder.pending = tail;
+        Ok(builder)
+    }
+
     pub fn push(&mut self, keyframe: K) -> Option<Window<K>> {
         self.pending.push(keyframe);
         (self.pending.len() >= self.options.size).then(|| self.emit())
@@ -111,6 +120,17 @@ mod tests {
             .collect();
         assert_eq!(new, (0..33).collect::<Vec<_>>());
         assert!(b.finish().is_none());
+        // A builder resumed after window 1 emits exactly what the original emitted next.
+        let mut resumed = WindowBuilder::resume(
+            WindowOptions {
+                size: 10,
+                overlap: 3,
+            },
+            vec![14, 15, 16],
+        )
+        .expect("valid");
+        let again: Vec<Window<u32>> = (17..33).filter_map(|k| resumed.push(k)).collect();
+        assert_eq!(again[0], windows[2]);
     }
 
     #[test]
