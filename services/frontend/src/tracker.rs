@@ -65,7 +65,7 @@ pub struct TrackerOptions {
     /// best corner, so on such a frame it would pick "corners" in the noise and LK would
     /// track them, building a map of noise; instead all tracks end and no keyframe is made
     /// until the view returns, where a new one starts (the merger then links it back by
-    /// relocalization).
+    /// relocalization). 0 disables the check.
     pub min_contrast: f64,
     /// Keyframe rule (P, m).
     pub keyframes: KeyframePolicy,
@@ -206,22 +206,24 @@ impl Tracker {
         }
         let err = cv_err(frame_id);
         let (mut mean, mut deviation) = (Mat::default(), Mat::default());
-        opencv::core::mean_std_dev(image, &mut mean, &mut deviation, &opencv::core::no_array())
-            .map_err(&err)?;
-        let contrast = *deviation.at::<f64>(0).map_err(&err)?;
-        if contrast < self.options.min_contrast {
-            // Blind frame: every track ends, nothing is detected, no keyframe is made.
-            let lost = self.tracks.len();
-            self.tracks.clear();
-            self.previous_pyramid = None;
-            tracing::debug!(frame_id, contrast, lost, "blind frame");
-            return Ok(FrameOutcome {
-                keyframe: None,
-                live_tracks: 0,
-                rejected_forward_backward: 0,
-                mean_flow_px: 0.0,
-                blind: true,
-            });
+        if self.options.min_contrast > 0.0 {
+            opencv::core::mean_std_dev(image, &mut mean, &mut deviation, &opencv::core::no_array())
+                .map_err(&err)?;
+            let contrast = *deviation.at::<f64>(0).map_err(&err)?;
+            if contrast < self.options.min_contrast {
+                // Blind frame: every track ends, nothing is detected, no keyframe is made.
+                let lost = self.tracks.len();
+                self.tracks.clear();
+                self.previous_pyramid = None;
+                tracing::debug!(frame_id, contrast, lost, "blind frame");
+                return Ok(FrameOutcome {
+                    keyframe: None,
+                    live_tracks: 0,
+                    rejected_forward_backward: 0,
+                    mean_flow_px: 0.0,
+                    blind: true,
+                });
+            }
         }
         let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
         let mut pyramid = Vector::<Mat>::new();
