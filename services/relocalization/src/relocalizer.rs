@@ -84,8 +84,8 @@ pub struct RelocalizerOptions {
     pub max_projection_hamming: u32,
     /// Inlier threshold of the final refinement, pixels (default 3).
     pub refine_threshold_px: f64,
-    /// Largest angle between the found camera's optical axis and that of the nearest
-    /// candidate keyframe, degrees (default 60: a frame that looks like a keyframe
+    /// Largest angle between the found camera's optical axis and that of the candidate
+    /// keyframe viewing most like it, degrees (default 60: a frame that looks like a keyframe
     /// views the same surfaces from a similar direction; a pose that does not is a wrong
     /// match that RANSAC happened to support).
     pub max_view_angle_deg: f64,
@@ -366,19 +366,16 @@ impl Relocalizer {
             best_inliers = best_inliers.max(solution.inliers.len());
             // The known keyframe poses reject a pose no candidate could have seen the
             // frame from (paper: "reject outliers using the pre-computed trajectory").
+            // The candidate viewing most like the pose: by optical axis, not by position
+            // (a head turning in place has all its keyframes at one spot).
             let axis = |p: &StampedPose| p.rotation * Vector3::z();
+            let angle = |k: &MapKeyframe| axis(&solution.pose).angle(&axis(&k.pose));
             let nearest = group
                 .iter()
                 .map(|&k| &self.map.keyframes[k])
-                .min_by(|a, b| {
-                    let d = |k: &MapKeyframe| (k.pose.position - solution.pose.position).norm();
-                    d(a).total_cmp(&d(b))
-                });
+                .min_by(|a, b| angle(a).total_cmp(&angle(b)));
             let Some(nearest) = nearest else { continue };
-            let angle = axis(&solution.pose)
-                .angle(&axis(&nearest.pose))
-                .to_degrees();
-            if angle > options.max_view_angle_deg {
+            if angle(nearest).to_degrees() > options.max_view_angle_deg {
                 continue;
             }
             // Pose-only refinement on the matches found by projection.
