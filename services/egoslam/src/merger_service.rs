@@ -113,6 +113,12 @@ struct Merger {
 /// by then stays a segment of its own (each attempt relocalizes up to 12 keyframes).
 const LINK_ATTEMPT_KEYFRAMES: usize = 60;
 
+/// The segment new windows go to, once past [`LINK_ATTEMPT_KEYFRAMES`], is tried again
+/// every this many windows with its newest [`LINK_RETRY_KEYFRAMES`] keyframes: a walk that
+/// returns to a place the older map saw is linked there (a loop closure across the break).
+const LINK_RETRY_WINDOWS: u64 = 10;
+const LINK_RETRY_KEYFRAMES: usize = 20;
+
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
 /// after every window made a 12,000-frame walk spend 370 of its 428 s there (they grow
 /// with the map); the journal makes waiting safe.
@@ -404,14 +410,19 @@ impl Merger {
         let Some(camera) = self.camera else {
             return;
         };
+        let current = segment;
         let mut queue = vec![segment];
         while let Some(segment) = queue.pop() {
             let map = &self.state.map;
             let young = map.segment_keyframes(segment).len() <= LINK_ATTEMPT_KEYFRAMES;
-            if !young || map.live_segments() < 2 {
+            let retry = segment == current && window_id % LINK_RETRY_WINDOWS == 0;
+            if !(young || retry) || map.live_segments() < 2 {
                 continue;
             }
-            let options = LinkOptions::default();
+            let options = LinkOptions {
+                only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
+                ..LinkOptions::default()
+            };
             let (features, vocabulary) = (&self.state.features, &self.vocabulary);
             let database = &self.database;
             let link = self.stats.time("link_segments", || {

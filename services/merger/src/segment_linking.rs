@@ -37,6 +37,10 @@ pub struct LinkOptions {
     /// 3 must agree, and each query costs ~20 ms; the segment is tried after each of its
     /// first windows, so all of them would make linking the merger's largest cost).
     pub max_queries: usize,
+    /// Query only the segment's newest this-many keyframes (default `None`: the whole
+    /// segment). A segment past its first windows is retried with its newest keyframes:
+    /// a walk that comes back to a place the older map saw links there (a loop closure).
+    pub only_newest: Option<usize>,
     pub relocalizer: RelocalizerOptions,
 }
 
@@ -47,6 +51,7 @@ impl Default for LinkOptions {
             max_rotation_deg: 3.0,
             max_position_fraction: 0.05,
             max_queries: 12,
+            only_newest: None,
             relocalizer: RelocalizerOptions::default(),
         }
     }
@@ -99,11 +104,14 @@ pub fn find_link(
     options: &LinkOptions,
 ) -> Option<SegmentLink> {
     let _span = tracing::info_span!("find_link", segment).entered();
-    let young: Vec<(u64, &StampedPose)> = map
+    let mut young: Vec<(u64, &StampedPose)> = map
         .keyframes()
         .filter(|(id, s, _)| *s == segment && features.contains_key(id))
         .map(|(id, _, pose)| (id, pose))
         .collect();
+    if let Some(n) = options.only_newest {
+        young.drain(..young.len().saturating_sub(n));
+    }
     let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
     let queries: Vec<(u64, &StampedPose)> = young.iter().step_by(stride).copied().collect();
     // The older keyframes worth matching: each query's best candidates in the whole map's
