@@ -415,7 +415,7 @@ impl Merger {
         while let Some(segment) = queue.pop() {
             let map = &self.state.map;
             let young = map.segment_keyframes(segment).len() <= LINK_ATTEMPT_KEYFRAMES;
-            let retry = segment == current && window_id % LINK_RETRY_WINDOWS == 0;
+            let retry = segment == current && window_id.is_multiple_of(LINK_RETRY_WINDOWS);
             if !(young || retry) || map.live_segments() < 2 {
                 continue;
             }
