@@ -13,17 +13,12 @@ use nalgebra::{Point2, Vector3};
 /// Acceptance thresholds; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalizationOptions {
-    /// Fewest correspondences tried and fewest inliers accepted (default 12: PnP needs 4,
-    /// but fewer than a dozen inliers are easily a degenerate, planar or clustered set).
-    pub min_inliers: usize,
-    /// Fraction of correspondences that must be inliers (default 0.5: tracks that are map
-    /// points passed the window's BA, so most must agree).
-    pub min_inlier_ratio: f64,
-    /// RANSAC inlier threshold, pixels (default 2, the window BA's Huber threshold).
-    pub ransac_threshold_px: f64,
-    /// RANSAC iterations (default 100: with >= 50 % inliers and 4-point samples, 100
-    /// draws miss an all-inlier sample with probability < 1e-3).
-    pub ransac_iterations: i32,
+    /// PnP from the prior. Defaults: at least 12 inliers (PnP needs 4, but fewer than a
+    /// dozen are easily a degenerate, planar or clustered set) making at least 50 % of the
+    /// correspondences (tracks that are map points passed the window's BA, so most must
+    /// agree), within 2 px (the window BA's Huber threshold), 100 RANSAC draws (with >= 50 %
+    /// inliers and 4-point samples, 100 draws miss an all-inlier sample with p < 1e-3).
+    pub pnp: PnpOptions,
     /// Largest rotation from the interpolated prior, degrees (default 10: between two
     /// keyframes a head turns at most the flow threshold's worth, ~20 px ~ 2-3 deg).
     pub max_rotation_from_prior_deg: f64,
@@ -32,10 +27,12 @@ pub struct LocalizationOptions {
 impl Default for LocalizationOptions {
     fn default() -> Self {
         Self {
-            min_inliers: 12,
-            min_inlier_ratio: 0.5,
-            ransac_threshold_px: 2.0,
-            ransac_iterations: 100,
+            pnp: PnpOptions {
+                min_inliers: 12,
+                min_inlier_ratio: 0.5,
+                ransac_threshold_px: 2.0,
+                ransac_iterations: 100,
+            },
             max_rotation_from_prior_deg: 10.0,
         }
     }
@@ -44,21 +41,12 @@ impl Default for LocalizationOptions {
 /// Why a frame was not localized.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum LocalizationError {
-    /// Fewer correspondences than `min_inliers`.
-    #[error("{0} correspondences, too few")]
-    TooFewCorrespondences(usize),
-    /// RANSAC found no pose, or too few inliers.
-    #[error("{inliers} of {correspondences} inliers")]
-    TooFewInliers {
-        inliers: usize,
-        correspondences: usize,
-    },
+    /// PnP found no supported pose (too few correspondences or inliers, or OpenCV failed).
+    #[error(transparent)]
+    Pnp(#[from] PnpError),
     /// The pose is too far from the interpolated prior to be trusted.
     #[error("{0:.1} deg from the interpolated pose")]
     FarFromPrior(f64),
-    /// OpenCV failed.
-    #[error("OpenCV: {0}")]
-    OpenCv(String),
 }
 
 /// A localized frame.
@@ -76,23 +64,7 @@ pub fn localize_frame(
     prior: &StampedPose,
     options: &LocalizationOptions,
 ) -> Result<Localized, LocalizationError> {
-    let pnp = PnpOptions {
-        min_inliers: options.min_inliers,
-        min_inlier_ratio: options.min_inlier_ratio,
-        ransac_threshold_px: options.ransac_threshold_px,
-        ransac_iterations: options.ransac_iterations,
-    };
-    let solution = solve_pnp(camera, correspondences, Some(prior), &pnp).map_err(|e| match e {
-        PnpError::TooFewCorrespondences(n) => LocalizationError::TooFewCorrespondences(n),
-        PnpError::TooFewInliers {
-            inliers,
-            correspondences,
-        } => LocalizationError::TooFewInliers {
-            inliers,
-            correspondences,
-        },
-        PnpError::OpenCv(m) => LocalizationError::OpenCv(m),
-    })?;
+    let solution = solve_pnp(camera, correspondences, Some(prior), &options.pnp)?;
     let deviation = solution
         .pose
         .rotation
@@ -175,7 +147,7 @@ mod tests {
         let too_few = &correspondences[..8];
         assert_eq!(
             localize_frame(&camera, too_few, &prior, &LocalizationOptions::default()),
-            Err(LocalizationError::TooFewCorrespondences(8))
+            Err(LocalizationError::Pnp(PnpError::TooFewCorrespondences(8)))
         );
     }
 }
