@@ -1,7 +1,7 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
 use crate::cli::ServiceArgs;
-use crate::features_log::RecordLog;
+use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
@@ -143,7 +143,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
     let state_path = args.out.join(ID_STATE_FILE);
-    let mut keyframe_log = RecordLog::open_file(&args.out.join(KEYFRAME_LOG))?;
+    let mut keyframe_log = RecordLog::open(&args.out.join(KEYFRAME_LOG))?;
     let resuming = state_path.exists();
     if !resuming {
         keyframe_log.truncate()?;

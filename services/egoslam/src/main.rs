@@ -20,6 +20,7 @@ mod map_file;
 mod map_state;
 mod merger_service;
 mod output;
+mod record_log;
 mod relocalization_commands;
 mod replay;
 mod solver_resume;

@@ -9,9 +9,9 @@ use crate::background_refinement::BackgroundRefiner;
 use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
-use crate::features_log::FeaturesLog;
 use crate::frame_poses;
 use crate::map_state::{self, MapState, Revisions};
+use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use crate::window_journal;
 use anyhow::bail;
@@ -103,7 +103,7 @@ struct Merger {
     /// For relocalization: linking segments after a break, and the saved map.
     vocabulary: Vocabulary,
     /// Where keyframe descriptors are persisted (not in the checkpoint).
-    features_log: FeaturesLog,
+    features_log: RecordLog,
     /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
     database: KeyframeDatabase,
 }
@@ -525,7 +525,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     crate::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-    let features_log = FeaturesLog::open(&args.out)?;
+    let features_log = crate::features_log::open(&args.out)?;
     let (global_ba_px, refine_keyframes) =
         (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
     let mut merger = Merger {

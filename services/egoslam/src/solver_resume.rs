@@ -8,8 +8,8 @@
 //! replays the logged keyframes after that window, then goes on with the live channel,
 //! skipping the keyframes it has already replayed.
 
-use crate::features_log::read_records;
 use crate::frontend_service::KEYFRAME_LOG;
+use crate::record_log::read_records;
 use crate::window_journal::{self, Journal};
 use egoslam_messages::v1 as pb;
 use std::path::Path;

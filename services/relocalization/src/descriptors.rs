@@ -19,13 +19,7 @@ pub type Descriptor = [u8; 32];
 /// Hamming distance between two descriptors (number of differing bits).
 #[inline]
 pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
-    let mut d = 0;
-    for i in 0..4 {
-        let x = u64::from_le_bytes(a[8 * i..8 * i + 8].try_into().unwrap_or([0; 8]));
-        let y = u64::from_le_bytes(b[8 * i..8 * i + 8].try_into().unwrap_or([0; 8]));
-        d += (x ^ y).count_ones();
-    }
-    d
+    hamming_packed(&pack(a), &pack(b))
 }
 
 /// A descriptor as four 64-bit words, for fast distances.

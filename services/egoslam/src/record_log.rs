@@ -1,0 +1,97 @@
+//! Append-only logs of length-delimited protobuf records: the merger's keyframe
+//! descriptors (features_log.rs) and the frontend's keyframe messages (keyframes.log, read
+//! by a restarted solver). A kill mid-append leaves a torn last record, which a reader
+//! drops; anything flushed before survives the process.
+
+use anyhow::Context;
+use prost::Message;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Largest record accepted when reading back (a keyframe message of 10,000 tracks with
+/// descriptors is ~700 KB).
+const MAX_RECORD_BYTES: usize = 16 << 20;
+
+/// An append-only file of length-delimited protobuf records.
+pub struct RecordLog {
+    path: PathBuf,
+    writer: std::io::BufWriter<std::fs::File>,
+}
+
+impl RecordLog {
+    /// Opens the log at `path` for appending (created if absent).
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let path = path.to_path_buf();
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .with_context(|| format!("opening {}", path.display()))?;
+        Ok(Self {
+            path,
+            writer: std::io::BufWriter::new(file),
+        })
+    }
+
+    /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]).
+    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<()> {
+        self.writer
+            .write_all(&record.encode_length_delimited_to_vec())
+            .with_context(|| format!("appending to {}", self.path.display()))
+    }
+
+    /// Hands everything appended to the kernel: it survives the process being killed.
+    pub fn flush(&mut self) -> anyhow::Result<()> {
+        self.writer
+            .flush()
+            .with_context(|| format!("writing {}", self.path.display()))
+    }
+
+    /// Makes everything appended so far durable (before a checkpoint names it applied).
+    pub fn sync(&mut self) -> anyhow::Result<()> {
+        self.writer.flush()?;
+        self.writer
+            .get_ref()
+            .sync_data()
+            .with_context(|| format!("syncing {}", self.path.display()))
+    }
+
+    /// Empties the log (a new stream starts a new map).
+    pub fn truncate(&mut self) -> anyhow::Result<()> {
+        self.writer.flush()?;
+        self.writer
+            .get_ref()
+            .set_len(0)
+            .with_context(|| format!("truncating {}", self.path.display()))
+    }
+}
+
+/// The records of the log at `path` in order; an absent log is empty, a torn or oversized
+/// final record (a kill mid-append) is dropped with a warning, an undecodable one skipped.
+pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>> {
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let mut out = Vec::new();
+    let mut rest = &bytes[..];
+    while !rest.is_empty() {
+        let mut probe = rest;
+        let length = match prost::encoding::decode_varint(&mut probe) {
+            Ok(l) if (l as usize) <= MAX_RECORD_BYTES && (l as usize) <= probe.len() => l as usize,
+            _ => {
+                tracing::warn!(path = %path.display(), bytes = rest.len(), "torn record at the end of a log ignored");
+                break;
+            }
+        };
+        match M::decode(&probe[..length]) {
+            Ok(record) => out.push(record),
+            Err(e) => {
+                tracing::warn!(path = %path.display(), error = %e, "invalid record in a log skipped")
+            }
+        }
+        rest = &probe[length..];
+    }
+    Ok(out)
+}
