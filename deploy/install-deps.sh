@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Installs the Debian 12 packages egoslam builds against (OpenCV with its headers, clang for
 # the opencv crate's binding generator, protoc for prost) and tests with (systemd-analyze for
-# the unit checks). Idempotent: does nothing when all are present. Uses sudo when not root.
+# the unit checks, openssl for the TLS tests' certificates). Idempotent: does nothing when
+# all are present. Uses sudo when not root.
 set -euo pipefail
-packages=(libopencv-dev clang libclang-dev protobuf-compiler pkg-config systemd)
+packages=(libopencv-dev clang libclang-dev protobuf-compiler pkg-config systemd openssl)
 missing=()
 for p in "${packages[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")

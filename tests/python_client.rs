@@ -8,39 +8,40 @@ mod common;
 use common::*;
 use std::time::Duration;
 
-#[test]
-fn python_subscriber_saves_the_same_trajectory_as_the_run() {
+#[path = "../services/egress/tests/support/pki.rs"]
+mod pki;
+
+/// Runs the Python client against `egoslam run` on the fixture and checks that it saved
+/// the run's own trajectory. `client_args` and `run_args` carry the TLS options.
+/// One run at a time: two real-time pipelines on two cores drop frames.
+fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], run_args: &[String]) {
+    static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let python = repo().join("target/python/bin/python");
     assert!(
         python.exists(),
         "{} missing: run ./deploy/install-deps.sh",
         python.display()
     );
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let out = tempfile::tempdir().expect("tempdir");
     let saved = out.path().join("python.tum");
     let mut client = std::process::Command::new(&python)
         .arg(repo().join("clients/python/egoslam_subscriber.py"))
-        .args([
-            "--connect",
-            &endpoint,
-            "--device",
-            "py",
-            "--quiet",
-            "--until-finished",
-        ])
-        .args(["--timeout", "120", "--out"])
+        .args(["--connect", endpoint, "--device", device])
+        .args(["--quiet", "--until-finished", "--timeout", "120", "--out"])
         .arg(&saved)
+        .args(client_args)
         .spawn()
         .expect("python client");
     std::thread::sleep(Duration::from_millis(300));
     let results = out.path().join("run");
     let status = egoslam()
-        .args(["run", "--realtime", "--device", "py", "--input"])
+        .args(["run", "--realtime", "--device", device, "--input"])
         .arg(tum_fixture())
         .arg("--out")
         .arg(&results)
-        .env("EGOSLAM_ZENOH_LISTEN", &endpoint)
+        .args(run_args)
+        .env("EGOSLAM_ZENOH_LISTEN", endpoint)
         .status()
         .expect("run");
     assert!(status.success());
@@ -53,4 +54,32 @@ fn python_subscriber_saves_the_same_trajectory_as_the_run() {
         from_python, from_run,
         "latest revision of every frame, as in the file"
     );
+}
+
+#[test]
+fn python_subscriber_saves_the_same_trajectory_as_the_run() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    python_follows_a_run(&endpoint, "py", &[], &[]);
+}
+
+/// The documented remote set-up (docs/egress.md): mutual TLS, one allowed client name, the
+/// read-only policy; the Python client presents its certificate.
+#[test]
+fn python_subscriber_follows_a_run_over_mutual_tls() {
+    let pki = pki::Pki::new();
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let path = |name: &str| pki.path(name).display().to_string();
+    let run_args = [
+        format!("--zenoh-tls-root-ca={}", path("ca.pem")),
+        format!("--zenoh-tls-certificate={}", path("server.pem")),
+        format!("--zenoh-tls-private-key={}", path("server.key")),
+        "--zenoh-tls-mutual".to_string(),
+        "--zenoh-allow-common-name=viewer".to_string(),
+    ];
+    let client_args = [
+        format!("--tls-root-ca={}", path("ca.pem")),
+        format!("--tls-certificate={}", path("viewer.pem")),
+        format!("--tls-private-key={}", path("viewer.key")),
+    ];
+    python_follows_a_run(&endpoint, "pytls", &client_args, &run_args);
 }

@@ -11,6 +11,7 @@ Requirements: clients/python/requirements.txt. Key expressions: docs/egress.md.
 """
 
 import argparse
+import json
 import pathlib
 import subprocess
 import sys
@@ -42,15 +43,25 @@ def generated_modules():
     return Messages
 
 
-def open_session(zenoh, endpoint, timeout_s):
-    """Opens a peer session connected to the merger's endpoint, retrying until it listens."""
+def open_session(zenoh, endpoint, timeout_s, tls):
+    """Opens a peer session connected to the merger's endpoint, retrying until it listens.
+
+    `tls` holds the PEM paths for a tls/ endpoint: root_ca verifies the merger's
+    certificate; certificate and private_key are this client's, for mutual TLS."""
     deadline = time.monotonic() + timeout_s
     while True:
         config = zenoh.Config()
         config.insert_json5("mode", '"peer"')
-        config.insert_json5("connect/endpoints", f'["{endpoint}"]')
+        config.insert_json5("connect/endpoints", json.dumps([endpoint]))
         config.insert_json5("listen/endpoints", "[]")
         config.insert_json5("scouting/multicast/enabled", "false")
+        base = "transport/link/tls"
+        if tls.root_ca:
+            config.insert_json5(f"{base}/root_ca_certificate", json.dumps(str(tls.root_ca)))
+        if tls.certificate and tls.private_key:
+            config.insert_json5(f"{base}/connect_certificate", json.dumps(str(tls.certificate)))
+            config.insert_json5(f"{base}/connect_private_key", json.dumps(str(tls.private_key)))
+            config.insert_json5(f"{base}/enable_mtls", "true")
         try:
             session = zenoh.open(config)
             for _ in range(20):
@@ -76,7 +87,20 @@ def main():
     parser.add_argument("--timeout", type=float, default=60.0,
                         help="seconds to wait for the merger (and, with --until-finished, for the end)")
     parser.add_argument("--quiet", action="store_true", help="do not print every pose")
+    parser.add_argument("--tls-root-ca", type=pathlib.Path,
+                        help="CA certificate (PEM) that signed the merger's certificate")
+    parser.add_argument("--tls-certificate", type=pathlib.Path,
+                        help="this client's certificate (PEM), for a mutual-TLS merger")
+    parser.add_argument("--tls-private-key", type=pathlib.Path,
+                        help="the private key of --tls-certificate (PEM)")
     args = parser.parse_args()
+    if bool(args.tls_certificate) != bool(args.tls_private_key):
+        parser.error("--tls-certificate and --tls-private-key go together")
+    for path in (args.tls_root_ca, args.tls_certificate, args.tls_private_key):
+        if path and not path.is_file():
+            parser.error(f"{path}: no such file")
+    tls = argparse.Namespace(root_ca=args.tls_root_ca, certificate=args.tls_certificate,
+                             private_key=args.tls_private_key)
 
     import zenoh
     from google.protobuf.message import DecodeError
@@ -127,7 +151,7 @@ def main():
     def on_trajectory(sample):
         counts["trajectory"] += 1
 
-    session = open_session(zenoh, args.connect, args.timeout)
+    session = open_session(zenoh, args.connect, args.timeout, tls)
     subscribers = [
         session.declare_subscriber(f"{prefix}/pose", on_pose),
         session.declare_subscriber(f"{prefix}/status", on_status),

@@ -103,6 +103,86 @@ pub struct EgressArgs {
     /// zenoh router or peer endpoints to connect to (repeatable).
     #[arg(long)]
     pub zenoh_connect: Vec<String>,
+    /// TLS: CA certificate (PEM) that verifies client certificates (mutual TLS) or the
+    /// router connected to.
+    #[arg(long)]
+    pub zenoh_tls_root_ca: Option<PathBuf>,
+    /// TLS: this side's certificate chain (PEM); needed by a tls/ listen endpoint.
+    #[arg(long)]
+    pub zenoh_tls_certificate: Option<PathBuf>,
+    /// TLS: the private key of --zenoh-tls-certificate (PEM).
+    #[arg(long)]
+    pub zenoh_tls_private_key: Option<PathBuf>,
+    /// TLS: require client certificates signed by --zenoh-tls-root-ca.
+    #[arg(long)]
+    pub zenoh_tls_mutual: bool,
+    /// Mutual TLS: only clients with this certificate common name get results (repeatable;
+    /// none: every client the CA vouches for).
+    #[arg(long)]
+    pub zenoh_allow_common_name: Vec<String>,
+    /// Let remote sessions publish and declare queryables on egoslam/** (default: they may
+    /// only subscribe and query).
+    #[arg(long)]
+    pub zenoh_remote_writable: bool,
+}
+
+impl EgressArgs {
+    /// The zenoh network options these flags describe.
+    pub fn network(&self) -> egoslam_egress::NetworkOptions {
+        let tls = [
+            &self.zenoh_tls_root_ca,
+            &self.zenoh_tls_certificate,
+            &self.zenoh_tls_private_key,
+        ]
+        .iter()
+        .any(|p| p.is_some())
+        .then(|| egoslam_egress::TlsOptions {
+            root_ca: self.zenoh_tls_root_ca.clone(),
+            certificate: self.zenoh_tls_certificate.clone(),
+            private_key: self.zenoh_tls_private_key.clone(),
+            mutual: self.zenoh_tls_mutual,
+            allowed_common_names: self.zenoh_allow_common_name.clone(),
+        });
+        egoslam_egress::NetworkOptions {
+            listen: self.zenoh_listen.clone(),
+            connect: self.zenoh_connect.clone(),
+            tls,
+            remote_read_only: !self.zenoh_remote_writable,
+        }
+    }
+
+    /// The same options as flags, for a child process (the launcher's merger).
+    pub fn to_flags(&self) -> Vec<String> {
+        let mut flags = vec![format!("--device={}", self.device)];
+        let path = |flag: &str, p: &Option<PathBuf>| {
+            p.as_ref().map(|p| format!("--{flag}={}", p.display()))
+        };
+        flags.extend(
+            self.zenoh_listen
+                .iter()
+                .map(|e| format!("--zenoh-listen={e}")),
+        );
+        flags.extend(
+            self.zenoh_connect
+                .iter()
+                .map(|e| format!("--zenoh-connect={e}")),
+        );
+        flags.extend(path("zenoh-tls-root-ca", &self.zenoh_tls_root_ca));
+        flags.extend(path("zenoh-tls-certificate", &self.zenoh_tls_certificate));
+        flags.extend(path("zenoh-tls-private-key", &self.zenoh_tls_private_key));
+        flags.extend(
+            self.zenoh_allow_common_name
+                .iter()
+                .map(|n| format!("--zenoh-allow-common-name={n}")),
+        );
+        if self.zenoh_tls_mutual {
+            flags.push("--zenoh-tls-mutual".into());
+        }
+        if self.zenoh_remote_writable {
+            flags.push("--zenoh-remote-writable".into());
+        }
+        flags
+    }
 }
 
 #[derive(Args, Debug)]

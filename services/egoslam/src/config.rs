@@ -62,6 +62,20 @@ pub struct ZenohSection {
     pub device: Option<String>,
     pub listen: Option<Vec<String>>,
     pub connect: Option<Vec<String>>,
+    pub remote_read_only: Option<bool>,
+    #[serde(default)]
+    pub tls: ZenohTlsSection,
+}
+
+/// `[zenoh.tls]`: certificates for tls/ endpoints (docs/egress.md).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohTlsSection {
+    pub root_ca: Option<PathBuf>,
+    pub certificate: Option<PathBuf>,
+    pub private_key: Option<PathBuf>,
+    pub mutual: Option<bool>,
+    pub allowed_common_names: Option<Vec<String>>,
 }
 
 /// `[bus]`: iceoryx2 service names.
@@ -175,6 +189,13 @@ fn fill<T: Clone>(m: &ArgMatches, id: &str, target: &mut T, value: &Option<T>) {
     }
 }
 
+/// Sets an optional `target` from the file unless the command line set it.
+fn fill_optional<T: Clone>(m: &ArgMatches, id: &str, target: &mut Option<T>, value: &Option<T>) {
+    if value.is_some() && !explicit(m, id) {
+        target.clone_from(value);
+    }
+}
+
 fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
     fill(
         m,
@@ -216,19 +237,47 @@ fn fill_egress(c: &Config, m: &ArgMatches, e: &mut EgressArgs) {
     fill(m, "device", &mut e.device, &c.zenoh.device);
     fill(m, "zenoh_listen", &mut e.zenoh_listen, &c.zenoh.listen);
     fill(m, "zenoh_connect", &mut e.zenoh_connect, &c.zenoh.connect);
+    let tls = &c.zenoh.tls;
+    fill_optional(
+        m,
+        "zenoh_tls_root_ca",
+        &mut e.zenoh_tls_root_ca,
+        &tls.root_ca,
+    );
+    fill_optional(
+        m,
+        "zenoh_tls_certificate",
+        &mut e.zenoh_tls_certificate,
+        &tls.certificate,
+    );
+    fill_optional(
+        m,
+        "zenoh_tls_private_key",
+        &mut e.zenoh_tls_private_key,
+        &tls.private_key,
+    );
+    fill(m, "zenoh_tls_mutual", &mut e.zenoh_tls_mutual, &tls.mutual);
+    fill(
+        m,
+        "zenoh_allow_common_name",
+        &mut e.zenoh_allow_common_name,
+        &tls.allowed_common_names,
+    );
+    let writable = c.zenoh.remote_read_only.map(|read_only| !read_only);
+    fill(
+        m,
+        "zenoh_remote_writable",
+        &mut e.zenoh_remote_writable,
+        &writable,
+    );
 }
 
 /// Applies the file to the parsed command (`m`: the subcommand's matches).
 pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
-    let optional = |id: &str, target: &mut Option<PathBuf>, value: &Option<PathBuf>| {
-        if value.is_some() && !explicit(m, id) {
-            target.clone_from(value);
-        }
-    };
     match command {
         Command::Run(a) => {
-            optional("input", &mut a.input, &c.input.path);
-            optional("calib", &mut a.calib, &c.input.calibration);
+            fill_optional(m, "input", &mut a.input, &c.input.path);
+            fill_optional(m, "calib", &mut a.calib, &c.input.calibration);
             fill(m, "out", &mut a.out, &c.output.dir);
             fill(m, "fps", &mut a.fps, &c.input.fps);
             fill(m, "realtime", &mut a.realtime, &c.input.realtime);
@@ -236,7 +285,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill_egress(c, m, &mut a.egress);
         }
         Command::Replay(a) => {
-            optional("input", &mut a.input, &c.input.path);
+            fill_optional(m, "input", &mut a.input, &c.input.path);
             fill(m, "fps", &mut a.fps, &c.input.fps);
             fill(m, "realtime", &mut a.realtime, &c.input.realtime);
             fill(m, "namespace", &mut a.service.namespace, &c.bus.namespace);
@@ -311,5 +360,35 @@ mod tests {
         assert_eq!(a.pipeline.overlap, 6, "the flag wins");
         assert_eq!(a.egress.device, "glasses");
         assert_eq!(a.pipeline.tracks, 1000, "built-in default");
+    }
+
+    #[test]
+    fn the_tls_section_reaches_the_network_options() {
+        use clap::{CommandFactory, FromArgMatches};
+        let c = parse(
+            "[zenoh]\nlisten = [\"tls/0.0.0.0:7447\"]\nremote_read_only = true\n\
+             [zenoh.tls]\nroot_ca = \"/etc/egoslam/ca.pem\"\n\
+             certificate = \"/etc/egoslam/box.pem\"\nprivate_key = \"/etc/egoslam/box.key\"\n\
+             mutual = true\nallowed_common_names = [\"viewer\"]\n",
+        )
+        .expect("valid");
+        let matches = crate::cli::Cli::command()
+            .try_get_matches_from(["egoslam", "merger"])
+            .expect("args");
+        let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
+        let (_, sub) = matches.subcommand().expect("subcommand");
+        apply(&c, sub, &mut cli.command);
+        let Command::Merger(a) = cli.command else {
+            panic!("merger")
+        };
+        let network = a.egress.network();
+        assert_eq!(network.listen, vec!["tls/0.0.0.0:7447".to_string()]);
+        assert!(network.remote_read_only);
+        let tls = network.tls.expect("tls");
+        assert_eq!(tls.certificate, Some(PathBuf::from("/etc/egoslam/box.pem")));
+        assert!(tls.mutual);
+        assert_eq!(tls.allowed_common_names, vec!["viewer".to_string()]);
+        let e = parse("[zenoh.tls]\nmutal = true\n").expect_err("unknown key");
+        assert!(format!("{e:#}").contains("mutal"), "{e:#}");
     }
 }

@@ -219,19 +219,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Consumers first; every producer also waits for its consumer to connect.
     let mut children = Vec::new();
     let mut merger_args = common.clone();
-    merger_args.push(format!("--device={}", args.egress.device));
-    merger_args.extend(
-        args.egress
-            .zenoh_listen
-            .iter()
-            .map(|e| format!("--zenoh-listen={e}")),
-    );
-    merger_args.extend(
-        args.egress
-            .zenoh_connect
-            .iter()
-            .map(|e| format!("--zenoh-connect={e}")),
-    );
+    merger_args.extend(args.egress.to_flags());
     if let Some(path) = &args.map.map_out {
         merger_args.push(format!("--map-out={}", path.display()));
     }

@@ -485,8 +485,7 @@ fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {
     }
     let e = Egress::open(&EgressOptions {
         device: args.egress.device.clone(),
-        listen: args.egress.zenoh_listen.clone(),
-        connect: args.egress.zenoh_connect.clone(),
+        network: args.egress.network(),
     })?;
     tracing::info!(prefix = e.prefix(), listen = ?args.egress.zenoh_listen, "publishing over zenoh");
     Ok(Some(e))

@@ -10,7 +10,9 @@
 //! | `egoslam/<device>/snapshot` | `Snapshot` (queryable) | on request: the whole current state |
 //!
 //! The session listens on loopback only by default (`tcp/127.0.0.1:7447`), peer mode, with
-//! multicast and gossip scouting off: clients connect to that endpoint explicitly.
+//! multicast and gossip scouting off: clients connect to that endpoint explicitly. Remote
+//! sessions may only subscribe and query; TLS (optionally mutual) for other hosts
+//! ([`NetworkOptions`]).
 
 use egoslam_messages::v1 as pb;
 use prost::Message;
@@ -20,23 +22,25 @@ use zenoh::Wait;
 /// Points per `map` message (keeps each under ~200 KB).
 pub const MAP_CHUNK: usize = 4096;
 
+mod network;
+
+pub use network::{zenoh_config, NetworkOptions, TlsOptions};
+
 /// Where and as whom results are published.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EgressOptions {
     /// Device name in the key expressions (default "default").
     pub device: String,
-    /// Endpoints to listen on (default `tcp/127.0.0.1:7447`: loopback only).
-    pub listen: Vec<String>,
-    /// Router or peer endpoints to connect to (default none).
-    pub connect: Vec<String>,
+    /// Endpoints, TLS and access control (default: `tcp/127.0.0.1:7447`, loopback only,
+    /// remote sessions read-only).
+    pub network: NetworkOptions,
 }
 
 impl Default for EgressOptions {
     fn default() -> Self {
         Self {
             device: "default".into(),
-            listen: vec!["tcp/127.0.0.1:7447".into()],
-            connect: Vec::new(),
+            network: NetworkOptions::default(),
         }
     }
 }
@@ -44,9 +48,16 @@ impl Default for EgressOptions {
 /// Errors of [`Egress`].
 #[derive(Debug, thiserror::Error)]
 pub enum EgressError {
-    /// The zenoh configuration was rejected (bad endpoint or device name).
+    /// The zenoh configuration was rejected (bad endpoint, device name or TLS combination).
     #[error("zenoh configuration: {0}")]
     Config(String),
+    /// A TLS certificate or key file cannot be read.
+    #[error("zenoh TLS {what} {path}: {reason}")]
+    Tls {
+        what: String,
+        path: std::path::PathBuf,
+        reason: String,
+    },
     /// The session could not be opened (e.g. the listen port is taken).
     #[error("cannot open zenoh session (listen {listen:?}): {reason}")]
     Open { listen: Vec<String>, reason: String },
@@ -58,35 +69,10 @@ pub enum EgressError {
     Put { key: String, reason: String },
 }
 
-/// The zenoh configuration egoslam uses (also for the tests' clients).
-pub fn zenoh_config(listen: &[String], connect: &[String]) -> Result<zenoh::Config, EgressError> {
-    let mut config = zenoh::Config::default();
-    let json = |v: &[String]| serde_json_list(v);
-    let set = |config: &mut zenoh::Config, key: &str, value: &str| {
-        config
-            .insert_json5(key, value)
-            .map_err(|e| EgressError::Config(format!("{key} = {value}: {e}")))
-    };
-    set(&mut config, "mode", "\"peer\"")?;
-    set(&mut config, "listen/endpoints", &json(listen))?;
-    set(&mut config, "connect/endpoints", &json(connect))?;
-    set(&mut config, "scouting/multicast/enabled", "false")?;
-    set(&mut config, "scouting/gossip/enabled", "false")?;
-    Ok(config)
-}
-
-fn serde_json_list(v: &[String]) -> String {
-    let items: Vec<String> = v
-        .iter()
-        .map(|s| format!("\"{}\"", s.replace('"', "")))
-        .collect();
-    format!("[{}]", items.join(","))
-}
-
 /// The publishers and the snapshot queryable of one device.
 pub struct Egress {
     /// Held so that the session lives as long as its publishers and queryable.
-    _session: zenoh::Session,
+    session: zenoh::Session,
     prefix: String,
     pose: zenoh::pubsub::Publisher<'static>,
     trajectory: zenoh::pubsub::Publisher<'static>,
@@ -105,9 +91,9 @@ impl Egress {
                 options.device
             )));
         }
-        let config = zenoh_config(&options.listen, &options.connect)?;
+        let config = options.network.zenoh_config()?;
         let session = zenoh::open(config).wait().map_err(|e| EgressError::Open {
-            listen: options.listen.clone(),
+            listen: options.network.listen.clone(),
             reason: e.to_string(),
         })?;
         let prefix = format!("egoslam/{}", options.device);
@@ -145,7 +131,7 @@ impl Egress {
                 reason: e.to_string(),
             })?;
         Ok(Self {
-            _session: session,
+            session,
             prefix,
             pose,
             trajectory,
@@ -154,6 +140,12 @@ impl Egress {
             snapshot,
             _queryable: queryable,
         })
+    }
+
+    /// The session, for observers in the same process (local subscribers are not subject
+    /// to the access control, which filters what crosses the network).
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
     }
 
     /// The key expression prefix, `egoslam/<device>`.
