@@ -17,39 +17,6 @@ fn keyframes(out: &Path) -> String {
     std::fs::read_to_string(out.join("keyframes.tum")).expect("keyframes.tum")
 }
 
-/// Pid of the `service` process writing to `out`, once it is running.
-fn service_pid(service: &str, out: &Path) -> Option<u32> {
-    let needle = format!("--out={}", out.display());
-    std::fs::read_dir("/proc").ok()?.find_map(|e| {
-        let e = e.ok()?;
-        let pid: u32 = e.file_name().to_str()?.parse().ok()?;
-        let cmdline = std::fs::read(e.path().join("cmdline")).ok()?;
-        let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
-        let is_it = args.get(1) == Some(&service.as_bytes()) && args.contains(&needle.as_bytes());
-        is_it.then_some(pid)
-    })
-}
-
-/// SIGKILLs the `service` process writing to `out`.
-fn sigkill(service: &str, out: &Path) {
-    // Under load the launcher may not have started the service yet: look for up to 5 s.
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    let pid = loop {
-        match service_pid(service, out) {
-            Some(pid) => break pid,
-            None if std::time::Instant::now() < deadline => {
-                std::thread::sleep(Duration::from_millis(50))
-            }
-            None => panic!("no {service} process writing to {}", out.display()),
-        }
-    };
-    let status = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .expect("kill");
-    assert!(status.success());
-}
-
 fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
     let mut c = egoslam();
     // The background refinement folds in whenever it finishes, which varies from run to

@@ -138,6 +138,54 @@ pub fn structure(
     }))
 }
 
+/// Fewest keyframes a segment needs to be aligned on its own.
+const MIN_SEGMENT_KEYFRAMES: usize = 10;
+
+/// ATE with one Sim(3) per map segment (`keyframe_segments.txt`), pooled over the
+/// keyframes: what the map is worth inside its segments when a run has breaks (one
+/// alignment over all segments measures mostly how far apart their gauges are). Segments
+/// under [`MIN_SEGMENT_KEYFRAMES`] are counted, not aligned. `None` without the file.
+pub fn segmentwise_ate(
+    estimate: &[StampedPose],
+    ground_truth: &[StampedPose],
+    segments_file: &Path,
+) -> Option<serde_json::Value> {
+    let text = std::fs::read_to_string(segments_file).ok()?;
+    let micros = |t: f64| (t * 1e6).round() as i64;
+    let segment_of: std::collections::HashMap<i64, u32> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let mut it = l.split_whitespace();
+            Some((micros(it.next()?.parse().ok()?), it.next()?.parse().ok()?))
+        })
+        .collect();
+    let mut groups: std::collections::BTreeMap<u32, Vec<StampedPose>> = Default::default();
+    for p in estimate {
+        let segment = segment_of.get(&micros(p.timestamp))?;
+        groups.entry(*segment).or_default().push(*p);
+    }
+    let (mut squared, mut matched, mut aligned, mut left_out) = (0.0, 0usize, 0usize, 0usize);
+    for poses in groups.values() {
+        match evaluate(poses, ground_truth, 0.02) {
+            Ok(r) if poses.len() >= MIN_SEGMENT_KEYFRAMES => {
+                squared += r.rmse * r.rmse * r.matched as f64;
+                matched += r.matched;
+                aligned += 1;
+            }
+            _ => left_out += poses.len(),
+        }
+    }
+    (matched > 0).then(|| {
+        json!({
+            "rmse_m": (squared / matched as f64).sqrt(),
+            "segments": groups.len(),
+            "segments_aligned": aligned,
+            "keyframes_not_aligned": left_out,
+        })
+    })
+}
+
 /// The accuracy section of `report.json` (and the lines printed for it).
 pub fn accuracy(
     out: &Path,
@@ -155,6 +203,22 @@ pub fn accuracy(
             Ok(r) => {
                 println!("{key}: {}", summary(&r));
                 let mut entry = json!({"ate_rmse_m": r.rmse, "ate_mean_m": r.mean, "ate_median_m": r.median, "ate_max_m": r.max, "matched": r.matched, "gt_path_m": r.gt_path_length, "scale": r.alignment.scale});
+                let segments = out.join("keyframe_segments.txt");
+                if let (true, Some(seg)) = (
+                    key == "keyframes",
+                    segmentwise_ate(&est, &gt.poses, &segments),
+                ) {
+                    if seg["segments"].as_u64() > Some(1) {
+                        println!(
+                            "{key}: ATE RMSE per segment {:.4} m ({} of {} segments aligned, {} keyframes in short ones)",
+                            seg["rmse_m"].as_f64().unwrap_or(f64::NAN),
+                            seg["segments_aligned"],
+                            seg["segments"],
+                            seg["keyframes_not_aligned"]
+                        );
+                    }
+                    entry["ate_segmentwise"] = seg;
+                }
                 if let Some(rpe) = rpe_1s(&est, &gt.poses, &r) {
                     println!("{key}: {}", rpe_summary(&rpe));
                     entry["rpe"] = rpe_json(&rpe);
@@ -196,4 +260,58 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     println!("ground truth: {}", gt.description);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, UnitQuaternion};
+
+    fn pose(t: f64, position: Vector3<f64>) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position,
+            rotation: UnitQuaternion::identity(),
+        }
+    }
+
+    #[test]
+    fn each_segment_gets_its_own_alignment() {
+        // A curved 40-pose path; the second half of the estimate is in another gauge
+        // (rotated, shifted, half the scale), as after an unhealed break.
+        let gt: Vec<StampedPose> = (0..40)
+            .map(|i| {
+                let a = f64::from(i) * 0.1;
+                pose(
+                    f64::from(i),
+                    Vector3::new(a.cos() * 3.0, a.sin() * 3.0, 0.1 * a),
+                )
+            })
+            .collect();
+        let other = Similarity {
+            scale: 0.5,
+            rotation: Rotation3::from_euler_angles(0.3, -0.2, 1.0),
+            translation: Vector3::new(5.0, -2.0, 1.0),
+        };
+        let est: Vec<StampedPose> = gt
+            .iter()
+            .enumerate()
+            .map(|(i, p)| match i < 20 {
+                true => *p,
+                false => pose(p.timestamp, other.apply(&p.position)),
+            })
+            .collect();
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = dir.path().join("keyframe_segments.txt");
+        let lines: String = (0..40)
+            .map(|i| format!("{i}.000000 {}\n", u32::from(i >= 20)))
+            .collect();
+        std::fs::write(&file, format!("# timestamp segment\n{lines}")).expect("write");
+        let whole = evaluate(&est, &gt, 0.02).expect("ate").rmse;
+        let seg = segmentwise_ate(&est, &gt, &file).expect("segments");
+        assert!(whole > 0.5, "one alignment over two gauges: {whole}");
+        assert!(seg["rmse_m"].as_f64().expect("rmse") < 1e-6, "{seg}");
+        assert_eq!(seg["segments_aligned"], 2);
+        assert!(segmentwise_ate(&est, &gt, &dir.path().join("absent")).is_none());
+    }
 }

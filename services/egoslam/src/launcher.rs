@@ -68,14 +68,33 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
 /// flight are lost: docs/durability.md). The replay (camera) is not restarted.
 const RESTARTABLE: &[&str] = &["merger", "solver", "frontend"];
 
-/// Restarts allowed per service and run: a service that keeps dying has a real problem.
-const MAX_RESTARTS: u32 = 3;
+/// Restarts allowed per service within [`RESTART_INTERVAL`] (as systemd's StartLimitBurst
+/// and StartLimitIntervalSec): a service that keeps dying has a real problem, but one killed
+/// now and then on a long run is restarted every time.
+const RESTART_BURST: usize = 3;
+const RESTART_INTERVAL: Duration = Duration::from_secs(60);
 
 struct Supervised {
     name: &'static str,
     args: Vec<String>,
     child: Child,
     restarts: u32,
+    /// When the restarts within the last [`RESTART_INTERVAL`] happened.
+    recent_restarts: std::collections::VecDeque<Instant>,
+}
+
+impl Supervised {
+    /// Whether one more restart stays within the burst limit (forgets older restarts).
+    fn may_restart(&mut self, now: Instant) -> bool {
+        while self
+            .recent_restarts
+            .front()
+            .is_some_and(|t| now.duration_since(*t) > RESTART_INTERVAL)
+        {
+            self.recent_restarts.pop_front();
+        }
+        self.recent_restarts.len() < RESTART_BURST
+    }
 }
 
 fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
@@ -90,6 +109,7 @@ fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
         args: args.to_vec(),
         child,
         restarts: 0,
+        recent_restarts: Default::default(),
     })
 }
 
@@ -123,13 +143,14 @@ fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Vec<(&'static str,
                 Some(status)
                     if status.signal().is_some()
                         && RESTARTABLE.contains(&children[i].name)
-                        && children[i].restarts < MAX_RESTARTS =>
+                        && children[i].may_restart(Instant::now()) =>
                 {
                     let c = &mut children[i];
                     tracing::warn!(service = c.name, %status, "service died; restarting it");
                     let again = spawn(c.name, &c.args)?;
                     c.child = again.child;
                     c.restarts += 1;
+                    c.recent_restarts.push_back(Instant::now());
                     running += 1;
                 }
                 Some(status) if !status.success() => {
@@ -312,4 +333,32 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restarts_are_limited_per_interval_not_per_run() {
+        let child = Command::new("true").spawn().expect("spawn true");
+        let mut s = Supervised {
+            name: "solver",
+            args: Vec::new(),
+            child,
+            restarts: 0,
+            recent_restarts: Default::default(),
+        };
+        let t0 = Instant::now();
+        for k in 0..RESTART_BURST {
+            assert!(s.may_restart(t0 + Duration::from_secs(k as u64)));
+            s.recent_restarts
+                .push_back(t0 + Duration::from_secs(k as u64));
+        }
+        assert!(!s.may_restart(t0 + Duration::from_secs(10)), "burst spent");
+        // A minute after the first restart, one more is allowed; a kill every 60 s never
+        // runs out.
+        assert!(s.may_restart(t0 + RESTART_INTERVAL + Duration::from_secs(1)));
+        let _ = s.child.wait();
+    }
 }

@@ -153,7 +153,9 @@ impl MapState {
         }
     }
 
-    /// trajectory.tum, keyframes.tum, map.ply, each written atomically.
+    /// trajectory.tum, keyframes.tum, keyframe_segments.txt, map.ply, each written
+    /// atomically. The segments file says which map segment (own gauge and scale) each
+    /// keyframe is in, so that a run with breaks can be evaluated segment by segment.
     pub fn write_files(&self, out: &Path) -> anyhow::Result<()> {
         let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
         let points: Vec<Vector3<f64>> = self.points.iter().map(|p| p.1).collect();
@@ -165,6 +167,11 @@ impl MapState {
             &out.join("keyframes.tum"),
             tum_text(&poses(&self.keyframes)).as_bytes(),
         )?;
+        let mut segments = String::from("# timestamp segment\n");
+        for k in &self.keyframes {
+            segments += &format!("{:.6} {}\n", k.pose.timestamp, k.segment);
+        }
+        write_atomically(&out.join("keyframe_segments.txt"), segments.as_bytes())?;
         write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())
     }
 }
