@@ -154,11 +154,13 @@ fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
         "breaks": report["segments"].as_u64().map(|s| s.saturating_sub(1)),
         "posed_fraction": report["posed_frames"].as_f64().map(|p| p / frames.max(1.0)),
         "ate_m": ate,
+        "ate_segmentwise_m": kf["ate_segmentwise"]["rmse_m"],
         "ate_percent_of_path": ate.zip(path).map(|(a, p)| 100.0 * a / p.max(1e-9)),
         "rpe_percent": kf["rpe"]["translation_per_metre"].as_f64().map(|r| 100.0 * r),
         "rpe_deg": kf["rpe"]["rotation_rmse_deg"],
         "structure_rmse_m": report["accuracy"]["structure"]["rmse_m"],
         "structure_median_m": report["accuracy"]["structure"]["median_m"],
+        "structure_p90_m": report["accuracy"]["structure"]["p90_m"],
         "ms_per_frame": 1e3 * wall / frames.max(1.0),
         "peak_rss_mib": report["peak_rss_mib"]["sum"],
     }))
@@ -176,25 +178,27 @@ fn cell(v: &serde_json::Value, digits: usize) -> String {
 }
 
 fn markdown(rows: &[serde_json::Value]) -> String {
-    let mut s = String::from("| sequence | frames | keyframes | breaks | posed | ATE (m) | ATE / path (%) | RPE 1 s (%) | RPE 1 s (deg) | structure RMSE / median (m) | ms / frame | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let mut s = String::from("| sequence | frames | keyframes | breaks | posed | ATE (m) | ATE per segment (m) | ATE / path (%) | RPE 1 s (%) | RPE 1 s (deg) | structure RMSE / median / p90 (m) | ms / frame | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         if let Some(e) = r["error"].as_str() {
             s.push_str(&format!("| {} | {e} |\n", cell(&r["name"], 0)));
             continue;
         }
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} / {} | {} | {} |\n",
             cell(&r["name"], 0),
             cell(&r["frames"], 0),
             cell(&r["keyframes"], 0),
             cell(&r["breaks"], 0),
             cell(&r["posed_fraction"], 2),
             cell(&r["ate_m"], 4),
+            cell(&r["ate_segmentwise_m"], 4),
             cell(&r["ate_percent_of_path"], 2),
             cell(&r["rpe_percent"], 2),
             cell(&r["rpe_deg"], 3),
             cell(&r["structure_rmse_m"], 3),
             cell(&r["structure_median_m"], 3),
+            cell(&r["structure_p90_m"], 3),
             cell(&r["ms_per_frame"], 1),
             cell(&r["peak_rss_mib"], 0),
         ));

@@ -235,10 +235,10 @@ pub fn accuracy(
                         &alignment,
                     )? {
                         println!(
-                            "map: structure RMSE {:.4} m (median {:.4}) over {} of {} points",
-                            s.rmse_m, s.median_m, s.evaluated, s.points
+                            "map: structure RMSE {:.4} m (median {:.4}, 90th percentile {:.4}) over {} of {} points",
+                            s.rmse_m, s.median_m, s.p90_m, s.evaluated, s.points
                         );
-                        acc.insert("structure".into(), json!({"rmse_m": s.rmse_m, "median_m": s.median_m, "evaluated": s.evaluated, "points": s.points}));
+                        acc.insert("structure".into(), json!({"rmse_m": s.rmse_m, "median_m": s.median_m, "p90_m": s.p90_m, "evaluated": s.evaluated, "points": s.points}));
                     }
                 }
                 acc.insert(key.into(), entry);

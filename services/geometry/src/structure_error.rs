@@ -68,6 +68,9 @@ pub struct StructureReport {
     pub evaluated: usize,
     pub rmse_m: f64,
     pub median_m: f64,
+    /// 90th percentile: with the median, says whether the RMSE is a few gross points or
+    /// a spread of all of them.
+    pub p90_m: f64,
 }
 
 /// `points` in the ground-truth frame; `views` are ground-truth camera poses with a depth
@@ -114,11 +117,14 @@ pub fn structure_error(
     let rmse_m = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     let mid = errors.len() / 2;
     let median_m = *errors.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let p90 = (errors.len() * 9 / 10).min(errors.len() - 1);
+    let p90_m = *errors.select_nth_unstable_by(p90, f64::total_cmp).1;
     Some(StructureReport {
         points: points.len(),
         evaluated: errors.len(),
         rmse_m,
         median_m,
+        p90_m,
     })
 }
 
