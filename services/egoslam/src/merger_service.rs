@@ -58,6 +58,12 @@ impl Outputs {
         stats
             .counters
             .insert("segments".into(), map.live_segments() as u64);
+        // Derived from the map (segments made, segments left), so that it survives a
+        // merger restart like the map itself.
+        stats.counters.insert(
+            "breaks_healed".into(),
+            u64::from(map.segments()).saturating_sub(map.live_segments() as u64),
+        );
         stats
             .counters
             .insert("map_points".into(), snapshot.points.len() as u64);
@@ -441,7 +447,6 @@ impl Merger {
                 "break healed: segment linked by relocalization"
             );
             self.state.map.merge_segment(&link);
-            self.stats.count("breaks_healed", 1);
             let live: std::collections::BTreeSet<u32> =
                 self.state.map.keyframes().map(|(_, s, _)| s).collect();
             queue = live.into_iter().filter(|s| *s != link.to).collect();
