@@ -201,8 +201,14 @@ fn random_kills_every_minute_lose_no_keyframe_and_keep_the_accuracy() {
         segmentwise_ate(&r),
         segmentwise_ate(&base),
     );
-    assert!(kills.len() >= 5, "too few kills for the test to mean anything");
-    assert!(lost.is_empty(), "keyframes lost before reaching a window: {lost:?}");
+    assert!(
+        kills.len() >= 5,
+        "too few kills for the test to mean anything"
+    );
+    assert!(
+        lost.is_empty(),
+        "keyframes lost before reaching a window: {lost:?}"
+    );
     assert!(
         whole <= 1.05 * base_whole,
         "keyframe ATE {whole:.4} m is more than 5 % above the undisturbed {base_whole:.4} m"
