@@ -36,6 +36,7 @@ pub struct FrontendSection {
     pub keyframe_flow_px: Option<f64>,
     pub tracks: Option<usize>,
     pub lk_window: Option<i32>,
+    pub predict_motion: Option<bool>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -211,6 +212,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
     );
     fill(m, "tracks", &mut p.tracks, &c.frontend.tracks);
     fill(m, "lk_window", &mut p.lk_window, &c.frontend.lk_window);
+    fill(
+        m,
+        "predict_motion",
+        &mut p.predict_motion,
+        &c.frontend.predict_motion,
+    );
     fill(m, "window", &mut p.window, &c.solver.window);
     fill(m, "overlap", &mut p.overlap, &c.solver.overlap);
     fill(

@@ -132,6 +132,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let options = TrackerOptions {
         target_tracks: args.pipeline.tracks,
         lk_window_px: args.pipeline.lk_window,
+        predict_motion: args.pipeline.predict_motion,
         keyframes: KeyframePolicy {
             max_frames_between: args.pipeline.keyframe_every,
             max_mean_flow_px: args.pipeline.keyframe_flow_px,

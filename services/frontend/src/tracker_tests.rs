@@ -207,3 +207,54 @@ fn a_blind_frame_ends_every_track_and_the_view_restarts_with_new_ones() {
     assert!(k.tracks.len() > 100, "{}", k.tracks.len());
     assert!(k.tracks.iter().all(|t| !before.contains(&t.track_id)));
 }
+
+/// A pan that speeds up by 20 px per frame (steps of 20, 40, 60, 80 px): the share of the
+/// tracks alive before the last step (80 px, further than LK reaches from a standing
+/// start) that survive it, and the tracker's image velocity after it.
+fn survival_of_a_whip_pan(predict_motion: bool) -> (f64, f32) {
+    let big = texture(600, 300);
+    let (w, h) = (320, 240);
+    let options = TrackerOptions {
+        predict_motion,
+        ..TrackerOptions::default()
+    };
+    let mut tracker = Tracker::new(camera(w as u32, h as u32), options);
+    tracker
+        .process(0, &crop(&big, 0, 30, w, h))
+        .expect("frame 0");
+    let mut x = 0;
+    let mut before = std::collections::HashSet::new();
+    for (i, step) in [20, 40, 60, 80].into_iter().enumerate() {
+        x += step;
+        before = tracker.tracks.iter().map(|t| t.id).collect();
+        tracker
+            .process(i as u64 + 1, &crop(&big, x, 30, w, h))
+            .expect("frame");
+    }
+    // Tracks that could have stayed in view (content moved 80 px left).
+    let survived = tracker
+        .tracks
+        .iter()
+        .filter(|t| before.contains(&t.id))
+        .count();
+    (
+        survived as f64 / before.len().max(1) as f64,
+        tracker.image_velocity.x,
+    )
+}
+
+#[test]
+fn predicted_motion_keeps_tracks_through_a_whip_pan() {
+    let (without, _) = survival_of_a_whip_pan(false);
+    let (with, speed) = survival_of_a_whip_pan(true);
+    eprintln!(
+        "tracks surviving the 80 px step: {without:.2} without the prediction, {with:.2} with it"
+    );
+    // 80 px of the 320 px view leave the image: at most 3/4 can survive.
+    assert!(with > 0.45, "with the prediction only {with:.2} survived");
+    assert!(
+        without < 0.2,
+        "{without:.2} survived without the prediction"
+    );
+    assert!((speed + 80.0).abs() < 1.0, "image velocity {speed}");
+}
