@@ -22,6 +22,12 @@ use zenoh::Wait;
 /// Points per `map` message (keeps each under ~200 KB).
 pub const MAP_CHUNK: usize = 4096;
 
+/// Largest message the egress session accepts from the network, bytes (zenoh's
+/// `transport/link/rx/max_message_size`, 1 GiB by default). What arrives is small
+/// (subscriptions, queries); larger messages are dropped by zenoh before they are
+/// reassembled, so a peer cannot make the merger buffer a gigabyte.
+pub const MAX_INCOMING_MESSAGE_BYTES: usize = 1 << 20;
+
 mod network;
 
 pub use network::{zenoh_config, NetworkOptions, TlsOptions};
@@ -91,7 +97,13 @@ impl Egress {
                 options.device
             )));
         }
-        let config = options.network.zenoh_config()?;
+        let mut config = options.network.zenoh_config()?;
+        config
+            .insert_json5(
+                "transport/link/rx/max_message_size",
+                &MAX_INCOMING_MESSAGE_BYTES.to_string(),
+            )
+            .map_err(|e| EgressError::Config(format!("max_message_size: {e}")))?;
         let session = zenoh::open(config).wait().map_err(|e| EgressError::Open {
             listen: options.network.listen.clone(),
             reason: e.to_string(),

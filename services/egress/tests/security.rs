@@ -211,3 +211,34 @@ fn mutual_tls_admits_only_the_named_clients() {
         "a client not in the list got results"
     );
 }
+
+#[test]
+fn oversized_messages_from_the_network_are_dropped() {
+    // Remote writes allowed here, so that only the size bound can stop the put.
+    let pki = support::pki::Pki::new();
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let egress = server(&endpoint, pki.tls(Some("server"), "ca"), false);
+    let observer = egress
+        .session()
+        .declare_subscriber("egoslam/sec/inbox")
+        .wait()
+        .expect("observer");
+    let session = client(&endpoint, Some(pki.tls(None, "ca"))).expect("client");
+    let arrives = |bytes: usize| {
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(3) {
+            session
+                .put("egoslam/sec/inbox", vec![7u8; bytes])
+                .wait()
+                .expect("put");
+            if let Ok(Some(s)) = observer.recv_timeout(Duration::from_millis(100)) {
+                return Some(s.payload().len());
+            }
+        }
+        None
+    };
+    assert_eq!(arrives(1000), Some(1000), "a small message must arrive");
+    let big = 4 * egoslam_egress::MAX_INCOMING_MESSAGE_BYTES;
+    while let Ok(Some(_)) = observer.try_recv() {}
+    assert_eq!(arrives(big), None, "a {big}-byte message was accepted");
+}
