@@ -75,7 +75,7 @@ pub struct TrackerOptions {
     /// turns and the window's view graph split there (a map break). With the retry the
     /// 12,000-frame walk has no break at all (5 made, 3 left without it) and the head
     /// shake none either; but TUM fr1_rpy and KITTI 00 lose 20-23 % of
-    /// keyframe accuracy (the rescued tracks are less accurate), and one segment of 7,585
+    /// keyframe accuracy (cause not measured; docs/config.md), and one segment of 7,585
     /// keyframes makes the final global refinement wait 215 s instead of 36 s. The
     /// backward pass starts from the prediction too, so the forward-backward check stays
     /// independent of it; tracks that passed the first time are never moved by it.
