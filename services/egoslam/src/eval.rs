@@ -167,13 +167,16 @@ pub fn segmentwise_ate(
     }
     let (mut squared, mut matched, mut aligned, mut left_out) = (0.0, 0usize, 0usize, 0usize);
     for poses in groups.values() {
-        match evaluate(poses, ground_truth, 0.02) {
-            Ok(r) if poses.len() >= MIN_SEGMENT_KEYFRAMES => {
+        let report = (poses.len() >= MIN_SEGMENT_KEYFRAMES)
+            .then(|| evaluate(poses, ground_truth, 0.02).ok())
+            .flatten();
+        match report {
+            Some(r) => {
                 squared += r.rmse * r.rmse * r.matched as f64;
                 matched += r.matched;
                 aligned += 1;
             }
-            _ => left_out += poses.len(),
+            None => left_out += poses.len(),
         }
     }
     (matched > 0).then(|| {

@@ -445,7 +445,8 @@ impl Tracker {
             v.select_nth_unstable_by(mid, f32::total_cmp);
             v[mid]
         };
-        self.image_velocity = if kept.is_empty() {
+        // Only the retry reads it: no per-frame median when the prediction is off.
+        self.image_velocity = if kept.is_empty() || !self.options.predict_motion {
             Point2f::new(0.0, 0.0)
         } else {
             let (vx, vy): (Vec<f32>, Vec<f32>) = kept
