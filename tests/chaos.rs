@@ -51,11 +51,6 @@ fn start(input: &Path, out: &Path) -> std::process::Child {
         .expect("egoslam run")
 }
 
-fn report(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
-        .expect("json")
-}
-
 fn micros(t: f64) -> i64 {
     (t * 1e6).round() as i64
 }

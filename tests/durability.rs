@@ -8,11 +8,6 @@ use common::*;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-fn report(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
-        .expect("json")
-}
-
 fn keyframes(out: &Path) -> String {
     std::fs::read_to_string(out.join("keyframes.tum")).expect("keyframes.tum")
 }

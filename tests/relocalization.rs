@@ -23,11 +23,6 @@ fn localize(map: &Path, input: &Path, out: &Path, extra: &[&str]) -> Output {
         .expect("localize")
 }
 
-fn report(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
-        .expect("json")
-}
-
 /// Builds a map of `input` with `egoslam run --map-out`, localizes the same frames, and
 /// returns the localization report.
 fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {

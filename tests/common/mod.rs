@@ -60,6 +60,11 @@ pub fn run_report(input: &Path, out: &Path) -> serde_json::Value {
         .status()
         .expect("run");
     assert!(status.success());
+    report(out)
+}
+
+/// The report.json a run wrote to `out`.
+pub fn report(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
         .expect("json")
 }
