@@ -49,7 +49,7 @@ impl RecordLog {
 
     /// Makes everything appended so far durable (before a checkpoint names it applied).
     pub fn sync(&mut self) -> anyhow::Result<()> {
-        self.writer.flush()?;
+        self.flush()?;
         self.writer
             .get_ref()
             .sync_data()
@@ -58,7 +58,7 @@ impl RecordLog {
 
     /// Empties the log (a new stream starts a new map).
     pub fn truncate(&mut self) -> anyhow::Result<()> {
-        self.writer.flush()?;
+        self.flush()?;
         self.writer
             .get_ref()
             .set_len(0)
