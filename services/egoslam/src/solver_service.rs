@@ -163,10 +163,9 @@ fn solve(
             ),
         ),
         WindowStatus::Solved => (pb::SolveStatus::Solved, String::new()),
-        WindowStatus::RotationOnly => (
-            pb::SolveStatus::Solved,
-            "rotation only: no pair in the window has parallax".to_string(),
-        ),
+        WindowStatus::RotationOnly(reason) => {
+            (pb::SolveStatus::Solved, format!("rotation only: {reason}"))
+        }
         WindowStatus::Failed(r) => (pb::SolveStatus::Failed, r.clone()),
     };
     tracing::info!(

@@ -104,12 +104,26 @@ const MIN_SHARED_POINTS: usize = 10;
 /// the ratio of camera-to-point distances, map over window; points sit metres away while a
 /// window's baselines are centimetres, so this ratio is far better conditioned than one from
 /// the centres. Otherwise (rotation-only windows have no points) the scale comes from the
-/// centres given the rotation (Umeyama 1991 with the rotation fixed), or stays 1 when they
-/// have no spread. The translation then maps the centroid of the shared centres.
+/// centres given the rotation (Umeyama 1991 with the rotation fixed); when they have no
+/// spread either (the previous window was rotation-only) from the scene depth
+/// ([`align_shared_or_by_depth`]), and stays 1 only when nothing measures it. The
+/// translation then maps the centroid of the shared centres.
 pub fn align_shared(
     window: &[StampedPose],
     map: &[StampedPose],
     shared_points: &[(Vector3<f64>, Vector3<f64>)],
+) -> (Similarity, f64) {
+    align_shared_or_by_depth(window, map, shared_points, None)
+}
+
+/// [`align_shared`], with `depth_scale` (scene_depth.rs: the ratio of the median scene
+/// depths on either side of the boundary) taking the place of the centres when too few
+/// points are shared. Used for chaining; segment linking and refinement carry points.
+pub fn align_shared_or_by_depth(
+    window: &[StampedPose],
+    map: &[StampedPose],
+    shared_points: &[(Vector3<f64>, Vector3<f64>)],
+    depth_scale: Option<f64>,
 ) -> (Similarity, f64) {
     let rel: Vec<Rotation3<f64>> = window
         .iter()
@@ -145,7 +159,9 @@ pub fn align_shared(
         if den > 1e-18 && map_spread > 1e-18 && num > 0.0 {
             num / den
         } else {
-            1.0
+            depth_scale
+                .filter(|s| s.is_finite() && *s > 0.0)
+                .unwrap_or(1.0)
         }
     };
     let translation = mu_m - scale * (rotation * mu_w);
@@ -206,7 +222,21 @@ impl MapBuilder {
                         _ => None,
                     })
                     .collect();
-                let (transform, residual) = align_shared(&w, &m, &shared_points);
+                let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
+                    let map_depth = self.recent_scene_depth(seg);
+                    let window_depth = crate::scene_depth::window_scene_depth(window);
+                    map_depth.zip(window_depth).map(|(m, w)| m / w)
+                } else {
+                    None
+                };
+                let (transform, residual) =
+                    align_shared_or_by_depth(&w, &m, &shared_points, depth_scale);
+                tracing::debug!(
+                    shared_points = shared_points.len(),
+                    ?depth_scale,
+                    scale = transform.scale,
+                    "window scale"
+                );
                 (
                     seg,
                     transform,

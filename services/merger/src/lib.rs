@@ -7,6 +7,7 @@ pub mod frame_localization;
 pub mod interpolation;
 pub mod refinement;
 pub mod retriangulation;
+pub mod scene_depth;
 pub mod segment_linking;
 
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};

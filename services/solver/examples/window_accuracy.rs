@@ -10,7 +10,7 @@
 //! gap between the two is the solver's share of the error, the rest is the data's.
 //! `--window 1000` does the same for the whole sequence as one problem.
 //!
-//! `cargo run --release -p egoslam-solver --example window_accuracy -- DATASET [--window N] [--ba-from-truth]`
+//! `cargo run --release -p egoslam-solver --example window_accuracy -- DATASET [--window N] [--ba-from-truth] [--verbose]`
 
 use egoslam_frontend::{Tracker, TrackerOptions};
 use egoslam_geometry::{umeyama, PinholeRadtan, StampedPose};
@@ -113,15 +113,17 @@ fn ba_from_truth(
 
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
-    let (mut path, mut size, mut from_truth) = (None, 20usize, false);
+    let (mut path, mut size, mut from_truth, mut verbose) = (None, 20usize, false, false);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => size = args.next().ok_or("--window N")?.parse()?,
             "--ba-from-truth" => from_truth = true,
+            "--verbose" => verbose = true,
             _ => path = Some(PathBuf::from(a)),
         }
     }
-    let path = path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth]")?;
+    let path =
+        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose]")?;
     opencv::core::set_num_threads(1)?;
     let truth = egoslam_sources::load_ground_truth(&path)?.poses;
     let (camera, keyframes) = keyframes(&path)?;
@@ -151,6 +153,14 @@ fn main() -> Result<()> {
             s.translation_edges,
             s.rmse_px
         );
+        if verbose {
+            if let Ok(sim) = umeyama(&centres, &gt) {
+                for (k, (c, g)) in centres.iter().zip(&gt).enumerate() {
+                    let e = (sim.apply(c) - g).norm();
+                    println!("    keyframe {:4}: error {e:.4} m", start + s.keyframes[k]);
+                }
+            }
+        }
         if let Some(e) = aligned_rmse(&centres, &gt) {
             sq += e * e * centres.len() as f64;
             n += centres.len();

@@ -35,8 +35,13 @@ pub struct WindowSolverOptions {
     pub min_track_views: usize,
     /// At most this many tracks (the longest) feed translation averaging (default 800).
     pub max_averaging_tracks: usize,
-    /// A window with fewer triangulated points is not bundle-adjusted (default 20).
+    /// A window with fewer triangulated points is solved as rotation-only (default 20).
     pub min_points: usize,
+    /// A window with fewer edges that carry a translation direction is solved as
+    /// rotation-only (default 5, a quarter of a 20-keyframe window's consecutive edges:
+    /// a rendered walk's stop had a window with 1 such edge of 98, whose centres were noise
+    /// and whose scale, carried on by the merger, left the rest of the map 50x too small).
+    pub min_translation_edges: usize,
     /// A window whose view graph falls into pieces is solved on its largest piece if that
     /// holds at least this fraction of the keyframes, else it fails (default 0.5: on the
     /// rendered shake, dark and Aria-replay sequences, smaller pieces each started a new
@@ -57,6 +62,7 @@ impl Default for WindowSolverOptions {
             min_track_views: 3,
             max_averaging_tracks: 800,
             min_points: 20,
+            min_translation_edges: 5,
             min_piece_fraction: 0.5,
         }
     }
@@ -67,9 +73,10 @@ impl Default for WindowSolverOptions {
 pub enum WindowStatus {
     /// Full solve: poses, points, bundle adjustment.
     Solved,
-    /// No pair had usable parallax: rotations are solved, all centres coincide (the head
-    /// turned in place), no points. Poses are still valid.
-    RotationOnly,
+    /// Too little parallax to trust any translation: rotations are solved, all centres
+    /// coincide (the head turned in place), no points. Poses are still valid; the reason
+    /// says which test decided.
+    RotationOnly(String),
     /// The window could not be solved; the reason says why.
     Failed(String),
 }
@@ -109,13 +116,14 @@ pub struct WindowSolution {
 impl WindowSolution {
     /// Rotations only, every centre at the origin (the first keyframe's).
     fn rotation_only(
+        reason: String,
         rotations: &[Rotation3<f64>],
         edges: usize,
         translation_edges: usize,
         timings_ms: Vec<(&'static str, f64)>,
     ) -> Self {
         Self {
-            status: WindowStatus::RotationOnly,
+            status: WindowStatus::RotationOnly(reason),
             keyframes: (0..rotations.len()).collect(),
             poses: rotations
                 .iter()
@@ -335,8 +343,20 @@ fn solve_connected(
         .map(|(e, _)| e)
         .collect();
     let rot = &rotations.rotations;
-    if translation_edges.is_empty() {
-        return WindowSolution::rotation_only(rot, edges.len(), 0, timings);
+    if translation_edges.len() < options.min_translation_edges {
+        let reason = format!(
+            "{} of {} edges have parallax (fewer than {})",
+            translation_edges.len(),
+            edges.len(),
+            options.min_translation_edges
+        );
+        return WindowSolution::rotation_only(
+            reason,
+            rot,
+            edges.len(),
+            translation_edges.len(),
+            timings,
+        );
     }
 
     // Tracks of the window: track id -> [(keyframe index, pixel)].
@@ -373,6 +393,7 @@ fn solve_connected(
             // The rotations are still good: keep them rather than break the map.
             tracing::warn!(%e, "translation averaging failed; window kept as rotation only");
             return WindowSolution::rotation_only(
+                format!("translation averaging failed: {e}"),
                 rot,
                 edges.len(),
                 translation_edges.len(),
@@ -423,19 +444,23 @@ fn solve_connected(
         (points, observations, weak)
     });
     if points.len() < options.min_points {
-        return WindowSolution {
-            status: WindowStatus::Solved,
-            keyframes: (0..n).collect(),
-            poses,
-            points: Vec::new(),
-            observations: Vec::new(),
-            outlier_observations: 0,
-            weak_observations: weak,
-            rmse_px: 0.0,
-            edges: edges.len(),
-            translation_edges: translation_edges.len(),
-            timings_ms: timings,
-        };
+        // Centres that no point confirms are set by a handful of directions and the rays of
+        // tracks too short to triangulate; on rendered walks such windows put centres metres
+        // off and handed the merger a scale 50x wrong. The rotations stand.
+        let reason = format!(
+            "{} points triangulated (fewer than {})",
+            points.len(),
+            options.min_points
+        );
+        let mut solution = WindowSolution::rotation_only(
+            reason,
+            rot,
+            edges.len(),
+            translation_edges.len(),
+            timings,
+        );
+        solution.weak_observations = weak;
+        return solution;
     }
     let positions: Vec<Vector3<f64>> = points.iter().map(|p| p.1).collect();
     let adjusted = match timed(&mut timings, "bundle_adjustment", || {
