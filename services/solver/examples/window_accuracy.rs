@@ -144,8 +144,26 @@ fn main() -> Result<()> {
         }
         let path_m: f64 = gt.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
         let time: f64 = s.timings_ms.iter().map(|t| t.1).sum();
+        let mut obs_by_track: BTreeMap<u64, Vec<usize>> = BTreeMap::new();
+        for (k, kf) in window.iter().enumerate() {
+            for id in kf.tracks.keys() {
+                obs_by_track.entry(*id).or_default().push(k);
+            }
+        }
+        let weakest_cut = (2..window.len().saturating_sub(1))
+            .map(|c| {
+                obs_by_track
+                    .values()
+                    .filter(|ks| {
+                        ks.iter().filter(|k| **k < c).count() >= 2
+                            && ks.iter().filter(|k| **k >= c).count() >= 2
+                    })
+                    .count()
+            })
+            .min()
+            .unwrap_or(0);
         let mut line = format!(
-            "window {start:4}-{end:4} {:?}: posed {}/{}, {} edges ({} with direction), {:.3} px, {time:.0} ms",
+            "window {start:4}-{end:4} {:?}: posed {}/{}, {} edges ({} with direction), weakest cut {weakest_cut} tracks, {:.3} px, {time:.0} ms",
             s.status,
             s.poses.len(),
             window.len(),
