@@ -35,7 +35,9 @@ fn kitti_every_frame_posed_one_segment() {
         return;
     };
     let out = tempfile::tempdir().expect("tempdir");
-    let report = run_report(&input, out.path());
+    // A car at 10 fps: the motion prediction for head turns is off, as docs/config.md
+    // advises for vehicle footage (with it: 0.486 m keyframe, 0.515 m frame ATE).
+    let report = run_report_with(&input, out.path(), &["--predict-motion", "false"]);
     assert_eq!(report["posed_frames"], 150);
     assert_eq!(report["segments"], 1);
     let (ate, _) = keyframe_ate(out.path(), &input.join("dataset/poses/00.txt"));

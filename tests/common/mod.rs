@@ -52,11 +52,17 @@ pub fn free_port() -> u16 {
 
 /// `egoslam run --input INPUT --out OUT`, which must succeed; its report.json.
 pub fn run_report(input: &Path, out: &Path) -> serde_json::Value {
+    run_report_with(input, out, &[])
+}
+
+/// [`run_report`] with extra `egoslam run` arguments.
+pub fn run_report_with(input: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let status = egoslam()
         .args(["run", "--input"])
         .arg(input)
         .arg("--out")
         .arg(out)
+        .args(extra)
         .status()
         .expect("run");
     assert!(status.success());

@@ -67,8 +67,9 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = 9)]
     pub lk_window: i32,
     /// Retry tracks LK lost from where their last motion predicts them (fast head turns;
-    /// off by default: docs/config.md has the trade-off measured).
-    #[arg(long)]
+    /// on by default, `--predict-motion false` turns it off: docs/config.md has the
+    /// trade-off measured).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]

@@ -22,7 +22,7 @@ fn default_input() -> PathBuf {
 }
 
 fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
-    let mut flags = vec![
+    let flags = vec![
         format!("--keyframe-every={}", p.keyframe_every),
         format!("--keyframe-flow-px={}", p.keyframe_flow_px),
         format!("--tracks={}", p.tracks),
@@ -32,10 +32,8 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--loop-closures={}", p.loop_closures),
         format!("--refine-keyframes={}", p.refine_keyframes),
         format!("--global-ba-px={}", p.global_ba_px),
+        format!("--predict-motion={}", p.predict_motion),
     ];
-    if p.predict_motion {
-        flags.push("--predict-motion".into());
-    }
     flags
 }
 

@@ -69,16 +69,17 @@ pub struct TrackerOptions {
     pub min_contrast: f64,
     /// Tracks that LK loses from a standing start are searched again where their last
     /// frame-to-frame motion predicts them (constant image velocity; new tracks take the
-    /// median motion of the others). Default false. A fast head turn moves the image 50 px
+    /// median motion of the others). Default true. A fast head turn moves the image 50 px
     /// per frame and more, beyond what a 9 px window on 3 pyramid levels finds from a
     /// standing start: on the rendered walk all but ~30 of 1000 tracks were lost in such
     /// turns and the window's view graph split there (a map break). With the retry the
-    /// 12,000-frame walk has no break at all (5 made, 3 left without it) and the head
-    /// shake none either; but TUM fr1_rpy and KITTI 00 lose 20-23 % of
-    /// keyframe accuracy (cause not measured; docs/config.md), and one segment of 7,585
-    /// keyframes makes the final global refinement wait 215 s instead of 36 s. The
-    /// backward pass starts from the prediction too, so the forward-backward check stays
-    /// independent of it; tracks that passed the first time are never moved by it.
+    /// 12,000-frame walk has no break at all (3 left without it), the head shake and the
+    /// blackout end in one segment (two without), and four shorter rendered walks end at
+    /// 0.6-1.9 % of their path instead of 0.8-14 %. The cost: KITTI 00 (a car at 10 fps,
+    /// not a head) 0.396 -> 0.486 m keyframe ATE; TUM fr1_rpy 2.43 -> 2.24 cm
+    /// (docs/config.md). The backward pass starts from the prediction too, so the
+    /// forward-backward check stays independent of it; tracks that passed the first time
+    /// are never moved by it.
     pub predict_motion: bool,
     /// Keyframe rule (P, m).
     pub keyframes: KeyframePolicy,
@@ -96,7 +97,7 @@ impl Default for TrackerOptions {
             border_px: 5.0,
             replenish_below_fraction: 0.7,
             min_contrast: 4.0,
-            predict_motion: false,
+            predict_motion: true,
             keyframes: KeyframePolicy::default(),
         }
     }
