@@ -7,6 +7,11 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_synth::paths::aria_head_trajectory;
+use egoslam_synth::placement::place_in_free_space;
+
+/// Closest a replayed head may come to a rendered surface, metres (0.3: a head turned to a
+/// wall stays a forearm's length away; nearer, the texture is a featureless blur).
+const REPLAY_CLEARANCE_M: f64 = 0.3;
 use egoslam_synth::{
     render_frame, CameraPath, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
 };
@@ -166,7 +171,24 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     };
     // Sub-frame poses: the path sampled `blur_samples` times finer.
     let sub = options.blur_samples;
-    let fine = path.poses((args.frames - 1) * sub + 1, args.fps * sub as f64);
+    let mut fine = path.poses((args.frames - 1) * sub + 1, args.fps * sub as f64);
+    if matches!(args.path, PathKind::Replay) {
+        // A recorded trajectory is turned to keep clear of the rendered room's surfaces
+        // (egoslam_synth::placement: the Aria sample walked through a box otherwise).
+        let (placed, yaw, clearance) = place_in_free_space(&fine, &scene, REPLAY_CLEARANCE_M);
+        tracing::info!(
+            turned_deg = yaw.to_degrees(),
+            clearance_m = clearance,
+            "replayed trajectory placed"
+        );
+        if clearance < REPLAY_CLEARANCE_M {
+            tracing::warn!(
+                clearance_m = clearance,
+                "the replayed trajectory comes closer than {REPLAY_CLEARANCE_M} m to a surface at every heading"
+            );
+        }
+        fine = placed;
+    }
     let poses: Vec<_> = fine.iter().step_by(sub).copied().collect();
     if poses.len() < args.frames {
         tracing::warn!(

@@ -5,6 +5,7 @@
 //! and depth. Pure computation: writing files is the `egoslam synth` command's job.
 
 pub mod paths;
+pub mod placement;
 pub mod render;
 pub mod scene;
 pub mod texture;

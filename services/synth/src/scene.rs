@@ -49,6 +49,14 @@ impl Plane {
         }
     }
 
+    /// Distance from `p` to the nearest point of the rectangle.
+    pub fn distance_to(&self, p: &Vector3<f64>) -> f64 {
+        let d = p - self.origin;
+        let a = d.dot(&self.u_axis).clamp(0.0, self.width);
+        let b = d.dot(&self.v_axis).clamp(0.0, self.height);
+        (p - (self.origin + self.u_axis * a + self.v_axis * b)).norm()
+    }
+
     /// The nearest intersection of the ray `o + t d` (d unit, t > 1 cm) with the rectangle.
     pub fn intersect(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<Hit> {
         let denom = self.normal.dot(d);
@@ -77,6 +85,14 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// Distance from `p` to the nearest surface.
+    pub fn clearance(&self, p: &Vector3<f64>) -> f64 {
+        self.planes
+            .iter()
+            .map(|plane| plane.distance_to(p))
+            .fold(f64::INFINITY, f64::min)
+    }
+
     /// The nearest hit over all planes, with its plane.
     pub fn cast(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(Hit, &Plane)> {
         Self::nearest(self.planes.iter(), o, d)
