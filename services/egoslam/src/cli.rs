@@ -87,7 +87,10 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = 1.5)]
     pub global_ba_px: f64,
     /// Merger: keyframes in that bundle adjustment, newest first (0: the whole segment).
-    #[arg(long, default_value_t = 0)]
+    /// Default 1500: its cost grows faster than the segment (800 keyframes 13 s, 2405 83 s,
+    /// 5330 188 s); on the rendered 12,000-frame walk the bound took the run from 344 s to
+    /// 218 s and the merger from 2.4 to 1.6 GB with the same keyframe ATE (5.62 m).
+    #[arg(long, default_value_t = 1500)]
     pub refine_keyframes: usize,
 }
 
