@@ -145,9 +145,8 @@ pub fn align_shared_or_by_depth(
             }
         }
     }
-    let scale = if !ratios.is_empty() {
-        let mid = ratios.len() / 2;
-        *ratios.select_nth_unstable_by(mid, f64::total_cmp).1
+    let scale = if let Some(s) = crate::median(ratios) {
+        s
     } else {
         let (mut num, mut den, mut map_spread) = (0.0, 0.0, 0.0);
         for (w, m) in window.iter().zip(map) {

@@ -344,11 +344,7 @@ impl MapBuilder {
                 errors.push((projected - px).norm());
             }
         }
-        if errors.is_empty() {
-            return None;
-        }
-        let mid = errors.len() / 2;
-        Some(*errors.select_nth_unstable_by(mid, f64::total_cmp).1)
+        crate::median(errors)
     }
 }
 

@@ -13,6 +13,7 @@
 //! median scene depth of 1).
 
 use crate::chaining::{MapBuilder, WindowInput};
+use crate::median;
 use egoslam_geometry::StampedPose;
 use nalgebra::Vector3;
 use std::collections::HashMap;
@@ -23,14 +24,6 @@ const KEYFRAMES: usize = 5;
 const MIN_POINTS: usize = 10;
 /// Map keyframes searched back from the newest (a stop can hold this many without points).
 const MAX_SEARCHED: usize = 400;
-
-fn median(mut v: Vec<f64>) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    let mid = v.len() / 2;
-    Some(*v.select_nth_unstable_by(mid, f64::total_cmp).1)
-}
 
 /// Median depth (along the optical axis) of `points` seen from `pose`, if enough are in front.
 fn keyframe_depth<'a>(

@@ -266,15 +266,12 @@ fn link_transform(group: &[&Relocalized]) -> (Similarity, usize) {
 /// Median distance from the relocalized cameras to their inlier old points: the scene's
 /// scale in the old segment's units.
 fn median_depth(group: &[&Relocalized]) -> Option<f64> {
-    let mut d: Vec<f64> = group
-        .iter()
-        .flat_map(|f| f.depths.iter().copied())
-        .collect();
-    if d.is_empty() {
-        return None;
-    }
-    let mid = d.len() / 2;
-    Some(*d.select_nth_unstable_by(mid, f64::total_cmp).1)
+    crate::median(
+        group
+            .iter()
+            .flat_map(|f| f.depths.iter().copied())
+            .collect(),
+    )
 }
 
 impl MapBuilder {
