@@ -8,10 +8,6 @@ use clap::{Args, ValueEnum};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_synth::paths::aria_head_trajectory;
 use egoslam_synth::placement::place_in_free_space;
-
-/// Closest a replayed head may come to a rendered surface, metres (0.3: a head turned to a
-/// wall stays a forearm's length away; nearer, the texture is a featureless blur).
-const REPLAY_CLEARANCE_M: f64 = 0.3;
 use egoslam_synth::{
     render_frame, CameraPath, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
 };
@@ -19,6 +15,10 @@ use opencv::core::{Mat, Vector, CV_16UC1};
 use opencv::prelude::*;
 use std::path::PathBuf;
 use std::time::Instant;
+
+/// Closest a replayed head may come to a rendered surface, metres (0.3: a head turned to a
+/// wall stays a forearm's length away; nearer, the texture is a featureless blur).
+const REPLAY_CLEARANCE_M: f64 = 0.3;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum PathKind {

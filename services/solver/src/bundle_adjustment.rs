@@ -321,13 +321,16 @@ fn levenberg_marquardt(
     (false, options.max_iterations)
 }
 
-/// Points nearer to an observing camera than `fraction` of the median observation depth.
-fn collapsed_points(st: &State, observations: &[Observation], fraction: f64) -> Vec<bool> {
-    let mut collapsed = vec![false; st.points.len()];
-    let depths: Vec<f64> = observations
-        .iter()
-        .map(|o| st.poses[o.camera].to_camera(&st.points[o.point]).z)
-        .collect();
+/// Points nearer to an observing camera than `fraction` of the median observation depth;
+/// `in_camera[n]` is observation `n`'s point in its camera's frame.
+fn collapsed_points(
+    points: usize,
+    observations: &[Observation],
+    in_camera: &[Vector3<f64>],
+    fraction: f64,
+) -> Vec<bool> {
+    let mut collapsed = vec![false; points];
+    let depths: Vec<f64> = in_camera.iter().map(|pc| pc.z).collect();
     let mut sorted: Vec<f64> = depths.iter().copied().filter(|d| d.is_finite()).collect();
     if sorted.is_empty() || fraction <= 0.0 {
         return collapsed;
@@ -373,11 +376,15 @@ pub fn bundle_adjust(
     let (_, first_iterations) =
         levenberg_marquardt(camera, &mut st, observations, &active, options);
     let mut outliers = Vec::new();
-    let collapsed = collapsed_points(&st, observations, options.min_depth_fraction);
-    for (n, o) in observations.iter().enumerate() {
-        let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
+    let in_camera: Vec<Vector3<f64>> = observations
+        .iter()
+        .map(|o| st.poses[o.camera].to_camera(&st.points[o.point]))
+        .collect();
+    let fraction = options.min_depth_fraction;
+    let collapsed = collapsed_points(st.points.len(), observations, &in_camera, fraction);
+    for (n, (o, pc)) in observations.iter().zip(&in_camera).enumerate() {
         let bad = collapsed[o.point]
-            || project(camera, st.focal_scale, st.radial_k, &pc)
+            || project(camera, st.focal_scale, st.radial_k, pc)
                 .is_none_or(|(p, _, _)| (p - o.pixel.coords).norm() > options.outlier_px);
         if bad {
             active[n] = false;
@@ -418,20 +425,13 @@ mod tests {
 
     #[test]
     fn points_pulled_onto_a_camera_are_collapsed() {
-        let st = State {
-            poses: vec![CameraPose {
-                rotation: Rotation3::identity(),
-                centre: Vector3::zeros(),
-            }],
-            points: vec![
-                Vector3::new(0.0, 0.0, 4.0),
-                Vector3::new(0.5, 0.0, 5.0),
-                Vector3::new(0.0, 0.3, 3.0),
-                Vector3::new(0.0, 0.0, 0.04),
-            ],
-            focal_scale: 1.0,
-            radial_k: 0.0,
-        };
+        // One camera at the origin looking along z: points in its frame as they are.
+        let in_camera = vec![
+            Vector3::new(0.0, 0.0, 4.0),
+            Vector3::new(0.5, 0.0, 5.0),
+            Vector3::new(0.0, 0.3, 3.0),
+            Vector3::new(0.0, 0.0, 0.04),
+        ];
         let observations: Vec<Observation> = (0..4)
             .map(|point| Observation {
                 camera: 0,
@@ -441,10 +441,13 @@ mod tests {
             .collect();
         // Median depth 4: 0.04 is below 2 % of it, 3 is not; 0 disables the rule.
         assert_eq!(
-            collapsed_points(&st, &observations, 0.02),
+            collapsed_points(4, &observations, &in_camera, 0.02),
             vec![false, false, false, true]
         );
-        assert_eq!(collapsed_points(&st, &observations, 0.0), vec![false; 4]);
+        assert_eq!(
+            collapsed_points(4, &observations, &in_camera, 0.0),
+            vec![false; 4]
+        );
     }
 
     fn small_rotation(axis: Vector3<f64>, angle: f64) -> Rotation3<f64> {
