@@ -76,15 +76,35 @@ fn delivered(
     None
 }
 
+/// A subscriber on the egress's own session: what reaches the merger from outside.
+type Observer =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// A TLS egress on a free loopback port, an observer of `observed` on its session, and a
+/// client that trusts the CA (without a certificate of its own).
+fn tls_server_and_client(
+    pki: &support::pki::Pki,
+    remote_read_only: bool,
+    observed: &str,
+) -> (Egress, Observer, zenoh::Session) {
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let egress = server(&endpoint, pki.tls(Some("server"), "ca"), remote_read_only);
+    let observer = egress
+        .session()
+        .declare_subscriber(observed)
+        .wait()
+        .expect("observer");
+    let session = client(&endpoint, Some(pki.tls(None, "ca"))).expect("trusted client connects");
+    (egress, observer, session)
+}
+
 /// Puts `payload` from `client` on `key` until the server-side `observer` sees a message
 /// (its size is returned) or 3 s pass.
 fn put_until_seen(
     client: &zenoh::Session,
     key: &str,
     payload: &[u8],
-    observer: &zenoh::pubsub::Subscriber<
-        zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
-    >,
+    observer: &Observer,
 ) -> Option<usize> {
     let start = Instant::now();
     while start.elapsed() < Duration::from_secs(3) {
@@ -100,14 +120,7 @@ fn put_until_seen(
 }
 
 fn read_only_case(pki: &support::pki::Pki, remote_read_only: bool) -> (Option<pb::Pose>, bool) {
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let egress = server(&endpoint, pki.tls(Some("server"), "ca"), remote_read_only);
-    let observer = egress
-        .session()
-        .declare_subscriber("egoslam/**")
-        .wait()
-        .expect("observer");
-    let session = client(&endpoint, Some(pki.tls(None, "ca"))).expect("trusted client connects");
+    let (egress, observer, session) = tls_server_and_client(pki, remote_read_only, "egoslam/**");
     let poses = session
         .declare_subscriber("egoslam/sec/pose")
         .wait()
@@ -211,14 +224,7 @@ fn mutual_tls_admits_only_the_named_clients() {
 fn oversized_messages_from_the_network_are_dropped() {
     // Remote writes allowed here, so that only the size bound can stop the put.
     let pki = support::pki::Pki::new();
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
-    let egress = server(&endpoint, pki.tls(Some("server"), "ca"), false);
-    let observer = egress
-        .session()
-        .declare_subscriber("egoslam/sec/inbox")
-        .wait()
-        .expect("observer");
-    let session = client(&endpoint, Some(pki.tls(None, "ca"))).expect("client");
+    let (_egress, observer, session) = tls_server_and_client(&pki, false, "egoslam/sec/inbox");
     let arrives =
         |bytes: usize| put_until_seen(&session, "egoslam/sec/inbox", &vec![7u8; bytes], &observer);
     assert_eq!(arrives(1000), Some(1000), "a small message must arrive");
