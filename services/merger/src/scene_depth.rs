@@ -5,7 +5,7 @@
 //! after a turn that ended every track, the next window shares keyframes with the map but
 //! no points, and the shared centres have no spread; the chaining then had no scale at all
 //! and kept the window's own (1.0), an arbitrary jump: on a rendered 1500-frame walk three
-//! such windows moved the map's scale by 0.4x-2.7x. A head-mounted camera looks at the same
+//! such windows moved the map's scale by 0.3x-2.7x. A head-mounted camera looks at the same
 //! room before and after it stops, so the typical depth of what it sees is the best scale
 //! evidence left: the scale is taken so that the median depth of the window's points, seen
 //! from its first keyframes, equals that of the map's points seen from the segment's latest

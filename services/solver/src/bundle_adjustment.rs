@@ -42,7 +42,7 @@ pub struct BundleAdjustmentOptions {
     /// After the first solve, a point nearer to an observing camera than this fraction of
     /// the median observation depth is removed with all its observations (default 0.02).
     /// With the centimetre baselines of a head turning in place (TUM fr1_rpy), the first
-    /// solve pulled ~40 weakly seen points of a window onto the camera cluster (depth 1/1000
+    /// solve pulled weakly seen points of a window onto the camera cluster (depth 1/1000
     /// of the median; 152 observations in one window, none before the solve), where they
     /// bent the poses of the last keyframes and made the merger's scale between windows
     /// 35x wrong. Real near structure (a hand at 0.3 m in a 3 m room) is 10x nearer, not 50x.
