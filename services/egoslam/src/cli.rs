@@ -92,6 +92,11 @@ pub struct PipelineArgs {
     /// 218 s and the merger from 2.4 to 1.6 GB with the same keyframe ATE (5.62 m).
     #[arg(long, default_value_t = 1500)]
     pub refine_keyframes: usize,
+    /// Merger: fold that bundle adjustment into the map exactly this many windows after it
+    /// started, waiting for it if need be, so that the same input always gives the same map
+    /// (0: whenever it has finished, never waiting; two runs then differ). Default 3.
+    #[arg(long, default_value_t = 3)]
+    pub refinement_lag: u32,
 }
 
 /// Where results go over zenoh (docs/egress.md).

@@ -54,6 +54,7 @@ pub struct SolverSection {
 pub struct MergerSection {
     pub global_ba_px: Option<f64>,
     pub refine_keyframes: Option<usize>,
+    pub refinement_lag: Option<u32>,
 }
 
 /// `[zenoh]`: where results are published.
@@ -237,6 +238,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "refine_keyframes",
         &mut p.refine_keyframes,
         &c.merger.refine_keyframes,
+    );
+    fill(
+        m,
+        "refinement_lag",
+        &mut p.refinement_lag,
+        &c.merger.refinement_lag,
     );
 }
 

@@ -31,6 +31,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--overlap={}", p.overlap),
         format!("--loop-closures={}", p.loop_closures),
         format!("--refine-keyframes={}", p.refine_keyframes),
+        format!("--refinement-lag={}", p.refinement_lag),
         format!("--global-ba-px={}", p.global_ba_px),
         format!("--predict-motion={}", p.predict_motion),
     ];

@@ -186,8 +186,8 @@ impl Merger {
         for f in &w.trailing_frames {
             self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
         }
-        // A refinement that finished meanwhile is folded in before the next window (at the
-        // end of the stream, a running one is waited for).
+        // A refinement started earlier is folded in before this window when due (see
+        // `BackgroundRefiner::fold`; at the end of the stream a running one is waited for).
         self.refiner
             .fold(&mut self.state.map, w.end_of_stream, &mut self.stats);
         if w.end_of_stream {
@@ -530,14 +530,17 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     crate::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
     let features_log = crate::features_log::open(&args.out)?;
-    let (global_ba_px, refine_keyframes) =
-        (args.pipeline.global_ba_px, args.pipeline.refine_keyframes);
+    let (global_ba_px, refine_keyframes, refinement_lag) = (
+        args.pipeline.global_ba_px,
+        args.pipeline.refine_keyframes,
+        args.pipeline.refinement_lag,
+    );
     let mut merger = Merger {
         args,
         state: MergerState::default(),
         outputs,
         stats: ServiceStats::new("merger"),
-        refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes),
+        refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes, refinement_lag),
         camera: None,
         last_persist: None,
         vocabulary,
