@@ -106,12 +106,60 @@ fn launcher_stops_everything_when_a_service_dies() {
         .expect("read");
     assert!(stderr.contains("replay service failed"), "{stderr}");
     // No orphans: the other services were stopped.
-    let left = std::process::Command::new("pgrep")
-        .args(["-f", &format!("--out={}", out.path().display())])
+    assert_eq!(services_writing_to(out.path()), 0, "services left running");
+}
+
+#[test]
+fn services_stop_when_the_launcher_is_killed() {
+    let out = tempfile::tempdir().expect("tempdir");
+    // The clip's images as a folder replayed at 1 frame/s: two minutes of run, so services
+    // still running after 15 s are orphans, not a run that ended by itself.
+    let mut run = egoslam()
+        .args(["run", "--realtime", "--fps", "1", "--input"])
+        .arg(tum_fixture().join("rgb"))
+        .arg("--calib")
+        .arg(tum_fixture().join("camera.yaml"))
+        .arg("--out")
+        .arg(out.path())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("run");
+    let services = || services_writing_to(out.path());
+    let start = Instant::now();
+    while services() < 4 {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "services not started"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    run.kill().expect("SIGKILL the launcher");
+    run.wait().expect("reaped");
+    let start = Instant::now();
+    while services() > 0 {
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "{} services left running after the launcher was killed",
+            services()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Processes whose command line has `--out=<out>`: the services of one run. (`--` before
+/// the pattern: without it pgrep takes `--out=...` for an option of its own, fails, and
+/// prints nothing, so "none left" held whatever was running.)
+fn services_writing_to(out: &std::path::Path) -> usize {
+    let found = std::process::Command::new("pgrep")
+        .args(["-f", "--", &format!("--out={}", out.display())])
         .output()
         .expect("pgrep");
     assert!(
-        String::from_utf8_lossy(&left.stdout).trim().is_empty(),
-        "services left running"
+        matches!(found.status.code(), Some(0 | 1)),
+        "pgrep failed: {}",
+        String::from_utf8_lossy(&found.stderr)
     );
+    String::from_utf8_lossy(&found.stdout)
+        .split_whitespace()
+        .count()
 }

@@ -98,6 +98,24 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
         let Some(sample) = self.inbox.next_sample(self.bus, &self.channel)? else {
             return Ok(None);
         };
+        self.decode(sample).map(Some)
+    }
+
+    /// The next message with its sequence number if one has arrived; `Ok(None)` when none
+    /// has. Never waits: a consumer busy with something else (the merger waiting for its
+    /// background refinement) keeps taking messages, so the producer's lossless `send`
+    /// does not run into its delivery timeout.
+    pub fn try_receive_numbered(&mut self) -> Result<Option<(u64, M)>, ReceiveError> {
+        let Some(sample) = self.inbox.try_next_sample(self.bus, &self.channel)? else {
+            return Ok(None);
+        };
+        self.decode(sample).map(Some)
+    }
+
+    fn decode(
+        &mut self,
+        sample: iceoryx2::sample::Sample<iceoryx2::service::ipc::Service, [u8], u64>,
+    ) -> Result<(u64, M), ReceiveError> {
         let name = self.bus.service_name(&self.channel);
         let sequence = *sample.user_header();
         if let Some(expected) = self.expected {
@@ -115,7 +133,7 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
         }
         self.expected = Some(sequence + 1);
         M::decode(sample.payload())
-            .map(|m| Some((sequence, m)))
+            .map(|m| (sequence, m))
             .map_err(|e| ReceiveError::Decode {
                 service: name,
                 reason: e.to_string(),

@@ -241,6 +241,19 @@ impl<H: Debug + ZeroCopySend> Inbox<H> {
 
     /// Waits for the next sample. `Ok(None)`: the process was asked to terminate.
     /// Fails with [`ReceiveError::ProducerGone`] if the producer dies mid-stream.
+    /// The next sample if one is waiting; never waits.
+    pub(crate) fn try_next_sample(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+    ) -> Result<Option<iceoryx2::sample::Sample<ipc::Service, [u8], H>>, ReceiveError> {
+        crate::record_activity();
+        self.subscriber.receive().map_err(|e| ReceiveError::Port {
+            service: bus.service_name(channel),
+            reason: format!("{e:?}"),
+        })
+    }
+
     pub(crate) fn next_sample(
         &self,
         bus: &Bus,

@@ -44,6 +44,20 @@ impl BackgroundRefiner {
         }
     }
 
+    /// Whether the next window would have to wait for the running refinement (it is due
+    /// before that window and still running). The merger keeps taking windows off the bus
+    /// meanwhile and applies them once it finished.
+    pub fn holds_next_window(&self) -> bool {
+        self.fold_lag > 0
+            && self.windows_since_start + 1 >= self.fold_lag
+            && self.worker.as_ref().is_some_and(|w| !w.is_finished())
+    }
+
+    /// Whether a refinement is running (started, not folded yet).
+    pub fn is_running(&self) -> bool {
+        self.worker.is_some()
+    }
+
     /// After a window was aligned: measures how well the map's earlier points reproject
     /// into the new keyframes and starts a refinement when that exceeds the threshold and
     /// none is running. Returns the measured error.

@@ -97,6 +97,11 @@ pub struct PipelineArgs {
     /// (0: whenever it has finished, never waiting; two runs then differ). Default 3.
     #[arg(long, default_value_t = 3)]
     pub refinement_lag: u32,
+    /// Merger: close loops inside a map segment when the newest keyframes relocalize into
+    /// a part of it mapped long before (docs/merger.md, "Loop closure"); `false` turns it
+    /// off.
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
+    pub loop_closure: bool,
 }
 
 /// Where results go over zenoh (docs/egress.md).

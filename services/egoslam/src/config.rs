@@ -55,6 +55,7 @@ pub struct MergerSection {
     pub global_ba_px: Option<f64>,
     pub refine_keyframes: Option<usize>,
     pub refinement_lag: Option<u32>,
+    pub loop_closure: Option<bool>,
 }
 
 /// `[zenoh]`: where results are published.
@@ -244,6 +245,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "refinement_lag",
         &mut p.refinement_lag,
         &c.merger.refinement_lag,
+    );
+    fill(
+        m,
+        "loop_closure",
+        &mut p.loop_closure,
+        &c.merger.loop_closure,
     );
 }
 

@@ -32,6 +32,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--loop-closures={}", p.loop_closures),
         format!("--refine-keyframes={}", p.refine_keyframes),
         format!("--refinement-lag={}", p.refinement_lag),
+        format!("--loop-closure={}", p.loop_closure),
         format!("--global-ba-px={}", p.global_ba_px),
         format!("--predict-motion={}", p.predict_motion),
     ];
@@ -101,10 +102,23 @@ impl Supervised {
 }
 
 fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
+    use std::os::unix::process::CommandExt;
     let exe = std::env::current_exe().context("locating the egoslam executable")?;
-    let child = Command::new(exe)
-        .arg(name)
-        .args(args)
+    let mut command = Command::new(exe);
+    command.arg(name).args(args);
+    // A launcher that is killed (SIGKILL, or SIGTERM, which it does not catch) must not
+    // leave its services running on: each gets SIGTERM when the launcher dies, and stops
+    // as on any SIGTERM. Found when two killed runs kept writing into one output folder.
+    // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+    unsafe {
+        command.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let child = command
         .spawn()
         .with_context(|| format!("starting the {name} service"))?;
     Ok(Supervised {
@@ -310,6 +324,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         // Breaks (segments started) that relocalization linked back (docs/relocalization.md):
         // breaks left = segments - 1.
         "breaks_healed": counter(merger, "breaks_healed"),
+        // Loops closed inside a segment (docs/merger.md, "Loop closure").
+        "loops_closed": counter(merger, "loops_closed"),
         "blind_frames": counter(frontend, "blind_frames"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
@@ -326,13 +342,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
     println!(
-        "frames {} (posed {}), keyframes {}, windows {}, segments {} ({} breaks healed); results in {}",
+        "frames {} (posed {}), keyframes {}, windows {}, segments {} ({} breaks healed), {} loops closed; results in {}",
         replay.frames,
         counter(merger, "posed_frames"),
         frontend.keyframes,
         solver.windows,
         counter(merger, "segments"),
         counter(merger, "breaks_healed"),
+        counter(merger, "loops_closed"),
         out.display()
     );
     Ok(())

@@ -14,16 +14,19 @@ use crate::map_state::{self, MapState, Revisions};
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use crate::window_journal;
+
+#[path = "merger_relocalization.rs"]
+mod relocalization;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{find_link, LinkOptions, WindowInput, WindowOutcome};
+use egoslam_merger::{WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
-use std::collections::BTreeSet;
+use std::collections::{BTreeSet, VecDeque};
 use std::path::Path;
 
 /// Files, stats and (when enabled) zenoh, from one snapshot of the map.
@@ -113,17 +116,6 @@ struct Merger {
     /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
     database: KeyframeDatabase,
 }
-
-/// A segment is tried for linking to older ones while it has at most this many keyframes
-/// (three windows): after a break the first windows decide; a segment that found no link
-/// by then stays a segment of its own (each attempt relocalizes up to 12 keyframes).
-const LINK_ATTEMPT_KEYFRAMES: usize = 60;
-
-/// The segment new windows go to, once past [`LINK_ATTEMPT_KEYFRAMES`], is tried again
-/// every this many windows with its newest [`LINK_RETRY_KEYFRAMES`] keyframes: a walk that
-/// returns to a place the older map saw is linked there (a loop closure across the break).
-const LINK_RETRY_WINDOWS: u64 = 10;
-const LINK_RETRY_KEYFRAMES: usize = 20;
 
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
 /// after every window made a 12,000-frame walk spend 370 of its 428 s there (they grow
@@ -344,8 +336,11 @@ impl Merger {
             .map(|(t, _)| *t)
             .filter(|t| self.state.map.point(*t).is_none())
             .collect();
+        let relocalized_scale = self.relocalized_scale(&input);
         let map = &mut self.state.map;
-        let outcome = self.stats.time("align", || map.add_window(&input));
+        let outcome = self.stats.time("align", || {
+            map.add_window_with_scale(&input, relocalized_scale)
+        });
         if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
             let map = &mut self.state.map;
             let options = TriangulationOptions::default();
@@ -397,6 +392,7 @@ impl Merger {
             }
         }
         self.try_link(w.window_id, segment);
+        self.try_close_loop(w.window_id, segment);
     }
 }
 
@@ -406,51 +402,6 @@ impl Merger {
         let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
         self.database
             .add(keyframe, &self.vocabulary.bag_of_words(&descriptors));
-    }
-
-    /// Links a young segment to an older one by relocalizing its keyframes, and merges it
-    /// when they agree (docs/relocalization.md, "Segment linking"). After a merge the other
-    /// young segments are tried again: a segment that saw nothing of the older map may see
-    /// what the merged one brought.
-    fn try_link(&mut self, window_id: u64, segment: u32) {
-        let Some(camera) = self.camera else {
-            return;
-        };
-        let current = segment;
-        let mut queue = vec![segment];
-        while let Some(segment) = queue.pop() {
-            let map = &self.state.map;
-            let young = map.segment_keyframes(segment).len() <= LINK_ATTEMPT_KEYFRAMES;
-            let retry = segment == current && window_id.is_multiple_of(LINK_RETRY_WINDOWS);
-            if !(young || retry) || map.live_segments() < 2 {
-                continue;
-            }
-            let options = LinkOptions {
-                only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
-                ..LinkOptions::default()
-            };
-            let (features, vocabulary) = (&self.state.features, &self.vocabulary);
-            let database = &self.database;
-            let link = self.stats.time("link_segments", || {
-                find_link(
-                    map, features, database, &camera, vocabulary, segment, &options,
-                )
-            });
-            let Some(link) = link else { continue };
-            tracing::info!(
-                window = window_id,
-                from = link.from,
-                to = link.to,
-                keyframes = link.keyframes,
-                shared_points = link.shared_points,
-                scale = link.transform.scale,
-                "break healed: segment linked by relocalization"
-            );
-            self.state.map.merge_segment(&link);
-            let live: std::collections::BTreeSet<u32> =
-                self.state.map.keyframes().map(|(_, s, _)| s).collect();
-            queue = live.into_iter().filter(|s| *s != link.to).collect();
-        }
     }
 }
 
@@ -570,9 +521,30 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         merger.state = state;
         merger.catch_up(None)?;
     }
+    // Windows taken off the bus, not applied yet: while the next one waits for the
+    // background refinement (`BackgroundRefiner::holds_next_window`), the merger keeps
+    // taking them so that the solver's lossless send never times out.
+    let mut backlog: VecDeque<(u64, pb::WindowSolution)> = VecDeque::new();
     while !merger.state.finished {
-        let Some((sequence, w)) = windows.receive_numbered()? else {
-            bail!("terminated by signal")
+        if backlog.is_empty() {
+            let Some(next) = windows.receive_numbered()? else {
+                bail!("terminated by signal")
+            };
+            backlog.push_back(next);
+        }
+        while let Some(next) = windows.try_receive_numbered()? {
+            backlog.push_back(next);
+        }
+        let waiting = backlog.front().is_some_and(|(_, w)| !w.end_of_stream)
+            && merger.refiner.holds_next_window();
+        if waiting {
+            if !bus.idle(std::time::Duration::from_millis(20)) {
+                bail!("terminated by signal")
+            }
+            continue;
+        }
+        let Some((sequence, w)) = backlog.pop_front() else {
+            continue;
         };
         if fault == Some(sequence) {
             tracing::error!(sequence, "EGOSLAM_FAULT: aborting with a window in flight");

@@ -163,6 +163,21 @@ pub fn align_shared_or_by_depth(
                 .unwrap_or(1.0)
         }
     };
+    align_with_scale(window, map, scale)
+}
+
+/// The similarity with the shared keyframes' mean rotation and the given `scale`, the
+/// translation mapping the centroid of their centres; with the RMS residual of the centres.
+fn align_with_scale(window: &[StampedPose], map: &[StampedPose], scale: f64) -> (Similarity, f64) {
+    let rel: Vec<Rotation3<f64>> = window
+        .iter()
+        .zip(map)
+        .map(|(w, m)| (m.rotation * w.rotation.inverse()).to_rotation_matrix())
+        .collect();
+    let rotation = chordal_mean(&rel);
+    let n = window.len() as f64;
+    let mu_w = window.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
+    let mu_m = map.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
     let translation = mu_m - scale * (rotation * mu_w);
     let transform = Similarity {
         scale,
@@ -201,6 +216,36 @@ impl MapBuilder {
     /// Adds a solved window: aligned on the keyframes it shares with the current segment,
     /// or a new segment when it shares fewer than two.
     pub fn add_window(&mut self, window: &WindowInput) -> WindowOutcome {
+        self.add_window_with_scale(window, None)
+    }
+
+    /// Whether `window` would be chained onto the current segment with fewer shared points
+    /// than its scale needs ([`MIN_SHARED_POINTS`]): then a scale measured otherwise
+    /// ([`crate::relocalized_scale`]) is worth the cost.
+    pub fn lacks_shared_points(&self, window: &WindowInput) -> bool {
+        let Some(segment) = self.current_segment else {
+            return false;
+        };
+        let shared_keyframes = window
+            .poses
+            .iter()
+            .filter(|(id, _)| matches!(self.keyframes.get(id), Some((s, _)) if *s == segment))
+            .count();
+        let shared_points = window
+            .points
+            .iter()
+            .filter(|(track, _)| matches!(self.points.get(track), Some((s, _)) if *s == segment))
+            .count();
+        shared_keyframes >= 2 && shared_points < MIN_SHARED_POINTS
+    }
+
+    /// [`Self::add_window`]; when too few points are shared, `relocalized_scale` (if any)
+    /// gives the scale before the scene-depth ratio is tried.
+    pub fn add_window_with_scale(
+        &mut self,
+        window: &WindowInput,
+        relocalized_scale: Option<f64>,
+    ) -> WindowOutcome {
         let segment = self.current_segment;
         let shared: Vec<(StampedPose, StampedPose)> = window
             .poses
@@ -221,15 +266,21 @@ impl MapBuilder {
                         _ => None,
                     })
                     .collect();
-                let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
+                let lacking = shared_points.len() < MIN_SHARED_POINTS;
+                let measured = relocalized_scale.filter(|s| lacking && s.is_finite() && *s > 0.0);
+                let depth_scale = if lacking && measured.is_none() {
                     let map_depth = self.recent_scene_depth(seg);
                     let window_depth = crate::scene_depth::window_scene_depth(window);
                     map_depth.zip(window_depth).map(|(m, w)| m / w)
                 } else {
                     None
                 };
-                let (transform, residual) =
-                    align_shared_or_by_depth(&w, &m, &shared_points, depth_scale);
+                let (transform, residual) = match measured {
+                    // Measured on points: preferred to the centres, which after a stop
+                    // have no spread but noise.
+                    Some(scale) => align_with_scale(&w, &m, scale),
+                    None => align_shared_or_by_depth(&w, &m, &shared_points, depth_scale),
+                };
                 tracing::debug!(
                     shared_points = shared_points.len(),
                     ?depth_scale,
@@ -311,6 +362,16 @@ impl MapBuilder {
     }
 
     /// Number of segments so far (breaks = segments - 1).
+    /// Inlier observations of map points in keyframe `id`.
+    pub fn observed_points(&self, id: u64) -> usize {
+        self.observations.range((id, 0)..=(id, u64::MAX)).count()
+    }
+
+    /// The segment new windows are chained onto (`None` after a break).
+    pub fn current_segment(&self) -> Option<u32> {
+        self.current_segment
+    }
+
     pub fn segments(&self) -> u32 {
         self.segments
     }

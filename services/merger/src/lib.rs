@@ -5,7 +5,9 @@
 pub mod chaining;
 pub mod frame_localization;
 pub mod interpolation;
+pub mod loop_closure;
 pub mod refinement;
+pub mod relocalized_scale;
 pub mod retriangulation;
 pub mod scene_depth;
 pub mod segment_linking;
@@ -24,6 +26,8 @@ pub(crate) fn median(mut values: Vec<f64>) -> Option<f64> {
 }
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};
+pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
+pub use relocalized_scale::{relocalized_window_scale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;
 pub use segment_linking::{find_link, LinkOptions, SegmentLink};

@@ -76,6 +76,8 @@ struct Relocalized {
     in_new: StampedPose,
     in_old: StampedPose,
     segment: u32,
+    /// The older keyframe whose matches gave the pose.
+    old_keyframe: u64,
     /// (new-segment point, old-segment point).
     pairs: Vec<(Vector3<f64>, Vector3<f64>)>,
     /// Distances from the relocalized camera to its inlier old points.
@@ -104,32 +106,100 @@ pub fn find_link(
     options: &LinkOptions,
 ) -> Option<SegmentLink> {
     let _span = tracing::info_span!("find_link", segment).entered();
-    let mut young: Vec<(u64, &StampedPose)> = map
+    let mut young: Vec<(u64, StampedPose)> = map
         .keyframes()
         .filter(|(id, s, _)| *s == segment && features.contains_key(id))
-        .map(|(id, _, pose)| (id, pose))
+        .map(|(id, _, pose)| (id, *pose))
         .collect();
     if let Some(n) = options.only_newest {
         young.drain(..young.len().saturating_sub(n));
     }
     let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
-    let queries: Vec<(u64, &StampedPose)> = young.iter().step_by(stride).copied().collect();
+    let queries: Vec<(u64, StampedPose)> = young.iter().step_by(stride).copied().collect();
+    let older = OlderKeyframes {
+        query_point: &|track| {
+            map.point(track)
+                .filter(|(s, _)| *s == segment)
+                .map(|(_, x)| *x)
+        },
+        accept: &|_, s| s != segment,
+        pool: 4,
+    };
+    let agreement = relocalize_consistently(
+        map, features, database, camera, vocabulary, &queries, &older, options,
+    )?;
+    Some(SegmentLink {
+        from: segment,
+        to: agreement.to,
+        transform: agreement.transform,
+        keyframes: agreement.keyframes,
+        shared_points: agreement.shared_points,
+    })
+}
+
+/// Which keyframes the queries may be relocalized against, and where the queries' own
+/// points are.
+pub(crate) struct OlderKeyframes<'a> {
+    /// A query keyframe's track -> its point in the queries' frame, if triangulated.
+    pub query_point: &'a dyn Fn(u64) -> Option<Vector3<f64>>,
+    /// `(keyframe id, its segment)` -> whether it may be a match.
+    pub accept: &'a dyn Fn(u64, u32) -> bool,
+    /// Candidates drawn from the index per wanted candidate, before `accept` filters them
+    /// (the index holds every keyframe; where `accept` rejects most of the best-scoring
+    /// ones, e.g. the recent past of a loop, more must be drawn).
+    pub pool: usize,
+}
+
+/// What the queries agreed on.
+pub(crate) struct Agreement {
+    /// The segment they relocalized into.
+    pub to: u32,
+    /// Maps the queries' frame onto `to`'s.
+    pub transform: Similarity,
+    /// Query keyframes that agree.
+    pub keyframes: usize,
+    /// 3-D/3-D pairs that gave the scale.
+    pub shared_points: usize,
+    /// The older keyframes they were relocalized against.
+    pub old_keyframes: Vec<u64>,
+}
+
+/// Relocalizes the `queries` (keyframes with their poses in their own frame) against the
+/// keyframes `older` accepts, and returns the similarity the largest group of them that
+/// lands in one segment agrees on (at least `options.min_keyframes`, each within the
+/// rotation and position tolerances), or `None`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn relocalize_consistently(
+    map: &MapBuilder,
+    features: &BTreeMap<u64, Vec<MapFeature>>,
+    database: &KeyframeDatabase,
+    camera: &PinholeRadtan,
+    vocabulary: &Vocabulary,
+    queries: &[(u64, StampedPose)],
+    older: &OlderKeyframes,
+    options: &LinkOptions,
+) -> Option<Agreement> {
     // The older keyframes worth matching: each query's best candidates in the whole map's
     // index, with their neighbours. A relocalizer over these few is cheap; one over the
     // whole older map cost seconds per attempt on a 7,000-keyframe walk.
     let older_ids: Vec<u64> = map
         .keyframes()
-        .filter(|(_, s, _)| *s != segment)
+        .filter(|(id, s, _)| (older.accept)(*id, *s))
         .map(|(id, _, _)| id)
         .collect();
     let mut chosen = BTreeSet::new();
-    for (id, _) in &queries {
-        let descriptors: Vec<_> = features[id].iter().map(|f| f.descriptor).collect();
+    for (id, _) in queries {
+        let Some(query) = features.get(id) else {
+            continue;
+        };
+        let descriptors: Vec<_> = query.iter().map(|f| f.descriptor).collect();
         let bow = vocabulary.bag_of_words(&descriptors);
         let candidates = database
-            .query(&bow, 4 * options.relocalizer.candidates)
+            .query(&bow, older.pool * options.relocalizer.candidates)
             .into_iter()
-            .filter(|c| matches!(map.keyframe(c.keyframe_id), Some((s, _)) if s != segment))
+            .filter(|c| {
+                matches!(map.keyframe(c.keyframe_id), Some((s, _)) if (older.accept)(c.keyframe_id, s))
+            })
             .take(options.relocalizer.candidates);
         for c in candidates {
             let at = older_ids.partition_point(|k| *k < c.keyframe_id);
@@ -138,7 +208,7 @@ pub fn find_link(
             chosen.extend(&older_ids[lo..hi]);
         }
     }
-    let older: Vec<MapKeyframe> = chosen
+    let candidates: Vec<MapKeyframe> = chosen
         .iter()
         .filter_map(|&id| {
             let (s, pose) = map.keyframe(id)?;
@@ -150,27 +220,27 @@ pub fn find_link(
             })
         })
         .collect();
-    if older.is_empty() {
+    if candidates.is_empty() {
         return None;
     }
-    let points: HashMap<u64, (u32, Vector3<f64>)> = older
+    let points: HashMap<u64, (u32, Vector3<f64>)> = candidates
         .iter()
-        .flat_map(|k| k.features.iter())
-        .filter_map(|f| {
-            let (s, x) = map.point(f.track_id)?;
-            (s != segment).then_some((f.track_id, (s, *x)))
+        .flat_map(|k| k.features.iter().map(move |f| (k.segment, f.track_id)))
+        .filter_map(|(ks, track)| {
+            let (s, x) = map.point(track)?;
+            (s == ks).then_some((track, (s, *x)))
         })
         .collect();
     let relocalizer = Relocalizer::new(
         vocabulary.clone(),
         RelocalizationMap {
             camera: *camera,
-            keyframes: older,
+            keyframes: candidates,
             points,
         },
     );
     let mut found: Vec<Relocalized> = Vec::new();
-    for &(id, in_new) in &queries {
+    for &(id, in_new) in queries {
         let Some(kf_features) = features.get(&id) else {
             continue;
         };
@@ -181,9 +251,9 @@ pub fn find_link(
             .inliers
             .iter()
             .filter_map(|(old_track, qi)| {
-                let (ps, x_new) = map.point(kf_features[*qi].track_id)?;
+                let x_new = (older.query_point)(kf_features[*qi].track_id)?;
                 let (_, x_old) = relocalizer.map().points.get(old_track)?;
-                (ps == segment).then_some((*x_new, *x_old))
+                Some((x_new, *x_old))
             })
             .collect();
         let depths = r
@@ -193,9 +263,10 @@ pub fn find_link(
             .map(|(_, x)| (x - r.pose.position).norm())
             .collect();
         found.push(Relocalized {
-            in_new: *in_new,
+            in_new,
             in_old: r.pose,
             segment: r.segment,
+            old_keyframe: r.keyframe_id,
             pairs,
             depths,
         });
@@ -237,12 +308,12 @@ pub fn find_link(
             "link candidate"
         );
         if consistent.len() == group.len() {
-            return Some(SegmentLink {
-                from: segment,
+            return Some(Agreement {
                 to,
                 transform,
                 keyframes: group.len(),
                 shared_points: shared,
+                old_keyframes: group.iter().map(|f| f.old_keyframe).collect(),
             });
         }
         group = consistent;

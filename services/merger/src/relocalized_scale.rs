@@ -1,0 +1,116 @@
+//! The chaining scale of a window that shares too few points with the map, measured by
+//! relocalizing its keyframes against the map's recent keyframes.
+//!
+//! A window normally takes its scale from the points it shares with the map
+//! ([`crate::chaining::align_shared`]). After a stop or a turn on the spot, no track lives
+//! through: the head scans while standing, the windows in between are rotation-only (no
+//! points), and the first window that moves again shares no point with the map. Its scale
+//! then came from the ratio of median scene depths before and after
+//! ([`crate::scene_depth`]), which is only as good as the two views see the same depths: on
+//! the rendered 12,000-frame walk the map's metres-per-unit went 13 -> 362 at one such
+//! boundary and 10 -> 7 million over the walk (the map shrank to a point; its 1.35 % ATE
+//! was the walk's distance from its own centroid).
+//!
+//! The scene before the stop is usually still in view, or comes back after the turn. So
+//! the window's keyframes are relocalized by their descriptors against the segment's
+//! recent keyframes (the segment-linking machinery, [`crate::segment_linking`]), and each
+//! inlier that is also a point of the window gives a 3-D/3-D pair of one physical point
+//! in both frames; the scale is the median ratio of camera-to-point distances over those
+//! pairs, as for shared points.
+
+use crate::chaining::{MapBuilder, WindowInput};
+use crate::segment_linking::{relocalize_consistently, LinkOptions, OlderKeyframes};
+use egoslam_geometry::PinholeRadtan;
+use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
+use nalgebra::Vector3;
+use std::collections::{BTreeMap, HashMap};
+
+/// When the relocalized scale is used; defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelocalizedScaleOptions {
+    /// The segment's newest keyframes (before the window) searched (default 300, ~15 s of
+    /// walking: a stop of a few seconds or a turn on the spot is well inside).
+    pub recent_keyframes: usize,
+    /// Fewest 3-D/3-D pairs for the scale (default 30: a median of fewer is noise, see
+    /// [`crate::loop_closure::LoopOptions::min_shared_points`]).
+    pub min_shared_points: usize,
+    /// Acceptance of the relocalized keyframes (segment linking's defaults: 3 must agree).
+    pub link: LinkOptions,
+}
+
+impl Default for RelocalizedScaleOptions {
+    fn default() -> Self {
+        Self {
+            recent_keyframes: 300,
+            min_shared_points: 30,
+            link: LinkOptions::default(),
+        }
+    }
+}
+
+/// The scale (map units per window unit) of `window` relative to `segment`, from its
+/// keyframes relocalized against the segment's recent keyframes; `None` when they do not
+/// relocalize consistently or give too few point pairs.
+#[allow(clippy::too_many_arguments)]
+pub fn relocalized_window_scale(
+    map: &MapBuilder,
+    features: &BTreeMap<u64, Vec<MapFeature>>,
+    database: &KeyframeDatabase,
+    camera: &PinholeRadtan,
+    vocabulary: &Vocabulary,
+    segment: u32,
+    window: &WindowInput,
+    options: &RelocalizedScaleOptions,
+) -> Option<f64> {
+    let _span = tracing::debug_span!("relocalized_window_scale", segment).entered();
+    let first = window.poses.first()?.0;
+    let recent: Vec<u64> = map
+        .keyframes()
+        .filter(|(id, s, _)| *s == segment && *id < first)
+        .map(|(id, _, _)| id)
+        .collect();
+    let oldest = *recent
+        .iter()
+        .rev()
+        .nth(options.recent_keyframes.saturating_sub(1))
+        .or(recent.first())?;
+    let points: HashMap<u64, Vector3<f64>> = window.points.iter().copied().collect();
+    let queries: Vec<_> = window
+        .poses
+        .iter()
+        .filter(|(id, _)| features.contains_key(id))
+        .copied()
+        .collect();
+    // Only keyframes that see map points can give pairs: the keyframes of the stop itself
+    // (rotation-only windows, no points) look most like the window and would fill the
+    // candidate list with nothing to match.
+    let accept = |id: u64, s: u32| {
+        s == segment
+            && id >= oldest
+            && id < first
+            && map.observed_points(id) >= options.min_shared_points
+    };
+    let older = OlderKeyframes {
+        query_point: &|track| points.get(&track).copied(),
+        accept: &accept,
+        // The window's own keyframes are indexed too and score best: draw deeper.
+        pool: 20,
+    };
+    let agreement = relocalize_consistently(
+        map,
+        features,
+        database,
+        camera,
+        vocabulary,
+        &queries,
+        &older,
+        &options.link,
+    )?;
+    tracing::debug!(
+        keyframes = agreement.keyframes,
+        shared_points = agreement.shared_points,
+        scale = agreement.transform.scale,
+        "window relocalized in the map"
+    );
+    (agreement.shared_points >= options.min_shared_points).then_some(agreement.transform.scale)
+}
