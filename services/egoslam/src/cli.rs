@@ -100,7 +100,7 @@ pub struct PipelineArgs {
     /// Merger: close loops inside a map segment when the newest keyframes relocalize into
     /// a part of it mapped long before (docs/merger.md, "Loop closure"); `false` turns it
     /// off.
-    #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
 }
 

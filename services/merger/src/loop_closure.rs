@@ -45,6 +45,12 @@ pub struct LoopOptions {
     /// noise: on the 12,000-frame walk that gave loop scales of 0.01 and 37 and wrecked
     /// the map.
     pub min_shared_points: usize,
+    /// Largest scale change a loop may correct, as a factor either way (default 1.5).
+    /// Drift along a loop is gradual: on rendered walks whose map kept its scale, loops
+    /// corrected it by 0.97-0.99. A loop that asks for 37x (measured on the 12,000-frame
+    /// walk, where one window had broken the chain's scale) is not drift; spreading it
+    /// along the loop would distort all of it, so it is refused and logged.
+    pub max_scale_change: f64,
     /// Acceptance of the relocalized group (rotation and position tolerances, keyframes
     /// that must agree); segment linking's defaults.
     pub link: LinkOptions,
@@ -57,6 +63,7 @@ impl Default for LoopOptions {
             newest_keyframes: 12,
             min_correction_fraction: 0.002,
             min_shared_points: 30,
+            max_scale_change: 1.5,
             link: LinkOptions::default(),
         }
     }
@@ -137,6 +144,15 @@ pub fn find_loop(
         );
         return None;
     }
+    let scale = agreement.transform.scale;
+    if !scale_is_drift(scale, options.max_scale_change) {
+        tracing::warn!(
+            scale,
+            shared_points = agreement.shared_points,
+            "loop refused: its scale change is not drift (the chain's scale broke inside the loop)"
+        );
+        return None;
+    }
     Some(LoopClosure {
         segment,
         anchor_keyframe: agreement.old_keyframes.iter().copied().min()?,
@@ -153,6 +169,12 @@ struct KeyframeMove {
     after: Vector3<f64>,
     rotation: Rotation3<f64>,
     scale: f64,
+}
+
+/// Whether a loop's scale correction is within `max_change` either way (drift), not a
+/// broken chain (see `LoopOptions::max_scale_change`).
+fn scale_is_drift(scale: f64, max_change: f64) -> bool {
+    scale.is_finite() && scale > 0.0 && scale.ln().abs() <= max_change.ln()
 }
 
 impl MapBuilder {
@@ -266,6 +288,16 @@ mod tests {
             timestamp: i as f64,
             position: Vector3::new(x, 0.0, z),
             rotation: UnitQuaternion::from_euler_angles(0.0, yaw, 0.0),
+        }
+    }
+
+    #[test]
+    fn a_scale_change_beyond_drift_is_refused() {
+        for ok in [0.97, 0.99, 1.0, 1.2, 1.49, 1.0 / 1.49] {
+            assert!(scale_is_drift(ok, 1.5), "{ok}");
+        }
+        for broken in [37.0, 0.0104, 1.6, 0.6, 0.0, f64::NAN, f64::INFINITY] {
+            assert!(!scale_is_drift(broken, 1.5), "{broken}");
         }
     }
 

@@ -63,6 +63,11 @@ pub fn relocalized_window_scale(
     options: &RelocalizedScaleOptions,
 ) -> Option<f64> {
     let _span = tracing::debug_span!("relocalized_window_scale", segment).entered();
+    // A rotation-only window (a stop) has no points to pair: nothing to measure, and
+    // relocalizing its keyframes was most of this function's cost on the long walk.
+    if window.points.len() < options.min_shared_points {
+        return None;
+    }
     let first = window.poses.first()?.0;
     let recent: Vec<u64> = map
         .keyframes()
