@@ -10,7 +10,7 @@ use crate::keyframe_database::KeyframeDatabase;
 use crate::vocabulary::Vocabulary;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::{Point2, Vector3};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// A described track of a keyframe; it gives matches when the map has its track as a
 /// point, and makes the keyframe's bag of words either way.
@@ -218,7 +218,10 @@ impl Relocalizer {
                 packed.push(pack(&f.descriptor));
             }
         }
-        let mut by_track: HashMap<u64, (u32, usize)> = HashMap::new();
+        // Ordered maps for the results: the order of the correspondences handed to RANSAC
+        // decides its samples, and a HashMap's differs from process to process (the same
+        // input gave a different map every run).
+        let mut by_track: BTreeMap<u64, (u32, usize)> = BTreeMap::new();
         let mut distances = Vec::with_capacity(packed.len());
         for (qi, qd) in query.descriptors.iter().enumerate() {
             hamming_all(&pack(qd), &packed, &mut distances);
@@ -266,7 +269,7 @@ impl Relocalizer {
         let r_cw = pose.rotation.inverse();
         let camera = &self.map.camera;
         let radius = options.projection_radius_px;
-        let mut best_of_query: HashMap<usize, (u32, u64)> = HashMap::new();
+        let mut best_of_query: BTreeMap<usize, (u32, u64)> = BTreeMap::new();
         for &k in keyframes {
             for f in &self.map.keyframes[k].features {
                 let Some((_, x)) = self.map.points.get(&f.track_id) else {
