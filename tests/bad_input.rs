@@ -138,7 +138,10 @@ fn wrong_calibration_size() {
 #[test]
 fn missing_calibration() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let images = dir.path().join("my_walk");
+    // Calibration is searched up to three folders above the images: nest them deep enough
+    // that the search stays inside the test's own folder (a stray /tmp/calib_x.yaml made
+    // this test pass a calibration it never meant to).
+    let images = dir.path().join("a/b/c/my_walk");
     tum_copy(&images, 3);
     std::fs::remove_file(images.join("rgb.txt")).expect("rm");
     std::fs::remove_file(images.join("camera.yaml")).expect("rm");
