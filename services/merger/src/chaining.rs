@@ -1,7 +1,10 @@
 //! Chaining windows into map segments.
 
-use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
-use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+pub use crate::window_alignment::align_shared;
+pub(crate) use crate::window_alignment::transform_pose;
+use crate::window_alignment::{align_shared_or_by_depth, align_with_scale, MIN_SHARED_POINTS};
+use egoslam_geometry::{Similarity, StampedPose};
+use nalgebra::Vector3;
 use std::collections::BTreeMap;
 
 /// One solved window as the merger needs it.
@@ -84,122 +87,6 @@ pub struct MapBuilder {
     pub(crate) weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
     pub(crate) current_segment: Option<u32>,
     segments: u32,
-}
-
-/// Rotation `R` minimising `sum ||R_map_i - R R_win_i||_F` (chordal L2 mean of the relative
-/// rotations, Hartley et al., "Rotation Averaging", IJCV 2013, section 5.3).
-fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
-    let sum: Matrix3<f64> = rotations.iter().map(|r| r.matrix()).sum();
-    nearest_rotation(&sum)
-}
-
-/// Fewest shared points for the point-based scale (below, the centres are used).
-const MIN_SHARED_POINTS: usize = 10;
-
-/// Similarity mapping a window onto the map from what they share.
-///
-/// The rotation comes from the shared keyframes' orientations (well determined even under
-/// pure rotation, the egocentric case where the centres barely move). The scale comes from
-/// the shared points when there are enough: the median over points and shared keyframes of
-/// the ratio of camera-to-point distances, map over window; points sit metres away while a
-/// window's baselines are centimetres, so this ratio is far better conditioned than one from
-/// the centres. Otherwise (rotation-only windows have no points) the scale comes from the
-/// centres given the rotation (Umeyama 1991 with the rotation fixed); when they have no
-/// spread either (the previous window was rotation-only) from the scene depth
-/// ([`align_shared_or_by_depth`]), and stays 1 only when nothing measures it. The
-/// translation then maps the centroid of the shared centres.
-pub fn align_shared(
-    window: &[StampedPose],
-    map: &[StampedPose],
-    shared_points: &[(Vector3<f64>, Vector3<f64>)],
-) -> (Similarity, f64) {
-    align_shared_or_by_depth(window, map, shared_points, None)
-}
-
-/// [`align_shared`], with `depth_scale` (scene_depth.rs: the ratio of the median scene
-/// depths on either side of the boundary) taking the place of the centres when too few
-/// points are shared. Used for chaining; segment linking and refinement carry points.
-pub fn align_shared_or_by_depth(
-    window: &[StampedPose],
-    map: &[StampedPose],
-    shared_points: &[(Vector3<f64>, Vector3<f64>)],
-    depth_scale: Option<f64>,
-) -> (Similarity, f64) {
-    let rel: Vec<Rotation3<f64>> = window
-        .iter()
-        .zip(map)
-        .map(|(w, m)| (m.rotation * w.rotation.inverse()).to_rotation_matrix())
-        .collect();
-    let rotation = chordal_mean(&rel);
-    let n = window.len() as f64;
-    let mu_w = window.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
-    let mu_m = map.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
-    let mut ratios: Vec<f64> = Vec::new();
-    if shared_points.len() >= MIN_SHARED_POINTS {
-        for (w, m) in window.iter().zip(map) {
-            for (xw, xm) in shared_points {
-                let (dw, dm) = ((xw - w.position).norm(), (xm - m.position).norm());
-                if dw > 1e-12 && dm > 1e-12 {
-                    ratios.push(dm / dw);
-                }
-            }
-        }
-    }
-    let scale = if let Some(s) = crate::median(ratios) {
-        s
-    } else {
-        let (mut num, mut den, mut map_spread) = (0.0, 0.0, 0.0);
-        for (w, m) in window.iter().zip(map) {
-            let rw = rotation * (w.position - mu_w);
-            num += (m.position - mu_m).dot(&rw);
-            den += rw.norm_squared();
-            map_spread += (m.position - mu_m).norm_squared();
-        }
-        if den > 1e-18 && map_spread > 1e-18 && num > 0.0 {
-            num / den
-        } else {
-            depth_scale
-                .filter(|s| s.is_finite() && *s > 0.0)
-                .unwrap_or(1.0)
-        }
-    };
-    align_with_scale(window, map, scale)
-}
-
-/// The similarity with the shared keyframes' mean rotation and the given `scale`, the
-/// translation mapping the centroid of their centres; with the RMS residual of the centres.
-fn align_with_scale(window: &[StampedPose], map: &[StampedPose], scale: f64) -> (Similarity, f64) {
-    let rel: Vec<Rotation3<f64>> = window
-        .iter()
-        .zip(map)
-        .map(|(w, m)| (m.rotation * w.rotation.inverse()).to_rotation_matrix())
-        .collect();
-    let rotation = chordal_mean(&rel);
-    let n = window.len() as f64;
-    let mu_w = window.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
-    let mu_m = map.iter().map(|p| p.position).sum::<Vector3<f64>>() / n;
-    let translation = mu_m - scale * (rotation * mu_w);
-    let transform = Similarity {
-        scale,
-        rotation,
-        translation,
-    };
-    let residual = (window
-        .iter()
-        .zip(map)
-        .map(|(w, m)| (transform.apply(&w.position) - m.position).norm_squared())
-        .sum::<f64>()
-        / n)
-        .sqrt();
-    (transform, residual)
-}
-
-pub(crate) fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
-    StampedPose {
-        timestamp: p.timestamp,
-        position: t.apply(&p.position),
-        rotation: UnitQuaternion::from_rotation_matrix(&t.rotation) * p.rotation,
-    }
 }
 
 impl MapBuilder {
@@ -400,6 +287,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::{Rotation3, UnitQuaternion};
 
     fn pose(t: f64, p: Vector3<f64>, yaw: f64) -> StampedPose {
         StampedPose {
@@ -467,6 +355,7 @@ mod tests {
 #[cfg(test)]
 mod rotation_only_tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     #[test]
     fn a_rotation_only_window_after_a_moving_one_stays_finite() {
@@ -527,6 +416,7 @@ mod rotation_only_tests {
 #[cfg(test)]
 mod robustness_tests {
     use super::*;
+    use nalgebra::{Rotation3, UnitQuaternion};
 
     #[test]
     fn a_window_with_nan_is_recognised() {
