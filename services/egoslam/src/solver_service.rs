@@ -46,6 +46,28 @@ fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
 
 /// The keyframe's tracks as the solver takes them. Tracks with a non-finite or absurd
 /// position (a corrupted message; the frontend never sends them) are dropped and counted.
+/// Windows whose end moves out of a fast turn (`WindowBuilder::with_adaptive_end`).
+fn adaptive(builder: WindowBuilder<pb::Keyframe>) -> WindowBuilder<pb::Keyframe> {
+    builder.with_adaptive_end(overlap_strength)
+}
+
+/// Tracks seen by every keyframe of `overlap`: how firmly the keyframes two windows share
+/// are tied to both windows' points.
+fn overlap_strength(overlap: &[pb::Keyframe]) -> usize {
+    let Some((first, rest)) = overlap.split_first() else {
+        return 0;
+    };
+    let sets: Vec<std::collections::HashSet<u64>> = rest
+        .iter()
+        .map(|k| k.tracks.iter().map(|t| t.track_id).collect())
+        .collect();
+    first
+        .tracks
+        .iter()
+        .filter(|t| sets.iter().all(|s| s.contains(&t.track_id)))
+        .count()
+}
+
 pub(crate) fn observations(k: &pb::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
     let limit = k
         .intrinsics
@@ -284,6 +306,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let window_options = WindowOptions {
         size: usize::from(args.pipeline.window),
         overlap: args.pipeline.overlap,
+        ..WindowOptions::default()
     };
     let mut options = WindowSolverOptions::default();
     options.view_graph.loop_closure_span = usize::from(args.pipeline.loop_closures);
@@ -313,7 +336,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             (
                 r.journal.stream_id,
                 JournalWriter::resume(&journal_path, &r.journal)?,
-                WindowBuilder::resume(window_options, r.tail)?,
+                adaptive(WindowBuilder::resume(window_options, r.tail)?),
                 r.journal.messages.len() as u64,
                 r.replay,
                 last,
@@ -324,7 +347,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             (
                 stream_id,
                 JournalWriter::create(&journal_path, stream_id)?,
-                WindowBuilder::new(window_options)?,
+                adaptive(WindowBuilder::new(window_options)?),
                 0,
                 Vec::new(),
                 None,
