@@ -3,10 +3,13 @@
 //! (docs/relocalization.md, docs/merger.md).
 
 use super::Merger;
+use crate::checkpoint::MergerState;
+use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{
     find_link, find_loop, relocalized_window_scale, LinkOptions, LoopOptions,
-    RelocalizedScaleOptions, WindowInput,
+    RelocalizationSources, RelocalizedScaleOptions, WindowInput,
 };
+use egoslam_relocalization::{KeyframeDatabase, Vocabulary};
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
 /// (three windows): after a break the first windows decide; a segment that found no link
@@ -24,6 +27,23 @@ const LINK_RETRY_KEYFRAMES: usize = 20;
 /// refinement is running (its result, folded later, would undo the correction).
 const LOOP_ATTEMPT_WINDOWS: u64 = 5;
 
+/// The merger's map, descriptors and index as relocalization reads them (a function of
+/// the fields, not of `&Merger`, so that `self.stats` stays free to time the call).
+fn sources<'a>(
+    state: &'a MergerState,
+    database: &'a KeyframeDatabase,
+    vocabulary: &'a Vocabulary,
+    camera: &'a PinholeRadtan,
+) -> RelocalizationSources<'a> {
+    RelocalizationSources {
+        map: &state.map,
+        features: &state.features,
+        database,
+        camera,
+        vocabulary,
+    }
+}
+
 impl Merger {
     /// The scale of a window that shares too few points with the map, from its keyframes
     /// relocalized against the map's recent ones (egoslam_merger::relocalized_scale);
@@ -34,19 +54,10 @@ impl Merger {
         if !self.state.map.lacks_shared_points(window) {
             return None;
         }
-        let (map, features) = (&self.state.map, &self.state.features);
-        let (database, vocabulary) = (&self.database, &self.vocabulary);
+        let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+        let options = RelocalizedScaleOptions::default();
         let scale = self.stats.time("relocalized_scale", || {
-            relocalized_window_scale(
-                map,
-                features,
-                database,
-                &camera,
-                vocabulary,
-                segment,
-                window,
-                &RelocalizedScaleOptions::default(),
-            )
+            relocalized_window_scale(&sources, segment, window, &options)
         });
         self.stats.count(
             if scale.is_some() {
@@ -81,13 +92,10 @@ impl Merger {
                 only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
                 ..LinkOptions::default()
             };
-            let (features, vocabulary) = (&self.state.features, &self.vocabulary);
-            let database = &self.database;
-            let link = self.stats.time("link_segments", || {
-                find_link(
-                    map, features, database, &camera, vocabulary, segment, &options,
-                )
-            });
+            let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+            let link = self
+                .stats
+                .time("link_segments", || find_link(&sources, segment, &options));
             let Some(link) = link else { continue };
             tracing::info!(
                 window = window_id,
@@ -118,13 +126,10 @@ impl Merger {
             return;
         }
         let options = LoopOptions::default();
-        let (map, features) = (&self.state.map, &self.state.features);
-        let (database, vocabulary) = (&self.database, &self.vocabulary);
-        let closure = self.stats.time("find_loop", || {
-            find_loop(
-                map, features, database, &camera, vocabulary, segment, &options,
-            )
-        });
+        let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+        let closure = self
+            .stats
+            .time("find_loop", || find_loop(&sources, segment, &options));
         let Some(closure) = closure else { return };
         let Some(report) = self
             .state

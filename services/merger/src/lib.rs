@@ -31,4 +31,4 @@ pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use relocalized_scale::{relocalized_window_scale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;
-pub use segment_linking::{find_link, LinkOptions, SegmentLink};
+pub use segment_linking::{find_link, LinkOptions, RelocalizationSources, SegmentLink};

@@ -20,9 +20,10 @@
 //! against the observations.
 
 use crate::chaining::MapBuilder;
-use crate::segment_linking::{relocalize_consistently, LinkOptions, OlderKeyframes};
-use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
-use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
+use crate::segment_linking::{
+    relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
+};
+use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::{Rotation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
 
@@ -99,44 +100,23 @@ pub struct LoopReport {
 /// Looks for a loop closed by the newest keyframes of `segment`; `None` when none of its
 /// older keyframes relocalize them consistently.
 pub fn find_loop(
-    map: &MapBuilder,
-    features: &BTreeMap<u64, Vec<MapFeature>>,
-    database: &KeyframeDatabase,
-    camera: &PinholeRadtan,
-    vocabulary: &Vocabulary,
+    sources: &RelocalizationSources,
     segment: u32,
     options: &LoopOptions,
 ) -> Option<LoopClosure> {
     let _span = tracing::info_span!("find_loop", segment).entered();
-    let mut newest: Vec<(u64, StampedPose)> = map
-        .keyframes()
-        .filter(|(id, s, _)| *s == segment && features.contains_key(id))
-        .map(|(id, _, pose)| (id, *pose))
-        .collect();
+    let mut newest = sources.described_keyframes(segment);
     newest.drain(..newest.len().saturating_sub(options.newest_keyframes));
     let first_query = newest.first()?.0;
     let cutoff = first_query.checked_sub(options.min_age_keyframes)?;
     let accept = |id: u64, s: u32| s == segment && id < cutoff;
     let older = OlderKeyframes {
-        query_point: &|track| {
-            map.point(track)
-                .filter(|(s, _)| *s == segment)
-                .map(|(_, x)| *x)
-        },
+        query_point: &|track| sources.segment_point(segment, track),
         accept: &accept,
         // The recent past of the same segment scores best and is refused: draw deeper.
         pool: 20,
     };
-    let agreement = relocalize_consistently(
-        map,
-        features,
-        database,
-        camera,
-        vocabulary,
-        &newest,
-        &older,
-        &options.link,
-    )?;
+    let agreement = relocalize_consistently(sources, &newest, &older, &options.link)?;
     if agreement.shared_points < options.min_shared_points {
         tracing::debug!(
             shared_points = agreement.shared_points,

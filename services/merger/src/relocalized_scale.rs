@@ -18,12 +18,12 @@
 //! in both frames; the scale is the median ratio of camera-to-point distances over those
 //! pairs, as for shared points.
 
-use crate::chaining::{MapBuilder, WindowInput};
-use crate::segment_linking::{relocalize_consistently, LinkOptions, OlderKeyframes};
-use egoslam_geometry::PinholeRadtan;
-use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
+use crate::chaining::WindowInput;
+use crate::segment_linking::{
+    relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
+};
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 
 /// When the relocalized scale is used; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -51,13 +51,8 @@ impl Default for RelocalizedScaleOptions {
 /// The scale (map units per window unit) of `window` relative to `segment`, from its
 /// keyframes relocalized against the segment's recent keyframes; `None` when they do not
 /// relocalize consistently or give too few point pairs.
-#[allow(clippy::too_many_arguments)]
 pub fn relocalized_window_scale(
-    map: &MapBuilder,
-    features: &BTreeMap<u64, Vec<MapFeature>>,
-    database: &KeyframeDatabase,
-    camera: &PinholeRadtan,
-    vocabulary: &Vocabulary,
+    sources: &RelocalizationSources,
     segment: u32,
     window: &WindowInput,
     options: &RelocalizedScaleOptions,
@@ -69,6 +64,7 @@ pub fn relocalized_window_scale(
         return None;
     }
     let first = window.poses.first()?.0;
+    let map = sources.map;
     let recent: Vec<u64> = map
         .keyframes()
         .filter(|(id, s, _)| *s == segment && *id < first)
@@ -83,7 +79,7 @@ pub fn relocalized_window_scale(
     let queries: Vec<_> = window
         .poses
         .iter()
-        .filter(|(id, _)| features.contains_key(id))
+        .filter(|(id, _)| sources.features.contains_key(id))
         .copied()
         .collect();
     // Only keyframes that see map points can give pairs: the keyframes of the stop itself
@@ -101,16 +97,7 @@ pub fn relocalized_window_scale(
         // The window's own keyframes are indexed too and score best: draw deeper.
         pool: 20,
     };
-    let agreement = relocalize_consistently(
-        map,
-        features,
-        database,
-        camera,
-        vocabulary,
-        &queries,
-        &older,
-        &options.link,
-    )?;
+    let agreement = relocalize_consistently(sources, &queries, &older, &options.link)?;
     tracing::debug!(
         keyframes = agreement.keyframes,
         shared_points = agreement.shared_points,

@@ -94,40 +94,58 @@ fn query_of(features: &[MapFeature]) -> QueryFeatures {
     }
 }
 
+/// What relocalizing keyframes against the map needs: the map, every keyframe's
+/// descriptors, their bag-of-words index, the ideal camera of the undistorted pixels and
+/// the vocabulary. Segment linking, loop closure and the relocalized chaining scale all
+/// query the same five.
+#[derive(Clone, Copy)]
+pub struct RelocalizationSources<'a> {
+    pub map: &'a MapBuilder,
+    pub features: &'a BTreeMap<u64, Vec<MapFeature>>,
+    pub database: &'a KeyframeDatabase,
+    pub camera: &'a PinholeRadtan,
+    pub vocabulary: &'a Vocabulary,
+}
+
+impl RelocalizationSources<'_> {
+    /// The keyframes of `segment` that have descriptors, with their poses, in id order.
+    pub(crate) fn described_keyframes(&self, segment: u32) -> Vec<(u64, StampedPose)> {
+        self.map
+            .keyframes()
+            .filter(|(id, s, _)| *s == segment && self.features.contains_key(id))
+            .map(|(id, _, pose)| (id, *pose))
+            .collect()
+    }
+
+    /// The map point of `track` if it is in `segment`.
+    pub(crate) fn segment_point(&self, segment: u32, track: u64) -> Option<Vector3<f64>> {
+        self.map
+            .point(track)
+            .filter(|(s, _)| *s == segment)
+            .map(|(_, x)| *x)
+    }
+}
+
 /// Searches a link from `segment` to an older segment; `None` when its keyframes do not
-/// relocalize consistently enough. `database` indexes every keyframe's bag of words.
+/// relocalize consistently enough.
 pub fn find_link(
-    map: &MapBuilder,
-    features: &BTreeMap<u64, Vec<MapFeature>>,
-    database: &KeyframeDatabase,
-    camera: &PinholeRadtan,
-    vocabulary: &Vocabulary,
+    sources: &RelocalizationSources,
     segment: u32,
     options: &LinkOptions,
 ) -> Option<SegmentLink> {
     let _span = tracing::info_span!("find_link", segment).entered();
-    let mut young: Vec<(u64, StampedPose)> = map
-        .keyframes()
-        .filter(|(id, s, _)| *s == segment && features.contains_key(id))
-        .map(|(id, _, pose)| (id, *pose))
-        .collect();
+    let mut young = sources.described_keyframes(segment);
     if let Some(n) = options.only_newest {
         young.drain(..young.len().saturating_sub(n));
     }
     let stride = young.len().div_ceil(options.max_queries.max(1)).max(1);
     let queries: Vec<(u64, StampedPose)> = young.iter().step_by(stride).copied().collect();
     let older = OlderKeyframes {
-        query_point: &|track| {
-            map.point(track)
-                .filter(|(s, _)| *s == segment)
-                .map(|(_, x)| *x)
-        },
+        query_point: &|track| sources.segment_point(segment, track),
         accept: &|_, s| s != segment,
         pool: 4,
     };
-    let agreement = relocalize_consistently(
-        map, features, database, camera, vocabulary, &queries, &older, options,
-    )?;
+    let agreement = relocalize_consistently(sources, &queries, &older, options)?;
     Some(SegmentLink {
         from: segment,
         to: agreement.to,
@@ -168,17 +186,19 @@ pub(crate) struct Agreement {
 /// keyframes `older` accepts, and returns the similarity the largest group of them that
 /// lands in one segment agrees on (at least `options.min_keyframes`, each within the
 /// rotation and position tolerances), or `None`.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn relocalize_consistently(
-    map: &MapBuilder,
-    features: &BTreeMap<u64, Vec<MapFeature>>,
-    database: &KeyframeDatabase,
-    camera: &PinholeRadtan,
-    vocabulary: &Vocabulary,
+    sources: &RelocalizationSources,
     queries: &[(u64, StampedPose)],
     older: &OlderKeyframes,
     options: &LinkOptions,
 ) -> Option<Agreement> {
+    let RelocalizationSources {
+        map,
+        features,
+        database,
+        camera,
+        vocabulary,
+    } = *sources;
     // The older keyframes worth matching: each query's best candidates in the whole map's
     // index, with their neighbours. A relocalizer over these few is cheap; one over the
     // whole older map cost seconds per attempt on a 7,000-keyframe walk.
