@@ -7,6 +7,9 @@ use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
 
+/// One physical point's position in two frames (window or segment, then map).
+pub(crate) type PointPair = (Vector3<f64>, Vector3<f64>);
+
 /// One solved window as the merger needs it.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct WindowInput {
@@ -113,17 +116,34 @@ impl MapBuilder {
         let Some(segment) = self.current_segment else {
             return false;
         };
-        let shared_keyframes = window
+        let (keyframes, points) = self.shared_with(window, segment);
+        keyframes.len() >= 2 && points.len() < MIN_SHARED_POINTS
+    }
+
+    /// What `window` shares with `segment`: `(window pose, map pose)` of each keyframe and
+    /// `(window position, map position)` of each point.
+    fn shared_with(
+        &self,
+        window: &WindowInput,
+        segment: u32,
+    ) -> (Vec<(StampedPose, StampedPose)>, Vec<PointPair>) {
+        let keyframes = window
             .poses
             .iter()
-            .filter(|(id, _)| matches!(self.keyframes.get(id), Some((s, _)) if *s == segment))
-            .count();
-        let shared_points = window
+            .filter_map(|(id, p)| match self.keyframes.get(id) {
+                Some((s, m)) if *s == segment => Some((*p, *m)),
+                _ => None,
+            })
+            .collect();
+        let points = window
             .points
             .iter()
-            .filter(|(track, _)| matches!(self.points.get(track), Some((s, _)) if *s == segment))
-            .count();
-        shared_keyframes >= 2 && shared_points < MIN_SHARED_POINTS
+            .filter_map(|(track, x)| match self.points.get(track) {
+                Some((s, xm)) if *s == segment => Some((*x, *xm)),
+                _ => None,
+            })
+            .collect();
+        (keyframes, points)
     }
 
     /// [`Self::add_window`]; when too few points are shared, `relocalized_scale` (if any)
@@ -133,26 +153,12 @@ impl MapBuilder {
         window: &WindowInput,
         relocalized_scale: Option<f64>,
     ) -> WindowOutcome {
-        let segment = self.current_segment;
-        let shared: Vec<(StampedPose, StampedPose)> = window
-            .poses
-            .iter()
-            .filter_map(|(id, p)| match self.keyframes.get(id) {
-                Some((s, m)) if Some(*s) == segment => Some((*p, *m)),
-                _ => None,
-            })
-            .collect();
-        let (segment, transform, outcome) = match segment {
-            Some(seg) if shared.len() >= 2 => {
+        let shared = self
+            .current_segment
+            .map(|seg| (seg, self.shared_with(window, seg)));
+        let (segment, transform, outcome) = match shared {
+            Some((seg, (shared, shared_points))) if shared.len() >= 2 => {
                 let (w, m): (Vec<_>, Vec<_>) = shared.into_iter().unzip();
-                let shared_points: Vec<(Vector3<f64>, Vector3<f64>)> = window
-                    .points
-                    .iter()
-                    .filter_map(|(track, x)| match self.points.get(track) {
-                        Some((s, xm)) if *s == seg => Some((*x, *xm)),
-                        _ => None,
-                    })
-                    .collect();
                 let lacking = shared_points.len() < MIN_SHARED_POINTS;
                 let measured = relocalized_scale.filter(|s| lacking && s.is_finite() && *s > 0.0);
                 let depth_scale = if lacking && measured.is_none() {
