@@ -218,14 +218,13 @@ impl MapBuilder {
                 p.rotation = rotation * p.rotation;
             }
         }
-        // Each point follows the first keyframe of the loop that observed it.
+        // Each point follows the first keyframe of the loop that observed it. Observations
+        // are ordered by keyframe, so only those from the loop on are read (not the whole
+        // map's), and the first seen per track is its earliest.
         let mut first_seen: BTreeMap<u64, u64> = BTreeMap::new();
-        for (kf, track) in self.observations.keys() {
+        for (kf, track) in self.observations.range((ids[1], 0)..).map(|(k, _)| k) {
             if moved.contains_key(kf) {
-                first_seen
-                    .entry(*track)
-                    .and_modify(|k| *k = (*k).min(*kf))
-                    .or_insert(*kf);
+                first_seen.entry(*track).or_insert(*kf);
             }
         }
         let mut points = 0;
