@@ -2,7 +2,8 @@
 
 pub use crate::window_alignment::align_shared;
 pub(crate) use crate::window_alignment::transform_pose;
-use crate::window_alignment::{align_shared_or_by_depth, align_with_scale, MIN_SHARED_POINTS};
+pub use crate::window_alignment::ScaleSource;
+use crate::window_alignment::MIN_CHAINING_POINTS;
 use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
@@ -54,6 +55,8 @@ pub enum WindowOutcome {
         segment: u32,
         transform: Similarity,
         residual: f64,
+        /// What gave the scale.
+        scale_source: ScaleSource,
     },
 }
 
@@ -110,14 +113,14 @@ impl MapBuilder {
     }
 
     /// Whether `window` would be chained onto the current segment with fewer shared points
-    /// than its scale needs ([`MIN_SHARED_POINTS`]): then a scale measured otherwise
+    /// than its scale needs ([`MIN_CHAINING_POINTS`]): then a scale measured otherwise
     /// ([`crate::relocalized_scale`]) is worth the cost.
     pub fn lacks_shared_points(&self, window: &WindowInput) -> bool {
         let Some(segment) = self.current_segment else {
             return false;
         };
         let (keyframes, points) = self.shared_with(window, segment);
-        keyframes.len() >= 2 && points.len() < MIN_SHARED_POINTS
+        keyframes.len() >= 2 && points.len() < MIN_CHAINING_POINTS
     }
 
     /// What `window` shares with `segment`: `(window pose, map pose)` of each keyframe and
@@ -147,7 +150,8 @@ impl MapBuilder {
     }
 
     /// [`Self::add_window`]; when too few points are shared, `relocalized_scale` (if any)
-    /// gives the scale before the scene-depth ratio is tried.
+    /// gives the scale before the walking pace and the scene-depth ratio are tried
+    /// ([`Self::chaining_transform`]).
     pub fn add_window_with_scale(
         &mut self,
         window: &WindowInput,
@@ -159,24 +163,17 @@ impl MapBuilder {
         let (segment, transform, outcome) = match shared {
             Some((seg, (shared, shared_points))) if shared.len() >= 2 => {
                 let (w, m): (Vec<_>, Vec<_>) = shared.into_iter().unzip();
-                let lacking = shared_points.len() < MIN_SHARED_POINTS;
-                let measured = relocalized_scale.filter(|s| lacking && s.is_finite() && *s > 0.0);
-                let depth_scale = if lacking && measured.is_none() {
-                    let map_depth = self.recent_scene_depth(seg);
-                    let window_depth = crate::scene_depth::window_scene_depth(window);
-                    map_depth.zip(window_depth).map(|(m, w)| m / w)
-                } else {
-                    None
-                };
-                let (transform, residual) = match measured {
-                    // Measured on points: preferred to the centres, which after a stop
-                    // have no spread but noise.
-                    Some(scale) => align_with_scale(&w, &m, scale),
-                    None => align_shared_or_by_depth(&w, &m, &shared_points, depth_scale),
-                };
+                let (transform, residual, scale_source) = self.chaining_transform(
+                    seg,
+                    window,
+                    (&w, &m),
+                    &shared_points,
+                    relocalized_scale,
+                );
                 tracing::debug!(
+                    first_keyframe = window.poses.first().map(|(id, _)| *id),
                     shared_points = shared_points.len(),
-                    ?depth_scale,
+                    ?scale_source,
                     scale = transform.scale,
                     "window scale"
                 );
@@ -187,6 +184,7 @@ impl MapBuilder {
                         segment: seg,
                         transform,
                         residual,
+                        scale_source,
                     },
                 )
             }

@@ -11,6 +11,7 @@ pub mod relocalized_scale;
 pub mod retriangulation;
 pub mod scene_depth;
 pub mod segment_linking;
+pub mod speed_continuity;
 pub mod window_alignment;
 
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};

@@ -2,6 +2,8 @@
 //! the keyframes and points they share (paper, section 5: 7-DoF alignment of successive
 //! windows). Kept apart from the map bookkeeping in `chaining.rs`.
 
+use crate::chaining::{MapBuilder, PointPair, WindowInput};
+use crate::speed_continuity::SpeedContinuityOptions;
 use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
@@ -14,6 +16,25 @@ fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
 
 /// Fewest shared points for the point-based scale (below, the centres are used).
 pub(crate) const MIN_SHARED_POINTS: usize = 10;
+
+/// Fewest shared points for a chained window's scale to be taken from them without first
+/// trying a relocalized scale and the walking pace (30, as for a relocalized scale: on the
+/// rendered walks a window sharing 10 points after a stop took a scale 60 % off from them).
+pub(crate) const MIN_CHAINING_POINTS: usize = 30;
+
+/// What gave a chained window its scale, best evidence first (logged per window).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScaleSource {
+    /// At least [`MIN_CHAINING_POINTS`] points shared with the map.
+    SharedPoints,
+    /// Its keyframes relocalized in the map ([`crate::relocalized_scale`]).
+    Relocalized,
+    /// The wearer's pace before and after the boundary ([`crate::speed_continuity`]).
+    WalkingPace,
+    /// Whatever was left: 10-29 shared points, the shared centres, the scene-depth ratio
+    /// ([`align_shared_or_by_depth`]), or 1.
+    Weak,
+}
 
 /// Similarity mapping a window onto the map from what they share.
 ///
@@ -125,5 +146,45 @@ pub(crate) fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
         timestamp: p.timestamp,
         position: t.apply(&p.position),
         rotation: UnitQuaternion::from_rotation_matrix(&t.rotation) * p.rotation,
+    }
+}
+
+impl MapBuilder {
+    /// The similarity chaining `window` onto `segment` from the `shared` keyframes (window
+    /// poses, map poses) and points, with what gave its scale: the shared points when there
+    /// are [`MIN_CHAINING_POINTS`]; else `relocalized_scale` (measured by the caller, which
+    /// owns the descriptors); else the walking pace; else the points, centres or scene depth
+    /// that are left. Returns the RMS residual of the shared centres too.
+    pub(crate) fn chaining_transform(
+        &self,
+        segment: u32,
+        window: &WindowInput,
+        (w, m): (&[StampedPose], &[StampedPose]),
+        shared_points: &[PointPair],
+        relocalized_scale: Option<f64>,
+    ) -> (Similarity, f64, ScaleSource) {
+        if shared_points.len() >= MIN_CHAINING_POINTS {
+            let (t, r) = align_shared(w, m, shared_points);
+            return (t, r, ScaleSource::SharedPoints);
+        }
+        let valid = |s: &f64| s.is_finite() && *s > 0.0;
+        if let Some(scale) = relocalized_scale.filter(valid) {
+            let (t, r) = align_with_scale(w, m, scale);
+            return (t, r, ScaleSource::Relocalized);
+        }
+        let pace = self.speed_continuity_scale(segment, window, &SpeedContinuityOptions::default());
+        if let Some(scale) = pace.filter(valid) {
+            let (t, r) = align_with_scale(w, m, scale);
+            return (t, r, ScaleSource::WalkingPace);
+        }
+        let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
+            let map_depth = self.recent_scene_depth(segment);
+            let window_depth = crate::scene_depth::window_scene_depth(window);
+            map_depth.zip(window_depth).map(|(m, w)| m / w)
+        } else {
+            None
+        };
+        let (t, r) = align_shared_or_by_depth(w, m, shared_points, depth_scale);
+        (t, r, ScaleSource::Weak)
     }
 }

@@ -1,0 +1,274 @@
+//! The chaining scale of a window that nothing visual links to the map: the wearer's
+//! walking pace, assumed the same just before and just after the boundary.
+//!
+//! A window normally takes its scale from the points it shares with the map
+//! ([`crate::window_alignment::align_shared`]), or from its keyframes relocalized in the map
+//! ([`crate::relocalized_scale`]). Across a sharp corner turn while walking (~250 deg/s on
+//! the rendered 12,000-frame walk) no track lives through, and the keyframes in the turn
+//! see almost nothing: the five keyframes a window shared with the map had 0-10 inlier
+//! observations on either side, so their centres were noise. Their Umeyama scale was off
+//! by 5.6x there and the scene-depth ratio ([`crate::scene_depth`]; a different wall after
+//! the turn) by 2.5x, and the map's metres-per-unit jumped by as much for the rest of the
+//! walk.
+//!
+//! What is well measured on either side is the motion: the map's keyframes before the turn
+//! and the window's after it, each seeing hundreds of points. A person walks at a nearly
+//! constant pace through a turn and resumes it after a short stop (the constant-velocity
+//! assumption of monocular visual odometry, e.g. ORB-SLAM's motion model; here only its
+//! speed, over ~1-2 s on each side). So the scale is the ratio of the two paces, map units
+//! per second over window units per second. It is a prior, not a measurement: it is used
+//! only when no point and no relocalization measures the scale, and only when both sides
+//! clearly move (a camera standing still on either side has no pace to compare).
+
+use crate::chaining::{MapBuilder, WindowInput};
+use crate::scene_depth::window_scene_depth;
+use egoslam_geometry::StampedPose;
+use std::collections::HashMap;
+
+/// When and how the pace is measured; defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpeedContinuityOptions {
+    /// Inlier observations a keyframe needs for its centre to count (default 30, as for a
+    /// relocalized scale: the turn's keyframes with 0-10 are what this must skip).
+    pub min_observations: usize,
+    /// Well-observed keyframes used on each side (default 30: ~1-2 s of walking, a few
+    /// strides, so that the step bob averages out).
+    pub keyframes: usize,
+    /// Longest time between two counted keyframes for their distance to count as a step,
+    /// seconds (default 0.5: across a gap, e.g. a stop whose keyframes see nothing, the
+    /// straight line is not the path).
+    pub max_step_s: f64,
+    /// Shortest total time of moving steps on each side, seconds (default 0.5).
+    pub min_span_s: f64,
+    /// Map keyframes older than this before the window are not used, seconds (default 5:
+    /// the pace of a minute ago says little).
+    pub max_age_s: f64,
+    /// Slowest step that counts as moving, in median scene depths per second (default
+    /// 0.05: walking at 1.2 m/s is 0.4 before a wall 3 m away and 0.06 on a street 20 m
+    /// wide; a standing head sways ~0.01-0.02).
+    pub min_speed_depths_per_s: f64,
+}
+
+impl Default for SpeedContinuityOptions {
+    fn default() -> Self {
+        Self {
+            min_observations: 30,
+            keyframes: 30,
+            max_step_s: 0.5,
+            min_span_s: 0.5,
+            max_age_s: 5.0,
+            min_speed_depths_per_s: 0.05,
+        }
+    }
+}
+
+/// The pace of `poses` (in time order) while moving: the median speed of the steps between
+/// consecutive poses at most `max_step_s` apart that are at least `min_speed` fast; `None`
+/// when those steps span less than `min_span_s`. Steps slower than `min_speed` are the
+/// wearer standing (a stop inside the span would otherwise halve a mean speed: on the
+/// rendered 1,500-frame walk a 2 s stop did, and the map's scale doubled).
+pub fn walking_pace(
+    poses: &[&StampedPose],
+    min_speed: f64,
+    options: &SpeedContinuityOptions,
+) -> Option<f64> {
+    let mut speeds = Vec::new();
+    let mut time = 0.0;
+    for pair in poses.windows(2) {
+        let dt = pair[1].timestamp - pair[0].timestamp;
+        if dt > 0.0 && dt <= options.max_step_s {
+            let speed = (pair[1].position - pair[0].position).norm() / dt;
+            if speed.is_finite() && speed >= min_speed {
+                speeds.push(speed);
+                time += dt;
+            }
+        }
+    }
+    if time < options.min_span_s {
+        return None;
+    }
+    crate::median(speeds)
+}
+
+/// The window's pace over its first well-observed keyframes, in window units per second.
+fn window_pace(
+    window: &WindowInput,
+    min_speed: f64,
+    options: &SpeedContinuityOptions,
+) -> Option<f64> {
+    let mut seen: HashMap<u64, usize> = HashMap::new();
+    for (kf, _, _) in &window.observations {
+        *seen.entry(*kf).or_default() += 1;
+    }
+    let poses: Vec<&StampedPose> = window
+        .poses
+        .iter()
+        .filter(|(id, _)| seen.get(id).copied().unwrap_or(0) >= options.min_observations)
+        .map(|(_, p)| p)
+        .take(options.keyframes)
+        .collect();
+    walking_pace(&poses, min_speed, options)
+}
+
+impl MapBuilder {
+    /// The segment's pace over its newest well-observed keyframes before keyframe
+    /// `before_id` (posed `before` in the window), in map units per second.
+    fn recent_pace(
+        &self,
+        segment: u32,
+        (before_id, before): (u64, &StampedPose),
+        min_speed: f64,
+        options: &SpeedContinuityOptions,
+    ) -> Option<f64> {
+        let mut poses: Vec<&StampedPose> = self
+            .keyframes
+            .range(..before_id)
+            .rev()
+            .filter(|(_, (s, p))| {
+                *s == segment && before.timestamp - p.timestamp <= options.max_age_s
+            })
+            .filter(|(id, _)| self.observed_points(**id) >= options.min_observations)
+            .map(|(_, (_, p))| p)
+            .take(options.keyframes)
+            .collect();
+        poses.reverse();
+        walking_pace(&poses, min_speed, options)
+    }
+
+    /// The scale (map units per window unit) that gives `window` the pace the segment had
+    /// just before it; `None` unless both sides clearly move
+    /// ([`SpeedContinuityOptions::min_speed_depths_per_s`]).
+    pub fn speed_continuity_scale(
+        &self,
+        segment: u32,
+        window: &WindowInput,
+        options: &SpeedContinuityOptions,
+    ) -> Option<f64> {
+        let (first_id, first) = window.poses.first()?;
+        let map_depth = self.recent_scene_depth(segment)?;
+        let window_depth = window_scene_depth(window)?;
+        let floor = options.min_speed_depths_per_s;
+        let map_pace = self.recent_pace(segment, (*first_id, first), floor * map_depth, options);
+        let window_pace = window_pace(window, floor * window_depth, options);
+        tracing::debug!(
+            ?map_pace,
+            ?window_pace,
+            map_depth,
+            window_depth,
+            "speed continuity"
+        );
+        Some(map_pace? / window_pace?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chaining::ScaleSource;
+    use crate::WindowOutcome;
+    use nalgebra::{Point2, UnitQuaternion, Vector3};
+
+    fn pose(t: f64, x: f64) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position: Vector3::new(x, 0.0, 0.0),
+            rotation: UnitQuaternion::identity(),
+        }
+    }
+
+    /// Keyframes `ids` at 20 per second walking along x at `pace` (window units per second),
+    /// each seeing 40 points `depth` ahead (track ids from `tracks`); `blind` of the first
+    /// ones see nothing and sit at `blind_x` (a turn's keyframes: noise).
+    fn walk(
+        ids: std::ops::Range<u64>,
+        pace: f64,
+        depth: f64,
+        tracks: u64,
+        blind: usize,
+    ) -> WindowInput {
+        let poses: Vec<(u64, StampedPose)> = ids
+            .clone()
+            .enumerate()
+            .map(|(i, id)| {
+                let t = id as f64 * 0.05;
+                let x = if i < blind { 5.0 * i as f64 } else { pace * t };
+                (id, pose(t, x))
+            })
+            .collect();
+        let points: Vec<(u64, Vector3<f64>)> = (0..40)
+            .map(|k| (tracks + k, Vector3::new(k as f64 * 0.1 * depth, 0.2, depth)))
+            .collect();
+        let observations = poses
+            .iter()
+            .skip(blind)
+            .flat_map(|(kf, _)| {
+                points
+                    .iter()
+                    .map(move |(t, _)| (*kf, *t, Point2::new(0.0, 0.0)))
+            })
+            .collect();
+        WindowInput {
+            poses,
+            points,
+            observations,
+            weak_observations: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn across_a_blind_turn_the_window_gets_the_pace_of_the_map() {
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        // After the turn, in a frame 4x smaller: the same 1.2 m/s is 0.3 units/s. The five
+        // keyframes shared with the map saw nothing (in the map too they would be noise),
+        // and no point is shared.
+        let after = walk(25..45, 0.3, 0.75, 5000, 5);
+        match map.add_window(&after) {
+            WindowOutcome::Aligned {
+                transform,
+                scale_source,
+                ..
+            } => {
+                assert_eq!(scale_source, ScaleSource::WalkingPace);
+                assert!((transform.scale - 4.0).abs() < 1e-9, "{}", transform.scale);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_stop_inside_the_span_does_not_slow_the_pace() {
+        let options = SpeedContinuityOptions::default();
+        // 1 s walking at 1.2, then 1 s standing.
+        let poses: Vec<StampedPose> = (0..40)
+            .map(|i| {
+                let t = i as f64 * 0.05;
+                pose(t, 1.2 * t.min(1.0))
+            })
+            .collect();
+        let refs: Vec<&StampedPose> = poses.iter().collect();
+        let pace = walking_pace(&refs, 0.1, &options).expect("moving for 1 s");
+        assert!((pace - 1.2).abs() < 1e-9, "{pace}");
+        // Standing throughout: no pace, whatever the scale of the map.
+        let standing: Vec<StampedPose> = (0..40).map(|i| pose(i as f64 * 0.05, 0.0)).collect();
+        let refs: Vec<&StampedPose> = standing.iter().collect();
+        assert_eq!(walking_pace(&refs, 0.1, &options), None);
+    }
+
+    #[test]
+    fn a_standing_map_gives_no_pace_and_the_window_keeps_the_weaker_evidence() {
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 0.0, 3.0, 1000, 0));
+        let after = walk(25..45, 0.3, 0.75, 5000, 5);
+        assert_eq!(
+            map.speed_continuity_scale(0, &after, &SpeedContinuityOptions::default()),
+            None
+        );
+        match map.add_window(&after) {
+            WindowOutcome::Aligned { scale_source, .. } => {
+                assert_eq!(scale_source, ScaleSource::Weak)
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+}
