@@ -12,6 +12,7 @@ pub mod schur;
 pub mod sparse_schur;
 pub mod translation_averaging;
 pub mod triangulation;
+pub mod unobserved_centres;
 pub mod view_graph;
 pub mod window_solver;
 pub mod windowing;

@@ -10,6 +10,7 @@ use crate::translation_averaging::{
 use crate::triangulation::{
     triangulate_track, CameraPose, TriangulationFailure, TriangulationOptions,
 };
+use crate::unobserved_centres::{place_unobserved_centres, UnobservedCentreOptions};
 use crate::view_graph::{
     build_view_graph, EdgeCache, KeyframeObservations, ViewEdge, ViewGraphOptions,
 };
@@ -48,6 +49,9 @@ pub struct WindowSolverOptions {
     /// map segment, 5 instead of 2 on the shake; at 0.5 the breaks stay as when the window
     /// failed whole while 4-11 % more frames get a pose).
     pub min_piece_fraction: f64,
+    /// Keyframes the points barely see get their centres from the motion around them
+    /// (unobserved_centres.rs).
+    pub unobserved_centres: UnobservedCentreOptions,
 }
 
 impl Default for WindowSolverOptions {
@@ -64,6 +68,7 @@ impl Default for WindowSolverOptions {
             min_points: 20,
             min_translation_edges: 5,
             min_piece_fraction: 0.5,
+            unobserved_centres: UnobservedCentreOptions::default(),
         }
     }
 }
@@ -487,6 +492,24 @@ fn solve_connected(
         counts[o.point] += 1;
         kept.push((o.camera, points[o.point].0, o.pixel));
     }
+    let mut adjusted_poses = adjusted.poses;
+    let mut seen = vec![0usize; n];
+    for (k, _, _) in &kept {
+        seen[*k] += 1;
+    }
+    let timestamps: Vec<f64> = keyframes.iter().map(|k| k.timestamp).collect();
+    let placed = place_unobserved_centres(
+        &mut adjusted_poses,
+        &timestamps,
+        &seen,
+        &options.unobserved_centres,
+    );
+    if placed > 0 {
+        tracing::debug!(
+            placed,
+            "centres of unobserved keyframes placed from the motion"
+        );
+    }
     let solved_points = points
         .iter()
         .zip(&adjusted.points)
@@ -501,7 +524,7 @@ fn solve_connected(
     WindowSolution {
         status: WindowStatus::Solved,
         keyframes: (0..n).collect(),
-        poses: adjusted.poses,
+        poses: adjusted_poses,
         points: solved_points,
         observations: kept,
         outlier_observations: adjusted.outliers.len(),
