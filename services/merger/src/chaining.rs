@@ -252,7 +252,6 @@ impl MapBuilder {
         }
     }
 
-    /// Number of segments so far (breaks = segments - 1).
     /// Inlier observations of map points in keyframe `id`.
     pub fn observed_points(&self, id: u64) -> usize {
         self.observations.range((id, 0)..=(id, u64::MAX)).count()
@@ -263,6 +262,7 @@ impl MapBuilder {
         self.current_segment
     }
 
+    /// Number of segments so far (breaks = segments - 1).
     pub fn segments(&self) -> u32 {
         self.segments
     }
