@@ -234,8 +234,8 @@ fn message(f: &PosedFrame, revision: u32) -> pb::Pose {
     }
 }
 
-/// Publishes what changed, the keyframe trajectory, the window's points and the status,
-/// and refreshes the snapshot.
+/// Publishes what changed, the keyframe trajectory and the window's points, refreshes the
+/// snapshot, and publishes the status.
 pub fn publish(
     egress: &Egress,
     state: &MapState,
@@ -264,7 +264,8 @@ pub fn publish(
         .filter_map(|t| all.get(t).map(|x| point(*t, x)))
         .collect();
     egress.publish_map(&changed)?;
-    egress.publish_status(status)?;
+    // The snapshot before the status: a client that sees "finished" and then asks for the
+    // snapshot (to fill what its subscription dropped) must get the final state.
     egress.set_snapshot(&pb::Snapshot {
         keyframes: Some(keyframes),
         frames: Some(trajectory(&state.frames)),
@@ -273,6 +274,7 @@ pub fn publish(
         }),
         status: Some(status.clone()),
     });
+    egress.publish_status(status)?;
     Ok(())
 }
 
