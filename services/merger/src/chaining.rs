@@ -3,7 +3,6 @@
 pub use crate::window_alignment::align_shared;
 pub(crate) use crate::window_alignment::transform_pose;
 pub use crate::window_alignment::ScaleSource;
-use crate::window_alignment::MIN_CHAINING_POINTS;
 use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
@@ -112,15 +111,15 @@ impl MapBuilder {
         self.add_window_with_scale(window, None)
     }
 
-    /// Whether `window` would be chained onto the current segment with fewer shared points
-    /// than its scale needs ([`MIN_CHAINING_POINTS`]): then a scale measured otherwise
+    /// Whether `window` would be chained onto the current segment without shared points
+    /// that can give its scale ([`Self::weakly_joined`]): then a scale measured otherwise
     /// ([`crate::relocalized_scale`]) is worth the cost.
     pub fn lacks_shared_points(&self, window: &WindowInput) -> bool {
         let Some(segment) = self.current_segment else {
             return false;
         };
         let (keyframes, points) = self.shared_with(window, segment);
-        keyframes.len() >= 2 && points.len() < MIN_CHAINING_POINTS
+        keyframes.len() >= 2 && self.weakly_joined(segment, window, points.len())
     }
 
     /// What `window` shares with `segment`: `(window pose, map pose)` of each keyframe and

@@ -40,8 +40,9 @@ pub struct SpeedContinuityOptions {
     pub max_step_s: f64,
     /// Shortest total time of moving steps on each side, seconds (default 0.5).
     pub min_span_s: f64,
-    /// Map keyframes older than this before the window are not used, seconds (default 5:
-    /// the pace of a minute ago says little).
+    /// Map keyframes older than this before the window are not used, seconds (default 20:
+    /// longer than the stops of a walk, after which the pace before the stop is the one to
+    /// resume; with 5 s a 4 s stop on the 12,000-frame walk left no pace on the map's side).
     pub max_age_s: f64,
     /// Slowest step that counts as moving, in median scene depths per second (default
     /// 0.05: walking at 1.2 m/s is 0.4 before a wall 3 m away and 0.06 on a street 20 m
@@ -56,7 +57,7 @@ impl Default for SpeedContinuityOptions {
             keyframes: 30,
             max_step_s: 0.5,
             min_span_s: 0.5,
-            max_age_s: 5.0,
+            max_age_s: 20.0,
             min_speed_depths_per_s: 0.05,
         }
     }
@@ -177,7 +178,7 @@ mod tests {
     }
 
     /// Keyframes `ids` at 20 per second walking along x at `pace` (window units per second),
-    /// each seeing 40 points `depth` ahead (track ids from `tracks`); `blind` of the first
+    /// each seeing 60 points `depth` ahead (track ids from `tracks`); `blind` of the first
     /// ones see nothing and sit at `blind_x` (a turn's keyframes: noise).
     fn walk(
         ids: std::ops::Range<u64>,
@@ -195,7 +196,7 @@ mod tests {
                 (id, pose(t, x))
             })
             .collect();
-        let points: Vec<(u64, Vector3<f64>)> = (0..40)
+        let points: Vec<(u64, Vector3<f64>)> = (0..60)
             .map(|k| (tracks + k, Vector3::new(k as f64 * 0.1 * depth, 0.2, depth)))
             .collect();
         let observations = poses
@@ -231,6 +232,48 @@ mod tests {
             } => {
                 assert_eq!(scale_source, ScaleSource::WalkingPace);
                 assert!((transform.scale - 4.0).abs() < 1e-9, "{}", transform.scale);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn points_shared_through_keyframes_one_side_barely_sees_do_not_give_the_scale() {
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        // The window shares all 60 of the map's points, but triangulated them from the
+        // shared keyframes it hardly sees: their positions say half the true scale (the
+        // points at 1.5 where 0.75 is right). The pace says 4.
+        let mut after = walk(25..45, 0.3, 1.5, 1000, 5);
+        after.poses[..5]
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, (id, p))| {
+                *p = pose(
+                    *id as f64 * 0.05,
+                    0.3 * *id as f64 * 0.05 + 0.001 * i as f64,
+                )
+            });
+        assert!(map.lacks_shared_points(&after));
+        match map.add_window(&after) {
+            WindowOutcome::Aligned {
+                transform,
+                scale_source,
+                ..
+            } => {
+                assert_eq!(scale_source, ScaleSource::WalkingPace);
+                assert!((transform.scale - 4.0).abs() < 1e-9, "{}", transform.scale);
+            }
+            other => panic!("{other:?}"),
+        }
+        // Seen well on both sides, the same points do give it.
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        let firm = walk(25..45, 0.3, 0.75, 1000, 0);
+        assert!(!map.lacks_shared_points(&firm));
+        match map.add_window(&firm) {
+            WindowOutcome::Aligned { scale_source, .. } => {
+                assert_eq!(scale_source, ScaleSource::SharedPoints)
             }
             other => panic!("{other:?}"),
         }

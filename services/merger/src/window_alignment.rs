@@ -6,6 +6,7 @@ use crate::chaining::{MapBuilder, PointPair, WindowInput};
 use crate::speed_continuity::SpeedContinuityOptions;
 use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use std::collections::HashMap;
 
 /// Rotation `R` minimising `sum ||R_map_i - R R_win_i||_F` (chordal L2 mean of the relative
 /// rotations, Hartley et al., "Rotation Averaging", IJCV 2013, section 5.3).
@@ -22,10 +23,19 @@ pub(crate) const MIN_SHARED_POINTS: usize = 10;
 /// rendered walks a window sharing 10 points after a stop took a scale 60 % off from them).
 pub(crate) const MIN_CHAINING_POINTS: usize = 30;
 
+/// Fewest inlier observations some keyframe shared by a window and the map must have on
+/// both sides for the shared points to give the window's scale (50). Points shared through
+/// keyframes one side barely sees are triangulated from a few rays there: after a 4 s stop
+/// on the 12,000-frame walk a window shared 37 points with one of 25 points in all (its
+/// shared keyframes had 21-25 observations in the map, 381-569 in the window), and the
+/// scale they gave was 2.2x off; the walking pace gives it right.
+pub(crate) const MIN_JOIN_OBSERVATIONS: usize = 50;
+
 /// What gave a chained window its scale, best evidence first (logged per window).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScaleSource {
-    /// At least [`MIN_CHAINING_POINTS`] points shared with the map.
+    /// At least [`MIN_CHAINING_POINTS`] points shared with the map, through a keyframe
+    /// well seen on both sides ([`MIN_JOIN_OBSERVATIONS`]).
     SharedPoints,
     /// Its keyframes relocalized in the map ([`crate::relocalized_scale`]).
     Relocalized,
@@ -150,9 +160,33 @@ pub(crate) fn transform_pose(t: &Similarity, p: &StampedPose) -> StampedPose {
 }
 
 impl MapBuilder {
+    /// Whether `window`, sharing `shared_points` points with `segment`, is too weakly joined
+    /// to it for those points to give its scale: fewer than [`MIN_CHAINING_POINTS`], or no
+    /// shared keyframe with [`MIN_JOIN_OBSERVATIONS`] inlier observations both in the window
+    /// and in the map.
+    pub(crate) fn weakly_joined(
+        &self,
+        segment: u32,
+        window: &WindowInput,
+        shared_points: usize,
+    ) -> bool {
+        if shared_points < MIN_CHAINING_POINTS {
+            return true;
+        }
+        let mut seen: HashMap<u64, usize> = HashMap::new();
+        for (kf, _, _) in &window.observations {
+            *seen.entry(*kf).or_default() += 1;
+        }
+        !window.poses.iter().any(|(id, _)| {
+            matches!(self.keyframe(*id), Some((s, _)) if s == segment)
+                && seen.get(id).copied().unwrap_or(0) >= MIN_JOIN_OBSERVATIONS
+                && self.observed_points(*id) >= MIN_JOIN_OBSERVATIONS
+        })
+    }
+
     /// The similarity chaining `window` onto `segment` from the `shared` keyframes (window
-    /// poses, map poses) and points, with what gave its scale: the shared points when there
-    /// are [`MIN_CHAINING_POINTS`]; else `relocalized_scale` (measured by the caller, which
+    /// poses, map poses) and points, with what gave its scale: the shared points when the
+    /// window is firmly joined ([`Self::weakly_joined`]); else `relocalized_scale` (measured by the caller, which
     /// owns the descriptors); else the walking pace; else the points, centres or scene depth
     /// that are left. Returns the RMS residual of the shared centres too.
     pub(crate) fn chaining_transform(
@@ -163,7 +197,7 @@ impl MapBuilder {
         shared_points: &[PointPair],
         relocalized_scale: Option<f64>,
     ) -> (Similarity, f64, ScaleSource) {
-        if shared_points.len() >= MIN_CHAINING_POINTS {
+        if !self.weakly_joined(segment, window, shared_points.len()) {
             let (t, r) = align_shared(w, m, shared_points);
             return (t, r, ScaleSource::SharedPoints);
         }
