@@ -7,7 +7,7 @@ use crate::checkpoint::MergerState;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{
     find_link, find_loop, relocalized_window_scale, LinkOptions, LoopOptions,
-    RelocalizationSources, RelocalizedScaleOptions, WindowInput,
+    RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions, WindowInput,
 };
 use egoslam_relocalization::{KeyframeDatabase, Vocabulary};
 
@@ -48,7 +48,7 @@ impl Merger {
     /// The scale of a window that shares too few points with the map, from its keyframes
     /// relocalized against the map's recent ones (egoslam_merger::relocalized_scale);
     /// `None` when it shares enough points or does not relocalize.
-    pub(super) fn relocalized_scale(&mut self, window: &WindowInput) -> Option<f64> {
+    pub(super) fn relocalized_scale(&mut self, window: &WindowInput) -> Option<RelocalizedScale> {
         let camera = self.camera?;
         let segment = self.state.map.current_segment()?;
         if !self.state.map.lacks_shared_points(window) {

@@ -154,7 +154,7 @@ impl MapBuilder {
     pub fn add_window_with_scale(
         &mut self,
         window: &WindowInput,
-        relocalized_scale: Option<f64>,
+        relocalized_scale: Option<crate::RelocalizedScale>,
     ) -> WindowOutcome {
         let shared = self
             .current_segment

@@ -30,6 +30,6 @@ pub use frame_localization::{localize_frame, LocalizationError, LocalizationOpti
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
-pub use relocalized_scale::{relocalized_window_scale, RelocalizedScaleOptions};
+pub use relocalized_scale::{relocalized_window_scale, RelocalizedScale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;
 pub use segment_linking::{find_link, LinkOptions, RelocalizationSources, SegmentLink};

@@ -31,8 +31,15 @@ pub struct RelocalizedScaleOptions {
     /// The segment's newest keyframes (before the window) searched (default 300, ~15 s of
     /// walking: a stop of a few seconds or a turn on the spot is well inside).
     pub recent_keyframes: usize,
-    /// Fewest 3-D/3-D pairs for the scale (default 30: a median of fewer is noise, see
-    /// [`crate::loop_closure::LoopOptions::min_shared_points`]).
+    /// Windows with fewer points are not relocalized (default 30: a stop's windows have a
+    /// handful, and relocalizing their keyframes was most of this function's cost).
+    pub min_window_points: usize,
+    /// Fewest 3-D/3-D pairs for a scale to be returned at all (default 10). The chaining
+    /// takes one from fewer than 30 pairs (a median of fewer is noisy, see
+    /// [`crate::loop_closure::LoopOptions::min_shared_points`]) only when the walking pace
+    /// does not give the scale either: on the 12,000-frame walk a window before a stop
+    /// relocalized with 7 keyframes agreeing on 11 pairs (scale 0.31, its neighbours 0.26 and
+    /// 0.35), was refused, and the centres then gave 0.06.
     pub min_shared_points: usize,
     /// Acceptance of the relocalized keyframes (segment linking's defaults: 3 must agree).
     pub link: LinkOptions,
@@ -42,25 +49,35 @@ impl Default for RelocalizedScaleOptions {
     fn default() -> Self {
         Self {
             recent_keyframes: 300,
-            min_shared_points: 30,
+            min_window_points: 30,
+            min_shared_points: 10,
             link: LinkOptions::default(),
         }
     }
 }
 
-/// The scale (map units per window unit) of `window` relative to `segment`, from its
-/// keyframes relocalized against the segment's recent keyframes; `None` when they do not
-/// relocalize consistently or give too few point pairs.
+/// A window's scale measured by relocalization, with the number of 3-D/3-D pairs it rests on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelocalizedScale {
+    /// Map units per window unit.
+    pub scale: f64,
+    /// Point pairs whose distance ratios gave it.
+    pub point_pairs: usize,
+}
+
+/// The scale of `window` relative to `segment`, from its keyframes relocalized against the
+/// segment's recent keyframes; `None` when they do not relocalize consistently or give too
+/// few point pairs.
 pub fn relocalized_window_scale(
     sources: &RelocalizationSources,
     segment: u32,
     window: &WindowInput,
     options: &RelocalizedScaleOptions,
-) -> Option<f64> {
+) -> Option<RelocalizedScale> {
     let _span = tracing::debug_span!("relocalized_window_scale", segment).entered();
     // A rotation-only window (a stop) has no points to pair: nothing to measure, and
     // relocalizing its keyframes was most of this function's cost on the long walk.
-    if window.points.len() < options.min_shared_points {
+    if window.points.len() < options.min_window_points {
         return None;
     }
     let first = window.poses.first()?.0;
@@ -104,5 +121,8 @@ pub fn relocalized_window_scale(
         scale = agreement.transform.scale,
         "window relocalized in the map"
     );
-    (agreement.shared_points >= options.min_shared_points).then_some(agreement.transform.scale)
+    (agreement.shared_points >= options.min_shared_points).then_some(RelocalizedScale {
+        scale: agreement.transform.scale,
+        point_pairs: agreement.shared_points,
+    })
 }

@@ -37,7 +37,8 @@ pub enum ScaleSource {
     /// At least [`MIN_CHAINING_POINTS`] points shared with the map, through a keyframe
     /// well seen on both sides ([`MIN_JOIN_OBSERVATIONS`]).
     SharedPoints,
-    /// Its keyframes relocalized in the map ([`crate::relocalized_scale`]).
+    /// Its keyframes relocalized in the map ([`crate::relocalized_scale`]): on at least
+    /// [`MIN_CHAINING_POINTS`] point pairs before the pace is tried, on fewer after.
     Relocalized,
     /// The wearer's pace before and after the boundary ([`crate::speed_continuity`]).
     WalkingPace,
@@ -186,30 +187,38 @@ impl MapBuilder {
 
     /// The similarity chaining `window` onto `segment` from the `shared` keyframes (window
     /// poses, map poses) and points, with what gave its scale: the shared points when the
-    /// window is firmly joined ([`Self::weakly_joined`]); else `relocalized_scale` (measured by the caller, which
-    /// owns the descriptors); else the walking pace; else the points, centres or scene depth
-    /// that are left. Returns the RMS residual of the shared centres too.
+    /// window is firmly joined ([`Self::weakly_joined`]); else `relocalized_scale` (measured
+    /// by the caller, which owns the descriptors) if it rests on [`MIN_CHAINING_POINTS`]
+    /// pairs; else the walking pace; else the relocalized scale on fewer pairs; else the
+    /// points, centres or scene depth that are left. Returns the RMS residual of the shared
+    /// centres too.
     pub(crate) fn chaining_transform(
         &self,
         segment: u32,
         window: &WindowInput,
         (w, m): (&[StampedPose], &[StampedPose]),
         shared_points: &[PointPair],
-        relocalized_scale: Option<f64>,
+        relocalized_scale: Option<crate::RelocalizedScale>,
     ) -> (Similarity, f64, ScaleSource) {
         if !self.weakly_joined(segment, window, shared_points.len()) {
             let (t, r) = align_shared(w, m, shared_points);
             return (t, r, ScaleSource::SharedPoints);
         }
         let valid = |s: &f64| s.is_finite() && *s > 0.0;
-        if let Some(scale) = relocalized_scale.filter(valid) {
-            let (t, r) = align_with_scale(w, m, scale);
-            return (t, r, ScaleSource::Relocalized);
+        let relocalized = relocalized_scale.filter(|r| valid(&r.scale));
+        if let Some(r) = relocalized.filter(|r| r.point_pairs >= MIN_CHAINING_POINTS) {
+            let (t, res) = align_with_scale(w, m, r.scale);
+            return (t, res, ScaleSource::Relocalized);
         }
         let pace = self.speed_continuity_scale(segment, window, &SpeedContinuityOptions::default());
         if let Some(scale) = pace.filter(valid) {
             let (t, r) = align_with_scale(w, m, scale);
             return (t, r, ScaleSource::WalkingPace);
+        }
+        // Relocalized on fewer pairs: noisier than the pace, better than what is left.
+        if let Some(r) = relocalized {
+            let (t, res) = align_with_scale(w, m, r.scale);
+            return (t, res, ScaleSource::Relocalized);
         }
         let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
             let map_depth = self.recent_scene_depth(segment);
