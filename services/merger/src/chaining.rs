@@ -24,6 +24,15 @@ pub struct WindowInput {
 }
 
 impl WindowInput {
+    /// Inlier observations per keyframe id: how well the window's points pin each pose.
+    pub fn observation_counts(&self) -> std::collections::HashMap<u64, usize> {
+        let mut counts = std::collections::HashMap::new();
+        for (kf, _, _) in &self.observations {
+            *counts.entry(*kf).or_default() += 1;
+        }
+        counts
+    }
+
     /// Whether every pose, point and observation is finite: a window that is not (a
     /// corrupted message) must be refused before it poisons the map.
     pub fn is_finite(&self) -> bool {

@@ -23,7 +23,6 @@
 use crate::chaining::{MapBuilder, WindowInput};
 use crate::scene_depth::window_scene_depth;
 use egoslam_geometry::StampedPose;
-use std::collections::HashMap;
 
 /// When and how the pace is measured; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -97,10 +96,7 @@ fn window_pace(
     min_speed: f64,
     options: &SpeedContinuityOptions,
 ) -> Option<f64> {
-    let mut seen: HashMap<u64, usize> = HashMap::new();
-    for (kf, _, _) in &window.observations {
-        *seen.entry(*kf).or_default() += 1;
-    }
+    let seen = window.observation_counts();
     let poses: Vec<&StampedPose> = window
         .poses
         .iter()

@@ -6,7 +6,6 @@ use crate::chaining::{MapBuilder, PointPair, WindowInput};
 use crate::speed_continuity::SpeedContinuityOptions;
 use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
-use std::collections::HashMap;
 
 /// Rotation `R` minimising `sum ||R_map_i - R R_win_i||_F` (chordal L2 mean of the relative
 /// rotations, Hartley et al., "Rotation Averaging", IJCV 2013, section 5.3).
@@ -174,10 +173,7 @@ impl MapBuilder {
         if shared_points < MIN_CHAINING_POINTS {
             return true;
         }
-        let mut seen: HashMap<u64, usize> = HashMap::new();
-        for (kf, _, _) in &window.observations {
-            *seen.entry(*kf).or_default() += 1;
-        }
+        let seen = window.observation_counts();
         !window.poses.iter().any(|(id, _)| {
             matches!(self.keyframe(*id), Some((s, _)) if s == segment)
                 && seen.get(id).copied().unwrap_or(0) >= MIN_JOIN_OBSERVATIONS
