@@ -18,8 +18,9 @@ fn chordal_mean(rotations: &[Rotation3<f64>]) -> Rotation3<f64> {
 pub(crate) const MIN_SHARED_POINTS: usize = 10;
 
 /// Fewest shared points for a chained window's scale to be taken from them without first
-/// trying a relocalized scale and the walking pace (30, as for a relocalized scale: on the
-/// rendered walks a window sharing 10 points after a stop took a scale 60 % off from them).
+/// trying a relocalized scale and the walking pace, and fewest relocalized point pairs for
+/// a relocalized scale to come before the pace (30: on the rendered walks a window sharing
+/// 10 points after a stop took a scale 60 % off from them).
 pub(crate) const MIN_CHAINING_POINTS: usize = 30;
 
 /// Fewest inlier observations some keyframe shared by a window and the map must have on
@@ -41,8 +42,8 @@ pub enum ScaleSource {
     Relocalized,
     /// The wearer's pace before and after the boundary ([`crate::speed_continuity`]).
     WalkingPace,
-    /// Whatever was left: 10-29 shared points, the shared centres, the scene-depth ratio
-    /// ([`align_shared_or_by_depth`]), or 1.
+    /// Whatever was left: the shared points of a weak join (at least 10), the shared
+    /// centres, the scene-depth ratio ([`align_shared_or_by_depth`]), or 1.
     Weak,
 }
 
