@@ -52,6 +52,33 @@ impl WindowInput {
     }
 }
 
+#[cfg(test)]
+impl WindowInput {
+    /// A window whose keyframes, all but the first `unseen`, each observe every point (at
+    /// a dummy pixel): the fixture of the scale tests.
+    pub(crate) fn seeing_all(
+        poses: Vec<(u64, StampedPose)>,
+        points: Vec<(u64, Vector3<f64>)>,
+        unseen: usize,
+    ) -> Self {
+        let observations = poses
+            .iter()
+            .skip(unseen)
+            .flat_map(|(kf, _)| {
+                points
+                    .iter()
+                    .map(move |(t, _)| (*kf, *t, nalgebra::Point2::new(0.0, 0.0)))
+            })
+            .collect();
+        Self {
+            poses,
+            points,
+            observations,
+            weak_observations: Vec::new(),
+        }
+    }
+}
+
 /// What happened to a window.
 #[derive(Debug, Clone, PartialEq)]
 pub enum WindowOutcome {

@@ -110,20 +110,7 @@ mod tests {
         let points: Vec<(u64, Vector3<f64>)> = (0..20)
             .map(|k| (prefix + k, Vector3::new(k as f64 * 0.1 - 1.0, 0.3, depth)))
             .collect();
-        let observations = poses
-            .iter()
-            .flat_map(|(kf, _)| {
-                points
-                    .iter()
-                    .map(move |(t, _)| (*kf, *t, nalgebra::Point2::new(0.0, 0.0)))
-            })
-            .collect();
-        WindowInput {
-            poses,
-            points,
-            observations,
-            weak_observations: Vec::new(),
-        }
+        WindowInput::seeing_all(poses, points, 0)
     }
 
     #[test]

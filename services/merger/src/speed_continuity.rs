@@ -27,8 +27,8 @@ use egoslam_geometry::StampedPose;
 /// When and how the pace is measured; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SpeedContinuityOptions {
-    /// Inlier observations a keyframe needs for its centre to count (default 30, as for a
-    /// relocalized scale: the turn's keyframes with 0-10 are what this must skip).
+    /// Inlier observations a keyframe needs for its centre to count (default 30: the turn's
+    /// keyframes with 0-10 are what this must skip).
     pub min_observations: usize,
     /// Well-observed keyframes used on each side (default 30: ~1-2 s of walking, a few
     /// strides, so that the step bob averages out).
@@ -117,13 +117,13 @@ impl MapBuilder {
         min_speed: f64,
         options: &SpeedContinuityOptions,
     ) -> Option<f64> {
+        // Keyframe ids follow time: past the age limit every older keyframe is older still.
         let mut poses: Vec<&StampedPose> = self
             .keyframes
             .range(..before_id)
             .rev()
-            .filter(|(_, (s, p))| {
-                *s == segment && before.timestamp - p.timestamp <= options.max_age_s
-            })
+            .take_while(|(_, (_, p))| before.timestamp - p.timestamp <= options.max_age_s)
+            .filter(|(_, (s, _))| *s == segment)
             .filter(|(id, _)| self.observed_points(**id) >= options.min_observations)
             .map(|(_, (_, p))| p)
             .take(options.keyframes)
@@ -163,7 +163,7 @@ mod tests {
     use super::*;
     use crate::chaining::ScaleSource;
     use crate::WindowOutcome;
-    use nalgebra::{Point2, UnitQuaternion, Vector3};
+    use nalgebra::{UnitQuaternion, Vector3};
 
     fn pose(t: f64, x: f64) -> StampedPose {
         StampedPose {
@@ -195,20 +195,18 @@ mod tests {
         let points: Vec<(u64, Vector3<f64>)> = (0..60)
             .map(|k| (tracks + k, Vector3::new(k as f64 * 0.1 * depth, 0.2, depth)))
             .collect();
-        let observations = poses
-            .iter()
-            .skip(blind)
-            .flat_map(|(kf, _)| {
-                points
-                    .iter()
-                    .map(move |(t, _)| (*kf, *t, Point2::new(0.0, 0.0)))
-            })
-            .collect();
-        WindowInput {
-            poses,
-            points,
-            observations,
-            weak_observations: Vec::new(),
+        WindowInput::seeing_all(poses, points, blind)
+    }
+
+    /// The scale a chained window got and what gave it.
+    fn chained(outcome: WindowOutcome) -> (f64, ScaleSource) {
+        match outcome {
+            WindowOutcome::Aligned {
+                transform,
+                scale_source,
+                ..
+            } => (transform.scale, scale_source),
+            other => panic!("{other:?}"),
         }
     }
 
@@ -220,17 +218,9 @@ mod tests {
         // keyframes shared with the map saw nothing (in the map too they would be noise),
         // and no point is shared.
         let after = walk(25..45, 0.3, 0.75, 5000, 5);
-        match map.add_window(&after) {
-            WindowOutcome::Aligned {
-                transform,
-                scale_source,
-                ..
-            } => {
-                assert_eq!(scale_source, ScaleSource::WalkingPace);
-                assert!((transform.scale - 4.0).abs() < 1e-9, "{}", transform.scale);
-            }
-            other => panic!("{other:?}"),
-        }
+        let (scale, source) = chained(map.add_window(&after));
+        assert_eq!(source, ScaleSource::WalkingPace);
+        assert!((scale - 4.0).abs() < 1e-9, "{scale}");
     }
 
     #[test]
@@ -251,28 +241,15 @@ mod tests {
                 )
             });
         assert!(map.lacks_shared_points(&after));
-        match map.add_window(&after) {
-            WindowOutcome::Aligned {
-                transform,
-                scale_source,
-                ..
-            } => {
-                assert_eq!(scale_source, ScaleSource::WalkingPace);
-                assert!((transform.scale - 4.0).abs() < 1e-9, "{}", transform.scale);
-            }
-            other => panic!("{other:?}"),
-        }
+        let (scale, source) = chained(map.add_window(&after));
+        assert_eq!(source, ScaleSource::WalkingPace);
+        assert!((scale - 4.0).abs() < 1e-9, "{scale}");
         // Seen well on both sides, the same points do give it.
         let mut map = MapBuilder::new();
         map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
         let firm = walk(25..45, 0.3, 0.75, 1000, 0);
         assert!(!map.lacks_shared_points(&firm));
-        match map.add_window(&firm) {
-            WindowOutcome::Aligned { scale_source, .. } => {
-                assert_eq!(scale_source, ScaleSource::SharedPoints)
-            }
-            other => panic!("{other:?}"),
-        }
+        assert_eq!(chained(map.add_window(&firm)).1, ScaleSource::SharedPoints);
     }
 
     #[test]
@@ -303,11 +280,6 @@ mod tests {
             map.speed_continuity_scale(0, &after, &SpeedContinuityOptions::default()),
             None
         );
-        match map.add_window(&after) {
-            WindowOutcome::Aligned { scale_source, .. } => {
-                assert_eq!(scale_source, ScaleSource::Weak)
-            }
-            other => panic!("{other:?}"),
-        }
+        assert_eq!(chained(map.add_window(&after)).1, ScaleSource::Weak);
     }
 }

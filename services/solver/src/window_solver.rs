@@ -487,16 +487,15 @@ fn solve_connected(
         outlier[n] = true;
     }
     let mut counts = vec![0u32; points.len()];
+    // Inlier observations per keyframe, for place_unobserved_centres.
+    let mut seen = vec![0usize; n];
     let mut kept = Vec::with_capacity(observations.len());
     for (o, _) in observations.iter().zip(&outlier).filter(|(_, out)| !**out) {
         counts[o.point] += 1;
+        seen[o.camera] += 1;
         kept.push((o.camera, points[o.point].0, o.pixel));
     }
     let mut adjusted_poses = adjusted.poses;
-    let mut seen = vec![0usize; n];
-    for (k, _, _) in &kept {
-        seen[*k] += 1;
-    }
     let timestamps: Vec<f64> = keyframes.iter().map(|k| k.timestamp).collect();
     let placed = place_unobserved_centres(
         &mut adjusted_poses,
