@@ -13,7 +13,9 @@ mod pki;
 
 /// Runs the Python client against `egoslam run` on the fixture and checks that it saved
 /// the run's own trajectory. `client_args` and `run_args` carry the TLS options.
-/// One run at a time: two real-time pipelines on two cores drop frames.
+/// The replay is lossless: in real time (`--realtime`) a loaded CI machine dropped 1 and
+/// 3 of the 120 frames in two runs, and the run itself then posed 119 and 117, which the
+/// client matched but the frame count below did not. One run at a time all the same.
 fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], run_args: &[String]) {
     static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
@@ -36,7 +38,7 @@ fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], ru
     std::thread::sleep(Duration::from_millis(300));
     let results = out.path().join("run");
     let status = egoslam()
-        .args(["run", "--realtime", "--device", device, "--input"])
+        .args(["run", "--device", device, "--input"])
         .arg(tum_fixture())
         .arg("--out")
         .arg(&results)

@@ -175,8 +175,8 @@ def main():
         if args.until_finished:
             if not finished.wait(args.timeout):
                 raise SystemExit("the merger did not finish in time")
-            # The publishers drop rather than block the pipeline on a slow link (one pose
-            # of 120 went missing over TLS in CI): the final snapshot fills any such gap.
+            # The publishers drop rather than block the pipeline on a slow link: the final
+            # snapshot fills any such gap.
             fetch_snapshot()
         else:
             while True:
