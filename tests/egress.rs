@@ -132,7 +132,17 @@ fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
             p.frame_id
         );
     }
-    assert!(!snapshot.map.expect("map").points.is_empty());
+    // Every point goes out, each with how well it is known (map.ply keeps the known ones).
+    let points = snapshot.map.expect("map").points;
+    assert!(!points.is_empty());
+    assert!(
+        points.iter().all(|p| p.observations >= 2),
+        "observation counts"
+    );
+    assert!(
+        points.iter().filter(|p| p.relative_std.is_some()).count() * 10 > points.len() * 9,
+        "relative_std missing"
+    );
     assert!(statuses.iter().any(|s| s.service == "merger"
         && s.state == pb::ServiceState::Running as i32
         && s.windows >= 1));

@@ -102,6 +102,13 @@ pub struct PipelineArgs {
     /// off.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
+    /// Merger: map.ply holds only the map points whose standard deviation, from the
+    /// keyframes that saw them at 1 px noise, is at most this fraction of their distance to
+    /// the nearest of those keyframes ("inf": every point). Default 0.02 (6 cm at 3 m).
+    /// Zenoh carries every point with that figure; the saved map and the pipeline keep
+    /// every point (docs/merger.md, "Published points").
+    #[arg(long, default_value_t = 0.02)]
+    pub max_point_std: f64,
 }
 
 /// Where results go over zenoh (docs/egress.md).

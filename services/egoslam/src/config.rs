@@ -56,6 +56,7 @@ pub struct MergerSection {
     pub refine_keyframes: Option<usize>,
     pub refinement_lag: Option<u32>,
     pub loop_closure: Option<bool>,
+    pub max_point_std: Option<f64>,
 }
 
 /// `[zenoh]`: where results are published.
@@ -162,6 +163,11 @@ impl Config {
                 bail!("merger.global_ba_px = {px}: must be positive (inf disables)");
             }
         }
+        if let Some(std) = self.merger.max_point_std {
+            if std.is_nan() || std <= 0.0 {
+                bail!("merger.max_point_std = {std}: must be positive (inf publishes every point)");
+            }
+        }
         for e in self
             .zenoh
             .listen
@@ -233,6 +239,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "global_ba_px",
         &mut p.global_ba_px,
         &c.merger.global_ba_px,
+    );
+    fill(
+        m,
+        "max_point_std",
+        &mut p.max_point_std,
+        &c.merger.max_point_std,
     );
     fill(
         m,

@@ -93,6 +93,7 @@ fn window_sample() -> pb::WindowSolution {
                 z: 3.0,
             }),
             observations: 3,
+            relative_std: None,
         }],
         observations: (0..3)
             .map(|k| pb::Observation {

@@ -34,6 +34,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--refinement-lag={}", p.refinement_lag),
         format!("--loop-closure={}", p.loop_closure),
         format!("--global-ba-px={}", p.global_ba_px),
+        format!("--max-point-std={}", p.max_point_std),
         format!("--predict-motion={}", p.predict_motion),
     ];
     flags
@@ -329,6 +330,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "blind_frames": counter(frontend, "blind_frames"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),
+        "published_points": counter(merger, "published_points"),
         "peak_rss_mib": peak_memory(&stats),
         "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
         "recovered_windows": counter(merger, "recovered_windows"),

@@ -5,10 +5,12 @@ use crate::convert::{pose_to_pb, vec3_to_pb};
 use crate::output::{ply_text, tum_text, write_atomically};
 use egoslam_egress::Egress;
 use egoslam_geometry::StampedPose;
-use egoslam_merger::{interpolate_frames, MapBuilder};
+use egoslam_merger::{
+    interpolate_frames, point_confidence, MapBuilder, PointConfidence, PointConfidenceOptions,
+};
 use egoslam_messages::v1 as pb;
 use nalgebra::{Point2, Vector3};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 /// A frame between keyframes waiting for its next keyframe to reach the map.
@@ -109,6 +111,8 @@ pub struct MapState {
     pub keyframes: Vec<PosedFrame>,
     pub frames: Vec<PosedFrame>,
     pub points: Vec<(u64, Vector3<f64>)>,
+    /// How well each point is known, once attached ([`MapState::with_confidence`]).
+    pub confidence: Option<HashMap<u64, PointConfidence>>,
 }
 
 impl MapState {
@@ -150,15 +154,46 @@ impl MapState {
             keyframes,
             frames,
             points,
+            confidence: None,
         }
+    }
+
+    /// Attaches how well each point is known (point_confidence.rs), for an ideal pinhole of
+    /// focal length `focal_px`: map.ply keeps the known ones, zenoh carries every point with
+    /// its standard deviation.
+    pub fn with_confidence(
+        mut self,
+        map: &MapBuilder,
+        focal_px: f64,
+        options: &PointConfidenceOptions,
+    ) -> Self {
+        self.confidence = Some(point_confidence(map, focal_px, options));
+        self
+    }
+
+    /// The points map.ply holds: those known within `options` (every point when no
+    /// confidence was attached, as before the first window brought the camera).
+    pub fn known_points(&self, options: &PointConfidenceOptions) -> Vec<Vector3<f64>> {
+        self.points
+            .iter()
+            .filter(|(track, _)| match &self.confidence {
+                None => true,
+                Some(c) => c.get(track).is_some_and(|c| c.is_known(options)),
+            })
+            .map(|p| p.1)
+            .collect()
     }
 
     /// trajectory.tum, keyframes.tum, keyframe_segments.txt, map.ply, each written
     /// atomically. The segments file says which map segment (own gauge and scale) each
     /// keyframe is in, so that a run with breaks can be evaluated segment by segment.
-    pub fn write_files(&self, out: &Path) -> anyhow::Result<()> {
+    pub fn write_files(
+        &self,
+        out: &Path,
+        published: &PointConfidenceOptions,
+    ) -> anyhow::Result<()> {
         let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
-        let points: Vec<Vector3<f64>> = self.points.iter().map(|p| p.1).collect();
+        let points = self.known_points(published);
         write_atomically(
             &out.join("trajectory.tum"),
             tum_text(&poses(&self.frames)).as_bytes(),
@@ -254,10 +289,14 @@ pub fn publish(
     let keyframes = trajectory(&state.keyframes);
     egress.publish_trajectory(&keyframes)?;
     let all: BTreeMap<u64, Vector3<f64>> = state.points.iter().copied().collect();
-    let point = |track: u64, x: &Vector3<f64>| pb::MapPoint {
-        track_id: track,
-        position: Some(vec3_to_pb(x)),
-        observations: 0,
+    let point = |track: u64, x: &Vector3<f64>| {
+        let confidence = state.confidence.as_ref().and_then(|c| c.get(&track));
+        pb::MapPoint {
+            track_id: track,
+            position: Some(vec3_to_pb(x)),
+            observations: confidence.map_or(0, |c| c.views),
+            relative_std: confidence.and_then(|c| c.relative_std),
+        }
     };
     let changed: Vec<pb::MapPoint> = changed_points
         .iter()
@@ -307,6 +346,7 @@ mod tests {
             keyframes: Vec::new(),
             frames: vec![frame(1, 0.5), frame(2, 0.0)],
             points: Vec::new(),
+            confidence: None,
         };
         let mut after = Revisions::resume(&before.numbers(), &state);
         assert!(after.changed(&state.frames).is_empty(), "nothing moved");

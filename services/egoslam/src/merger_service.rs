@@ -21,7 +21,7 @@ use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{WindowInput, WindowOutcome};
+use egoslam_merger::{PointConfidenceOptions, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
 use egoslam_solver::triangulation::TriangulationOptions;
@@ -33,13 +33,17 @@ use std::path::Path;
 struct Outputs {
     egress: Option<Egress>,
     revisions: Revisions,
+    /// Which map points map.ply holds (zenoh carries all, with their confidence).
+    point_confidence: PointConfidenceOptions,
 }
 
 impl Outputs {
+    #[allow(clippy::too_many_arguments)]
     fn emit(
         &mut self,
         out: &Path,
         merger: &MergerState,
+        camera: Option<&PinholeRadtan>,
         changed_points: &[u64],
         state: pb::ServiceState,
         stats: &mut ServiceStats,
@@ -49,9 +53,13 @@ impl Outputs {
             return Ok(()); // nobody reads the poses of every frame now: don't compute them
         }
         let (map, index) = (&merger.map, &merger.frames);
-        let snapshot = MapState::of(map, index);
+        let mut snapshot = MapState::of(map, index);
+        if let Some(camera) = camera {
+            snapshot = snapshot.with_confidence(map, camera.fx, &self.point_confidence);
+        }
+        let published = snapshot.known_points(&self.point_confidence).len();
         if persist {
-            snapshot.write_files(out)?;
+            snapshot.write_files(out, &self.point_confidence)?;
         }
         stats.frames = index.frames.len() as u64;
         stats.keyframes = snapshot.keyframes.len() as u64;
@@ -70,6 +78,9 @@ impl Outputs {
         stats
             .counters
             .insert("map_points".into(), snapshot.points.len() as u64);
+        stats
+            .counters
+            .insert("published_points".into(), published as u64);
         if persist {
             stats.write(out)?;
         }
@@ -238,6 +249,7 @@ impl Merger {
         self.outputs.emit(
             &self.args.out,
             &self.state,
+            self.camera.as_ref(),
             changed,
             state,
             &mut self.stats,
@@ -474,6 +486,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let outputs = Outputs {
         egress: open_egress(&args)?,
         revisions: Revisions::default(),
+        point_confidence: PointConfidenceOptions {
+            max_relative_std: args.pipeline.max_point_std,
+            ..PointConfidenceOptions::default()
+        },
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.

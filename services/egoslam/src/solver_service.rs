@@ -241,6 +241,7 @@ fn solve(
                 track_id: p.track_id,
                 position: Some(vec3_to_pb(&p.position)),
                 observations: p.observations,
+                relative_std: None,
             })
             .collect(),
         observations: observation_messages(kfs, &solution.observations),

@@ -4,6 +4,7 @@
 
 pub mod alignment;
 pub mod camera;
+pub mod point_uncertainty;
 pub mod relative_pose_error;
 pub mod structure_error;
 pub mod trajectory;
@@ -12,6 +13,7 @@ pub use alignment::{
     nearest_rotation, umeyama, umeyama_ransac, AlignmentError, RobustAlignmentOptions, Similarity,
 };
 pub use camera::{CameraError, PinholeRadtan};
+pub use point_uncertainty::PointInformation;
 pub use relative_pose_error::{relative_pose_error, RpeReport};
 pub use structure_error::{alignment_from_poses, structure_error, StructureReport};
 pub use trajectory::{absolute_trajectory_error, associate, AteReport, StampedPose};

@@ -6,6 +6,7 @@ pub mod chaining;
 pub mod frame_localization;
 pub mod interpolation;
 pub mod loop_closure;
+pub mod point_confidence;
 pub mod refinement;
 pub mod relocalized_scale;
 pub mod retriangulation;
@@ -29,6 +30,7 @@ pub(crate) fn median(mut values: Vec<f64>) -> Option<f64> {
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
+pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use relocalized_scale::{relocalized_window_scale, RelocalizedScale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;
