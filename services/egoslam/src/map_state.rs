@@ -5,13 +5,12 @@ use crate::convert::{pose_to_pb, vec3_to_pb};
 use crate::output::{ply_text, tum_text, write_atomically};
 use egoslam_egress::Egress;
 use egoslam_geometry::StampedPose;
-use egoslam_merger::{
-    interpolate_frames, point_confidence, MapBuilder, PointConfidence, PointConfidenceOptions,
-};
+use egoslam_merger::{interpolate_frames, MapBuilder, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
 use nalgebra::{Point2, Vector3};
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+use std::sync::Arc;
 
 /// A frame between keyframes waiting for its next keyframe to reach the map.
 #[derive(Debug, Clone, PartialEq)]
@@ -112,7 +111,7 @@ pub struct MapState {
     pub frames: Vec<PosedFrame>,
     pub points: Vec<(u64, Vector3<f64>)>,
     /// How well each point is known, once attached ([`MapState::with_confidence`]).
-    pub confidence: Option<HashMap<u64, PointConfidence>>,
+    pub confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
 }
 
 impl MapState {
@@ -158,16 +157,10 @@ impl MapState {
         }
     }
 
-    /// Attaches how well each point is known (point_confidence.rs), for an ideal pinhole of
-    /// focal length `focal_px`: map.ply keeps the known ones, zenoh carries every point with
-    /// its standard deviation.
-    pub fn with_confidence(
-        mut self,
-        map: &MapBuilder,
-        focal_px: f64,
-        options: &PointConfidenceOptions,
-    ) -> Self {
-        self.confidence = Some(point_confidence(map, focal_px, options));
+    /// Attaches how well each point is known (point_confidence.rs): map.ply keeps the
+    /// known ones, zenoh carries every point with its standard deviation.
+    pub fn with_confidence(mut self, confidence: Arc<HashMap<u64, PointConfidence>>) -> Self {
+        self.confidence = Some(confidence);
         self
     }
 

@@ -21,13 +21,16 @@ use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{PointConfidenceOptions, WindowInput, WindowOutcome};
+use egoslam_merger::{
+    point_confidence, PointConfidence, PointConfidenceOptions, WindowInput, WindowOutcome,
+};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::path::Path;
+use std::sync::Arc;
 
 /// Files, stats and (when enabled) zenoh, from one snapshot of the map.
 struct Outputs {
@@ -35,6 +38,8 @@ struct Outputs {
     revisions: Revisions,
     /// Which map points map.ply holds (zenoh carries all, with their confidence).
     point_confidence: PointConfidenceOptions,
+    /// The last scores of the map's points (recomputed when the files are written).
+    confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
 }
 
 impl Outputs {
@@ -55,7 +60,18 @@ impl Outputs {
         let (map, index) = (&merger.map, &merger.frames);
         let mut snapshot = MapState::of(map, index);
         if let Some(camera) = camera {
-            snapshot = snapshot.with_confidence(map, camera.fx, &self.point_confidence);
+            // Scoring every point is a pass over every observation: done when the files
+            // are written (at most every 5 s, and at the end); in between, a new point
+            // goes out over zenoh without its figure and the last scores serve the rest.
+            if persist || self.confidence.is_none() {
+                let scored = stats.time("point_confidence", || {
+                    point_confidence(map, camera.fx, &self.point_confidence)
+                });
+                self.confidence = Some(Arc::new(scored));
+            }
+        }
+        if let Some(confidence) = &self.confidence {
+            snapshot = snapshot.with_confidence(Arc::clone(confidence));
         }
         let published = snapshot.known_points(&self.point_confidence).len();
         if persist {
@@ -490,6 +506,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             max_relative_std: args.pipeline.max_point_std,
             ..PointConfidenceOptions::default()
         },
+        confidence: None,
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.

@@ -60,15 +60,35 @@ impl PointInformation {
         if !self.nearest_depth.is_finite() {
             return None;
         }
-        let eigen = self.information.symmetric_eigenvalues();
-        let weakest = eigen.min();
+        let (weakest, strongest) = symmetric_eigenvalue_range(&self.information);
         // The strongest direction bounds the scale of the matrix: below 1e-12 of it the
         // weakest is rounding noise, not information.
-        if weakest <= 1e-12 * eigen.max() {
+        if weakest <= 1e-12 * strongest {
             return None;
         }
         Some(pixel_sigma / weakest.sqrt() / self.nearest_depth)
     }
+}
+
+/// Smallest and largest eigenvalue of a symmetric 3 x 3 matrix in closed form (Smith,
+/// "Eigenvalues of a symmetric 3 x 3 matrix", CACM 1961): a map's points are scored every
+/// few seconds, hundreds of thousands at a time, where an iterative decomposition cost
+/// ~0.5 s per pass on the 12,000-frame walk.
+fn symmetric_eigenvalue_range(a: &Matrix3<f64>) -> (f64, f64) {
+    let off = a[(0, 1)].powi(2) + a[(0, 2)].powi(2) + a[(1, 2)].powi(2);
+    let q = a.trace() / 3.0;
+    let diagonal = (a[(0, 0)] - q).powi(2) + (a[(1, 1)] - q).powi(2) + (a[(2, 2)] - q).powi(2);
+    let p2 = diagonal + 2.0 * off;
+    if p2 <= f64::MIN_POSITIVE {
+        return (q, q);
+    }
+    let p = (p2 / 6.0).sqrt();
+    let b = (a - Matrix3::identity() * q) / p;
+    let r = (b.determinant() / 2.0).clamp(-1.0, 1.0);
+    let phi = r.acos() / 3.0;
+    let largest = q + 2.0 * p * phi.cos();
+    let smallest = q + 2.0 * p * (phi + 2.0 * std::f64::consts::PI / 3.0).cos();
+    (smallest, largest)
 }
 
 #[cfg(test)]
@@ -113,6 +133,17 @@ mod tests {
         let aside = aside.relative_std(1.0).expect("determined");
         assert!(ahead > 20.0 * aside, "ahead {ahead}, aside {aside}");
         assert!(aside < 0.05, "aside {aside}");
+    }
+
+    #[test]
+    fn closed_form_eigenvalues_match_the_iterative_ones() {
+        let m =
+            nalgebra::Matrix3x4::new(1.0, 0.2, -0.3, 2.0, 0.5, 1.5, 0.1, -1.0, 0.0, 0.3, 2.5, 0.7);
+        for a in [m * m.transpose(), Matrix3::from_diagonal_element(2.0)] {
+            let (lo, hi) = symmetric_eigenvalue_range(&a);
+            let eig = a.symmetric_eigenvalues();
+            assert!((lo - eig.min()).abs() < 1e-9 && (hi - eig.max()).abs() < 1e-9);
+        }
     }
 
     #[test]

@@ -192,6 +192,27 @@ impl MapBuilder {
         window: &WindowInput,
         relocalized_scale: Option<crate::RelocalizedScale>,
     ) -> WindowOutcome {
+        let first_new = window
+            .poses
+            .iter()
+            .position(|(id, _)| {
+                !matches!(self.keyframes.get(id), Some((s, _)) if Some(*s) == self.current_segment)
+            })
+            .unwrap_or(window.poses.len());
+        let options = crate::interior_cut::InteriorCutOptions::default();
+        let rescaled = crate::interior_cut::rescale_after_weak_cut(window, first_new, &options);
+        let window = match &rescaled {
+            Some((rescaled, cut, scale)) => {
+                tracing::info!(
+                    after_keyframe = window.poses[cut.after].0,
+                    transfer_points = cut.transfer_points,
+                    scale,
+                    "weak cut inside the window: the keyframes after it take the pace before"
+                );
+                rescaled
+            }
+            None => window,
+        };
         let shared = self
             .current_segment
             .map(|seg| (seg, self.shared_with(window, seg)));

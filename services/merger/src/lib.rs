@@ -4,6 +4,7 @@
 
 pub mod chaining;
 pub mod frame_localization;
+pub mod interior_cut;
 pub mod interpolation;
 pub mod loop_closure;
 pub mod point_confidence;

@@ -91,7 +91,7 @@ pub fn walking_pace(
 }
 
 /// The window's pace over its first well-observed keyframes, in window units per second.
-fn window_pace(
+pub(crate) fn window_pace(
     window: &WindowInput,
     min_speed: f64,
     options: &SpeedContinuityOptions,

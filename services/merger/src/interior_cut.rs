@@ -1,0 +1,261 @@
+//! A window whose keyframes fall into two groups that almost no point links: its solve
+//! has no measure of the second group's scale relative to the first, and the merger must
+//! not take the one the solver happened to return.
+//!
+//! Inside a window the scale passes from keyframe to keyframe through points seen on both
+//! sides, each triangulated by at least two views on each side. On the rendered
+//! 12,000-frame walk, window 199 (keyframes 2981-3000) held a quick turn after a frame gap:
+//! across the cut between keyframes 2989 and 2990 three points were seen twice on either
+//! side (400-600 across every other cut), and the window's solve gave the keyframes after
+//! it steps 2.6x longer in window units than those before (metres per unit 5.7 before, 15
+//! after). The next windows chained onto that scale through hundreds of shared points, so
+//! the whole rest of the walk carried it.
+//!
+//! Such a cut is what a weak join between windows is ([`crate::speed_continuity`]), only
+//! inside one solve: the part after it gets the scale that gives it the walking pace of the
+//! part before, both measured in the window's own frame, and the points triangulated
+//! across it (positions mixing the two scales) are left out.
+
+use crate::chaining::WindowInput;
+use crate::scene_depth::window_scene_depth;
+use crate::speed_continuity::{window_pace, SpeedContinuityOptions};
+use std::collections::{HashMap, HashSet};
+
+/// When a cut is weak and how the pace is measured across it; defaults commented.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InteriorCutOptions {
+    /// A cut is weak below this many points seen by at least two keyframes on each side
+    /// (default 20). On the 12,000-frame walk the weak cut had 3 and its neighbours 5-25;
+    /// cuts elsewhere have 100-600, and the shared-points join of two windows asks for 30
+    /// ([`crate::window_alignment`]), of which a cut inside a solve needs fewer as the views
+    /// on both sides were fitted together.
+    pub min_transfer_points: usize,
+    /// Shortest time of moving steps on each side, seconds (default 0.25). Both sides are
+    /// parts of one window, a second of walking at most when keyframes are dense (head
+    /// scans); the join between windows asks for 0.5 s.
+    pub min_span_s: f64,
+    /// The part after the cut is rescaled only when the paces disagree by more than this
+    /// factor (default 1.25). Over a quarter to half a second the pace varies with the
+    /// stride (bob, step phase) by 10-20 %; a smaller disagreement says the solve's scale,
+    /// which rests on a few points, is as good as the pace. On the rendered head shake
+    /// the pace gave 0.99 at a cut crossed by 7 points, and rescaling (dropping those
+    /// points) moved the keyframe ATE from 0.17 to 0.20 m; the 12,000-frame walk's cut
+    /// asked for 2.7.
+    pub min_correction: f64,
+}
+
+impl Default for InteriorCutOptions {
+    fn default() -> Self {
+        Self {
+            min_transfer_points: 20,
+            min_span_s: 0.25,
+            min_correction: 1.25,
+        }
+    }
+}
+
+/// The weakest cut of a window: after keyframe index `after`, with `transfer_points`
+/// points seen twice or more on each side.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cut {
+    pub after: usize,
+    pub transfer_points: usize,
+}
+
+/// The weakest cut after keyframe index `first_new` (cuts before the first new keyframe are
+/// the join with the map, judged when chaining) with two keyframes or more on each side, or
+/// `None` when the window has no such cut.
+pub fn weakest_cut(window: &WindowInput, first_new: usize) -> Option<Cut> {
+    let index: HashMap<u64, usize> = window
+        .poses
+        .iter()
+        .enumerate()
+        .map(|(i, (id, _))| (*id, i))
+        .collect();
+    let mut views: HashMap<u64, Vec<usize>> = HashMap::new();
+    for (kf, track, _) in &window.observations {
+        if let Some(i) = index.get(kf) {
+            views.entry(*track).or_default().push(*i);
+        }
+    }
+    // Two keyframes on each side at least: a side of one has nothing seen twice.
+    let last = window.poses.len().checked_sub(3)?;
+    (first_new.max(1)..=last)
+        .map(|after| {
+            let transfer_points = views
+                .values()
+                .filter(|v| {
+                    let before = v.iter().filter(|&&i| i <= after).count();
+                    before >= 2 && v.len() - before >= 2
+                })
+                .count();
+            Cut {
+                after,
+                transfer_points,
+            }
+        })
+        // The weakest; of equals the earliest.
+        .min_by_key(|c| (c.transfer_points, c.after))
+}
+
+/// `window` with the keyframes after `cut` scaled about the last keyframe before it so
+/// that they walk at the pace of those before, and without the points triangulated across
+/// it. `None` when the cut is not weak, either side has no pace, or the paces agree within
+/// [`InteriorCutOptions::min_correction`].
+pub fn rescale_after_weak_cut(
+    window: &WindowInput,
+    first_new: usize,
+    options: &InteriorCutOptions,
+) -> Option<(WindowInput, Cut, f64)> {
+    let cut = weakest_cut(window, first_new)?;
+    if cut.transfer_points >= options.min_transfer_points {
+        return None;
+    }
+    let split = cut.after + 1;
+    let before_ids: HashSet<u64> = window.poses[..split].iter().map(|(id, _)| *id).collect();
+    let side = |keep_before: bool| WindowInput {
+        poses: window
+            .poses
+            .iter()
+            .filter(|(id, _)| before_ids.contains(id) == keep_before)
+            .copied()
+            .collect(),
+        points: window.points.clone(),
+        observations: window
+            .observations
+            .iter()
+            .filter(|(kf, _, _)| before_ids.contains(kf) == keep_before)
+            .copied()
+            .collect(),
+        weak_observations: Vec::new(),
+    };
+    let (before, after) = (side(true), side(false));
+    let pace_options = SpeedContinuityOptions {
+        min_span_s: options.min_span_s,
+        ..SpeedContinuityOptions::default()
+    };
+    let depth = window_scene_depth(window)?;
+    let floor = pace_options.min_speed_depths_per_s * depth;
+    let scale =
+        window_pace(&before, floor, &pace_options)? / window_pace(&after, floor, &pace_options)?;
+    if !(scale.is_finite() && scale > 0.0) || scale.max(1.0 / scale) <= options.min_correction {
+        return None;
+    }
+    let pivot = window.poses[cut.after].1.position;
+    let mut sides: HashMap<u64, (bool, bool)> = HashMap::new();
+    for (kf, track, _) in &window.observations {
+        let entry = sides.entry(*track).or_default();
+        if before_ids.contains(kf) {
+            entry.0 = true;
+        } else {
+            entry.1 = true;
+        }
+    }
+    let across = |track: &u64| sides.get(track).is_some_and(|s| s.0 && s.1);
+    let mut rescaled = window.clone();
+    for (id, pose) in &mut rescaled.poses {
+        if !before_ids.contains(id) {
+            pose.position = pivot + (pose.position - pivot) * scale;
+        }
+    }
+    rescaled.points.retain(|(track, _)| !across(track));
+    for (track, x) in &mut rescaled.points {
+        if sides.get(track).is_some_and(|s| s.1) {
+            *x = pivot + (*x - pivot) * scale;
+        }
+    }
+    rescaled.observations.retain(|(_, track, _)| !across(track));
+    Some((rescaled, cut, scale))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use egoslam_geometry::StampedPose;
+    use nalgebra::{Point2, UnitQuaternion, Vector3};
+
+    /// 20 keyframes at 20 per second walking along x at 1 unit/s; the solve gave those
+    /// from index 10 on `jump` times longer steps. Points: 60 seen by keyframes 0-9, 60 by
+    /// 10-19, 60 by 7-10 and 60 by 9-12 (each crosses the cut between 9 and 10 with one
+    /// view on one side), and `across` seen by 8-11.
+    fn window(jump: f64, across: u64) -> WindowInput {
+        let mut x = 0.0;
+        let poses: Vec<(u64, StampedPose)> = (0..20u64)
+            .map(|i| {
+                if i > 0 {
+                    x += if i >= 10 { 0.05 * jump } else { 0.05 };
+                }
+                let pose = StampedPose {
+                    timestamp: i as f64 * 0.05,
+                    position: Vector3::new(x, 0.0, 0.0),
+                    rotation: UnitQuaternion::identity(),
+                };
+                (100 + i, pose)
+            })
+            .collect();
+        let mut points = Vec::new();
+        let mut observations = Vec::new();
+        let mut add = |track: u64, kfs: std::ops::Range<u64>, at: Vector3<f64>| {
+            points.push((track, at));
+            for k in kfs {
+                observations.push((100 + k, track, Point2::new(0.0, 0.0)));
+            }
+        };
+        for t in 0..60 {
+            add(t, 0..10, Vector3::new(0.01 * t as f64, 1.0, 3.0));
+            add(
+                1000 + t,
+                10..20,
+                Vector3::new(0.5 + jump * 0.01 * t as f64, 1.0, 3.0),
+            );
+        }
+        for t in 0..60 {
+            add(3000 + t, 7..11, Vector3::new(0.4, 0.0, 3.0));
+            add(4000 + t, 9..13, Vector3::new(0.6, 0.0, 3.0));
+        }
+        for t in 0..across {
+            add(2000 + t, 8..12, Vector3::new(0.5, 0.0, 3.0));
+        }
+        WindowInput {
+            poses,
+            points,
+            observations,
+            weak_observations: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_part_after_a_weak_cut_walks_at_the_pace_of_the_part_before() {
+        let w = window(2.6, 3);
+        assert_eq!(
+            weakest_cut(&w, 5),
+            Some(Cut {
+                after: 9,
+                transfer_points: 3
+            })
+        );
+        let (rescaled, cut, scale) =
+            rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).expect("weak");
+        assert_eq!(cut.after, 9);
+        assert!((scale - 1.0 / 2.6).abs() < 1e-9, "{scale}");
+        let step =
+            |w: &WindowInput, i: usize| (w.poses[i].1.position - w.poses[i - 1].1.position).norm();
+        assert!((step(&rescaled, 15) - 0.05).abs() < 1e-9);
+        assert_eq!(rescaled.poses[9], w.poses[9], "the part before stays");
+        assert!(
+            rescaled.points.iter().all(|(t, _)| *t < 2000),
+            "points across dropped"
+        );
+        assert_eq!(rescaled.points.len(), 120);
+        assert!(rescaled.observations.iter().all(|(_, t, _)| *t < 2000));
+    }
+
+    #[test]
+    fn a_cut_many_points_cross_or_paces_that_agree_are_left_alone() {
+        let w = window(2.6, 40);
+        assert_eq!(weakest_cut(&w, 5).map(|c| c.transfer_points), Some(40));
+        assert!(rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).is_none());
+        let w = window(1.1, 3);
+        assert!(rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).is_none());
+    }
+}
