@@ -48,6 +48,8 @@ pub struct BackgroundRefiner {
     /// The lag of the running refinement (`fold_lag`, or more for a large job).
     job_lag: u32,
     worker: Option<JoinHandle<Option<RefinementOutcome>>>,
+    /// The newest keyframe the running job knows (`None` when none runs).
+    running_newest: Option<u64>,
 }
 
 impl BackgroundRefiner {
@@ -63,6 +65,7 @@ impl BackgroundRefiner {
             windows_since_start: 0,
             job_lag: fold_lag,
             worker: None,
+            running_newest: None,
         }
     }
 
@@ -78,6 +81,13 @@ impl BackgroundRefiner {
     /// Whether a refinement is running (started, not folded yet).
     pub fn is_running(&self) -> bool {
         self.worker.is_some()
+    }
+
+    /// Whether a running refinement holds a copy of `keyframe` (or of a later one): its fold
+    /// would then overwrite a change made to that keyframe meanwhile. Keyframes newer than
+    /// everything the job knows are carried rigidly at the fold and may be changed.
+    pub fn holds_keyframes_from(&self, keyframe: u64) -> bool {
+        self.worker.is_some() && self.running_newest.is_none_or(|newest| newest >= keyframe)
     }
 
     /// After a window was aligned: measures how well the map's earlier points reproject
@@ -106,6 +116,7 @@ impl BackgroundRefiner {
                 stats.count("refinements_started", 1);
                 self.windows_since_start = 0;
                 self.job_lag = job_lag(self.fold_lag, job.keyframes());
+                self.running_newest = job.newest_known_keyframe();
                 self.worker = Some(std::thread::spawn(move || {
                     let _span = tracing::info_span!("global_refinement").entered();
                     job.solve()
@@ -141,6 +152,7 @@ impl BackgroundRefiner {
         let Some(worker) = self.worker.take() else {
             return false;
         };
+        self.running_newest = None;
         let wait_start = std::time::Instant::now();
         let outcome = match worker.join() {
             Ok(o) => o,

@@ -6,7 +6,7 @@ use crate::convert::{pose_from_pb, pose_to_pb, vec3_from_pb, vec3_to_pb};
 use crate::map_state::{FrameIndex, LocalizedFrame, PendingFrame};
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
-use egoslam_merger::{MapBuilder, MapParts};
+use egoslam_merger::{MapBuilder, MapParts, ProvisionalScale};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::MapFeature;
 use nalgebra::Point2;
@@ -94,6 +94,12 @@ impl MergerState {
                 .collect(),
             current_segment: parts.current_segment,
             segments: parts.segments,
+            provisional_scale: parts.provisional.map(|p| pb::ProvisionalScale {
+                segment_id: p.segment,
+                first_keyframe_id: p.first_keyframe,
+                pace_before: p.pace_before,
+                windows_since: p.windows_since,
+            }),
             frames: self
                 .frames
                 .frames
@@ -201,6 +207,12 @@ impl MergerState {
             },
             current_segment: m.current_segment,
             segments: m.segments,
+            provisional: m.provisional_scale.as_ref().map(|p| ProvisionalScale {
+                segment: p.segment_id,
+                first_keyframe: p.first_keyframe_id,
+                pace_before: p.pace_before,
+                windows_since: p.windows_since,
+            }),
         };
         Ok(Self {
             map: MapBuilder::from_parts(parts),

@@ -369,6 +369,27 @@ impl Merger {
         let outcome = self.stats.time("align", || {
             map.add_window_with_scale(&input, relocalized_scale)
         });
+        // A stretch chained with an unmeasured scale is rescaled once it walks; not while
+        // a background refinement holds a copy of its keyframes (the fold would undo it).
+        let held = self
+            .state
+            .map
+            .provisional_scale()
+            .is_some_and(|p| self.refiner.holds_keyframes_from(p.first_keyframe));
+        if !held {
+            if let Some(settled) = self.state.map.settle_provisional_scale() {
+                tracing::info!(
+                    first_keyframe = settled.first_keyframe,
+                    scale = settled.scale,
+                    keyframes = settled.keyframes,
+                    points = settled.points,
+                    "provisional scale settled by the walking pace"
+                );
+                if settled.keyframes > 0 {
+                    self.stats.count("rescaled_stretches", 1);
+                }
+            }
+        }
         if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
             let map = &mut self.state.map;
             let options = TriangulationOptions::default();

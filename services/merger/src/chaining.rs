@@ -111,6 +111,8 @@ pub struct MapParts {
     pub current_segment: Option<u32>,
     /// Segments created so far.
     pub segments: u32,
+    /// A stretch chained with an unmeasured scale, waiting for a pace (provisional_scale.rs).
+    pub provisional: Option<crate::provisional_scale::ProvisionalScale>,
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -128,6 +130,8 @@ pub struct MapBuilder {
     pub(crate) weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
     pub(crate) current_segment: Option<u32>,
     segments: u32,
+    /// See [`MapParts::provisional`].
+    pub(crate) provisional: Option<crate::provisional_scale::ProvisionalScale>,
 }
 
 impl MapBuilder {
@@ -233,6 +237,9 @@ impl MapBuilder {
                     scale = transform.scale,
                     "window scale"
                 );
+                if let Some((id, _)) = window.poses.get(first_new) {
+                    self.note_chaining_scale(seg, *id, scale_source);
+                }
                 (
                     seg,
                     transform,
@@ -293,6 +300,7 @@ impl MapBuilder {
             weak: self.weak.clone(),
             current_segment: self.current_segment,
             segments: self.segments,
+            provisional: self.provisional,
         }
     }
 
@@ -305,6 +313,7 @@ impl MapBuilder {
             weak: parts.weak,
             current_segment: parts.current_segment,
             segments: parts.segments,
+            provisional: parts.provisional,
         }
     }
 

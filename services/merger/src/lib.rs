@@ -8,6 +8,7 @@ pub mod interior_cut;
 pub mod interpolation;
 pub mod loop_closure;
 pub mod point_confidence;
+pub mod provisional_scale;
 pub mod refinement;
 pub mod relocalized_scale;
 pub mod retriangulation;
@@ -32,6 +33,7 @@ pub use frame_localization::{localize_frame, LocalizationError, LocalizationOpti
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
+pub use provisional_scale::{ProvisionalScale, SettledScale};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use relocalized_scale::{relocalized_window_scale, RelocalizedScale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;

@@ -109,6 +109,12 @@ impl RefinementJob {
         self.ids.len()
     }
 
+    /// The newest keyframe of the segment when the job was made: keyframes after it are
+    /// carried rigidly when the job is folded, so they may be changed meanwhile.
+    pub fn newest_known_keyframe(&self) -> Option<u64> {
+        self.known_keyframes.last().copied()
+    }
+
     /// Runs the bundle adjustment (seconds for a thousand keyframes; call it off the
     /// merger's thread). `None` when the solver rejects the problem.
     pub fn solve(self) -> Option<RefinementOutcome> {

@@ -110,7 +110,7 @@ pub(crate) fn window_pace(
 impl MapBuilder {
     /// The segment's pace over its newest well-observed keyframes before keyframe
     /// `before_id` (posed `before` in the window), in map units per second.
-    fn recent_pace(
+    pub(crate) fn recent_pace(
         &self,
         segment: u32,
         (before_id, before): (u64, &StampedPose),

@@ -1,0 +1,249 @@
+//! The scale of a stretch chained with nothing to measure it, settled once the wearer walks.
+//!
+//! A window chained with [`ScaleSource::Weak`] (no shared points with support, no
+//! relocalization, no pace on its side) gets a scale from the centres or the scene depth,
+//! and the windows after it chain onto that scale through their shared points. On the
+//! rendered 12,000-frame walk this happens where the wearer starts walking again after a
+//! stop: the window that spans the restart walks for 0.2 s of its 20 keyframes, too little
+//! for a pace, and the scale it got (from the scene depth) was 1.6x off; every later window
+//! inherited it (metres per map unit 10 before keyframe 1980, 16 after).
+//!
+//! Such a stretch is marked provisional. After each later window of the segment, once the
+//! keyframes from the stretch's first one on walk long enough for a pace
+//! ([`crate::speed_continuity`]), the whole stretch (its keyframes, and the points only its
+//! keyframes see) is scaled about the keyframe before it to the pace the segment had
+//! before the stretch. It is the walking-pace prior of a weak join, applied when the pace
+//! after the join can be measured instead of at the join.
+
+use crate::chaining::{MapBuilder, ScaleSource};
+use crate::speed_continuity::SpeedContinuityOptions;
+use std::collections::HashSet;
+
+/// Tries after which an unsettled stretch is given up (its scale stays): 5 windows, ~4 s of
+/// keyframes while walking, by which a restart after a stop has long shown its pace.
+const MAX_TRIES: u32 = 5;
+
+/// A stretch of a segment whose scale is not measured yet.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProvisionalScale {
+    pub segment: u32,
+    /// The first keyframe chained with the unmeasured scale; every later keyframe of the
+    /// segment is chained onto it.
+    pub first_keyframe: u64,
+    /// The segment's walking pace before it, map units per second.
+    pub pace_before: f64,
+    /// Settling tries since (one per window the caller let it try).
+    pub windows_since: u32,
+}
+
+/// What settling a provisional stretch did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SettledScale {
+    pub first_keyframe: u64,
+    /// Factor applied about the keyframe before the stretch (1 when the paces agreed).
+    pub scale: f64,
+    pub keyframes: usize,
+    pub points: usize,
+}
+
+/// Paces that agree within this factor leave the stretch as it is (as for a weak cut inside
+/// a window, [`crate::interior_cut::InteriorCutOptions::min_correction`]: the pace varies by
+/// 10-20 % over a second of walking).
+const MIN_CORRECTION: f64 = 1.25;
+
+impl MapBuilder {
+    /// When a window is chained onto `segment` with `source`, its keyframes from `first_new`
+    /// on being new, before they join the map: a weak scale starts a provisional stretch
+    /// (replacing any older one).
+    pub(crate) fn note_chaining_scale(
+        &mut self,
+        segment: u32,
+        first_new: u64,
+        source: ScaleSource,
+    ) {
+        if source != ScaleSource::Weak {
+            return;
+        }
+        // Called before the window's keyframes join the map: what is there is the past.
+        let options = SpeedContinuityOptions::default();
+        let Some(depth) = self.recent_scene_depth(segment) else {
+            return;
+        };
+        let floor = options.min_speed_depths_per_s * depth;
+        let Some(before) = self
+            .keyframes
+            .range(..first_new)
+            .rev()
+            .find(|(_, (s, _))| *s == segment)
+            .map(|(_, (_, p))| *p)
+        else {
+            return;
+        };
+        self.provisional = self
+            .recent_pace(segment, (first_new, &before), floor, &options)
+            .map(|pace_before| ProvisionalScale {
+                segment,
+                first_keyframe: first_new,
+                pace_before,
+                windows_since: 0,
+            });
+        tracing::debug!(first_new, provisional = ?self.provisional, "weakly chained stretch");
+    }
+
+    /// The stretch waiting for a pace, if any.
+    pub fn provisional_scale(&self) -> Option<ProvisionalScale> {
+        self.provisional
+    }
+
+    /// Settles the provisional stretch when its keyframes have walked long enough for a
+    /// pace; gives it up after [`MAX_TRIES`] or when new windows go elsewhere. The caller
+    /// must not run it while a background refinement holds a copy of the stretch's
+    /// keyframes (its fold would undo the rescale).
+    pub fn settle_provisional_scale(&mut self) -> Option<SettledScale> {
+        let p = self.provisional.as_mut()?;
+        p.windows_since += 1;
+        let p = *p;
+        if self.current_segment != Some(p.segment) || p.windows_since > MAX_TRIES {
+            tracing::debug!(?p, "provisional scale given up");
+            self.provisional = None;
+            return None;
+        }
+        let options = SpeedContinuityOptions::default();
+        let depth = self.recent_scene_depth(p.segment)?;
+        let floor = options.min_speed_depths_per_s * depth;
+        let poses: Vec<_> = self
+            .keyframes
+            .range(p.first_keyframe..)
+            .filter(|(_, (s, _))| *s == p.segment)
+            .filter(|(id, _)| self.observed_points(**id) >= options.min_observations)
+            .map(|(_, (_, pose))| pose)
+            .take(options.keyframes)
+            .collect();
+        let pace_after = crate::speed_continuity::walking_pace(&poses, floor, &options)?;
+        self.provisional = None;
+        let scale = p.pace_before / pace_after;
+        if !(scale.is_finite() && scale > 0.0) || scale.max(1.0 / scale) <= MIN_CORRECTION {
+            return Some(SettledScale {
+                first_keyframe: p.first_keyframe,
+                scale: 1.0,
+                keyframes: 0,
+                points: 0,
+            });
+        }
+        let pivot = self
+            .keyframes
+            .range(..p.first_keyframe)
+            .rev()
+            .find(|(_, (s, _))| *s == p.segment)
+            .map(|(_, (_, pose))| pose.position)?;
+        let mut keyframes = 0;
+        for (_, (s, pose)) in self.keyframes.range_mut(p.first_keyframe..) {
+            if *s == p.segment {
+                pose.position = pivot + (pose.position - pivot) * scale;
+                keyframes += 1;
+            }
+        }
+        // Points only the stretch sees were triangulated in its scale; points older
+        // keyframes see too were in the map before it and keep their place.
+        let seen_after: HashSet<u64> = self
+            .observations
+            .range((p.first_keyframe, 0)..)
+            .map(|((_, track), _)| *track)
+            .collect();
+        let seen_before: HashSet<u64> = self
+            .observations
+            .range(..(p.first_keyframe, 0))
+            .map(|((_, track), _)| *track)
+            .filter(|track| seen_after.contains(track))
+            .collect();
+        let mut points = 0;
+        for track in seen_after.difference(&seen_before) {
+            if let Some((s, x)) = self.points.get_mut(track) {
+                if *s == p.segment {
+                    *x = pivot + (*x - pivot) * scale;
+                    points += 1;
+                }
+            }
+        }
+        Some(SettledScale {
+            first_keyframe: p.first_keyframe,
+            scale,
+            keyframes,
+            points,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chaining::WindowInput;
+    use egoslam_geometry::StampedPose;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    /// Keyframes `ids` at 20 per second at x = `x(time)`, each seeing 60 points 3 units
+    /// ahead of `x(first time)` (tracks from `tracks`), the first `blind` seeing nothing.
+    fn window(
+        ids: std::ops::Range<u64>,
+        x: impl Fn(f64) -> f64,
+        tracks: u64,
+        blind: usize,
+    ) -> WindowInput {
+        let poses: Vec<(u64, StampedPose)> = ids
+            .clone()
+            .map(|id| {
+                let t = id as f64 * 0.05;
+                let pose = StampedPose {
+                    timestamp: t,
+                    position: Vector3::new(x(t), 0.0, 0.0),
+                    rotation: UnitQuaternion::identity(),
+                };
+                (id, pose)
+            })
+            .collect();
+        let x0 = x(ids.start as f64 * 0.05);
+        let points = (0..60)
+            .map(|k| (tracks + k, Vector3::new(x0 + 0.1 * k as f64, 0.2, 3.0)))
+            .collect();
+        WindowInput::seeing_all(poses, points, blind)
+    }
+
+    #[test]
+    fn a_stretch_chained_at_a_stop_takes_the_pace_once_it_walks() {
+        let mut map = MapBuilder::new();
+        // Walking at 1.2 units/s until t = 1.5 s (keyframe 30), then standing.
+        let walk = |t: f64| 1.2 * t.min(1.5);
+        map.add_window(&window(0..35, walk, 1000, 0));
+        // The stop: the keyframes shared with the map see nothing in this window, no
+        // point is shared and nothing moves, so nothing measures its scale.
+        map.add_window(&window(30..50, walk, 2000, 5));
+        let p = map.provisional_scale().expect("weakly chained");
+        assert_eq!(p.first_keyframe, 35);
+        assert!((p.pace_before - 1.2).abs() < 1e-9, "{p:?}");
+        assert!(map.settle_provisional_scale().is_none(), "no pace yet");
+        // Walking again from t = 2.5 s (keyframe 50); this window's frame is 3x the
+        // stop's, but it shares the stop window's points, so it takes that frame's
+        // (unmeasured) scale.
+        let restart = |t: f64| 1.8 + 3.6 * (t - 2.5).max(0.0);
+        let mut walking = window(45..80, restart, 2000, 0);
+        for (_, x) in &mut walking.points {
+            x.x = 1.8 + (x.x - 1.8) * 3.0;
+        }
+        map.add_window(&walking);
+        let before = map.keyframe(79).expect("posed").1.position;
+        let settled = map.settle_provisional_scale().expect("walks now");
+        assert_eq!(settled.first_keyframe, 35);
+        assert!(settled.keyframes >= 40, "{settled:?}");
+        // The map's pace after the stop is the pace before it.
+        let (a, b) = (
+            map.keyframe(60).expect("kf").1,
+            map.keyframe(70).expect("kf").1,
+        );
+        let pace = (b.position - a.position).norm() / (b.timestamp - a.timestamp);
+        assert!(
+            (pace - 1.2).abs() < 0.05,
+            "pace {pace}, moved from {before:?}"
+        );
+        assert!(map.provisional_scale().is_none());
+    }
+}
