@@ -98,6 +98,7 @@ impl MergerState {
                 segment_id: p.segment,
                 first_keyframe_id: p.first_keyframe,
                 pace_before: p.pace_before,
+                depth_before: p.depth_before,
                 windows_since: p.windows_since,
             }),
             frames: self
@@ -211,6 +212,7 @@ impl MergerState {
                 segment: p.segment_id,
                 first_keyframe: p.first_keyframe_id,
                 pace_before: p.pace_before,
+                depth_before: p.depth_before,
                 windows_since: p.windows_since,
             }),
         };

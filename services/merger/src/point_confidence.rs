@@ -93,10 +93,83 @@ pub fn point_confidence(
         .collect()
 }
 
+/// Keyframes before a window whose observations rate the points it shares with the map
+/// (40: two windows back, which saw the shared points when they were triangulated).
+const RATING_KEYFRAMES: u64 = 40;
+
+impl MapBuilder {
+    /// Of the points `window` shares with `segment`, as `(window, map)` positions, the
+    /// better-determined half on the map's side (by relative standard deviation over the
+    /// observations of the keyframes up to [`RATING_KEYFRAMES`] before the window; the
+    /// ranking needs no focal length, which scales every figure alike); all of them when
+    /// that half would be under `min_points`. The map's side is the end of the previous
+    /// window, where points seen by its last few keyframes are triangulated from short
+    /// baselines; their camera-to-point distances give a scale ratio only as good as
+    /// their depth.
+    pub(crate) fn better_determined_shared_points(
+        &self,
+        segment: u32,
+        window: &crate::chaining::WindowInput,
+        min_points: usize,
+    ) -> Vec<crate::chaining::PointPair> {
+        let shared: Vec<(u64, crate::chaining::PointPair)> = window
+            .points
+            .iter()
+            .filter_map(|(track, x)| match self.points.get(track) {
+                Some((s, xm)) if *s == segment => Some((*track, (*x, *xm))),
+                _ => None,
+            })
+            .collect();
+        let all = || shared.iter().map(|(_, pair)| *pair).collect();
+        if shared.len() < 2 * min_points {
+            return all();
+        }
+        let Some(first) = window.poses.first().map(|(id, _)| *id) else {
+            return all();
+        };
+        let mut information: HashMap<u64, PointInformation> = shared
+            .iter()
+            .map(|(t, _)| (*t, PointInformation::default()))
+            .collect();
+        let from = first.saturating_sub(RATING_KEYFRAMES);
+        for &(keyframe, track) in self.observations.range((from, 0)..).map(|(k, _)| k) {
+            let (Some(info), Some((s, pose))) =
+                (information.get_mut(&track), self.keyframes.get(&keyframe))
+            else {
+                continue;
+            };
+            if *s == segment {
+                if let Some((_, x)) = self.points.get(&track) {
+                    info.add_view(x, pose, 1.0);
+                }
+            }
+        }
+        let std = |track: &u64| {
+            information
+                .get(track)
+                .and_then(|i| i.relative_std(1.0))
+                .unwrap_or(f64::INFINITY)
+        };
+        let Some(median) = crate::median(shared.iter().map(|(t, _)| std(t)).collect()) else {
+            return all();
+        };
+        let better: Vec<_> = shared
+            .iter()
+            .filter(|(t, _)| std(t) < median)
+            .map(|(_, pair)| *pair)
+            .collect();
+        if better.len() < min_points {
+            all()
+        } else {
+            better
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::MapParts;
+    use crate::chaining::{MapParts, WindowInput};
     use egoslam_geometry::StampedPose;
     use nalgebra::{Point2, UnitQuaternion, Vector3};
 
@@ -134,5 +207,51 @@ mod tests {
         assert!(!confidence[&2].is_known(&options), "{confidence:?}");
         assert!(std(2) > 10.0 * options.max_relative_std, "{confidence:?}");
         assert_eq!(confidence[&1].views, 5);
+    }
+
+    #[test]
+    fn shared_points_seen_from_a_short_baseline_do_not_rate_the_join() {
+        let mut parts = MapParts {
+            segments: 1,
+            current_segment: Some(0),
+            ..MapParts::default()
+        };
+        for i in 0..10u64 {
+            let pose = StampedPose {
+                timestamp: i as f64,
+                position: Vector3::new(0.2 * i as f64, 0.0, 0.0),
+                rotation: UnitQuaternion::identity(),
+            };
+            parts.keyframes.insert(i, (0, pose));
+        }
+        let pixel = Point2::new(0.0, 0.0);
+        for t in 0..80u64 {
+            let x = Vector3::new(0.05 * t as f64, 0.5, 4.0);
+            parts.points.insert(t, (0, x));
+            // Tracks 0-39 seen by all ten keyframes (1.8 m), 40-79 by the last two (0.2 m).
+            let seen = if t < 40 { 0..10 } else { 8..10 };
+            for k in seen {
+                parts.observations.insert((k, t), pixel);
+            }
+        }
+        let map = MapBuilder::from_parts(parts);
+        let window = WindowInput {
+            poses: vec![(8, map.keyframe(8).expect("kf").1.to_owned())],
+            points: (0..80u64)
+                .map(|t| (t, Vector3::new(t as f64, 0.0, 0.0)))
+                .collect(),
+            ..WindowInput::default()
+        };
+        let rated = map.better_determined_shared_points(0, &window, 30);
+        assert_eq!(rated.len(), 40);
+        assert!(
+            rated.iter().all(|(w, _)| w.x < 40.0),
+            "the wide-baseline points"
+        );
+        // Too few for a half: every shared point.
+        assert_eq!(
+            map.better_determined_shared_points(0, &window, 41).len(),
+            80
+        );
     }
 }

@@ -11,7 +11,7 @@
 //! Such a stretch is marked provisional. After each later window of the segment, once the
 //! keyframes from the stretch's first one on walk long enough for a pace
 //! ([`crate::speed_continuity`]), the whole stretch (its keyframes, and the points only its
-//! keyframes see) is scaled about the keyframe before it to the pace the segment had
+//! keyframes see) is scaled about its first keyframe to the pace the segment had
 //! before the stretch. It is the walking-pace prior of a weak join, applied when the pace
 //! after the join can be measured instead of at the join.
 
@@ -32,6 +32,8 @@ pub struct ProvisionalScale {
     pub first_keyframe: u64,
     /// The segment's walking pace before it, map units per second.
     pub pace_before: f64,
+    /// The segment's median scene depth before it, map units.
+    pub depth_before: f64,
     /// Settling tries since (one per window the caller let it try).
     pub windows_since: u32,
 }
@@ -50,6 +52,12 @@ pub struct SettledScale {
 /// a window, [`crate::interior_cut::InteriorCutOptions::min_correction`]: the pace varies by
 /// 10-20 % over a second of walking).
 const MIN_CORRECTION: f64 = 1.25;
+
+/// Largest factor by which the rescaled stretch's scene depth may differ from the depth
+/// before it (3). A walk's scene depth changes across a turn or a door (2.5x at the
+/// 12,000-frame walk's corner turn), but not by an order of magnitude; a pace that asks
+/// for one was measured on noise.
+const MAX_DEPTH_CHANGE: f64 = 3.0;
 
 impl MapBuilder {
     /// When a window is chained onto `segment` with `source`, its keyframes from `first_new`
@@ -85,6 +93,7 @@ impl MapBuilder {
                 segment,
                 first_keyframe: first_new,
                 pace_before,
+                depth_before: depth,
                 windows_since: 0,
             });
         tracing::debug!(first_new, provisional = ?self.provisional, "weakly chained stretch");
@@ -111,18 +120,35 @@ impl MapBuilder {
         let options = SpeedContinuityOptions::default();
         let depth = self.recent_scene_depth(p.segment)?;
         let floor = options.min_speed_depths_per_s * depth;
-        let poses: Vec<_> = self
+        // The newest keyframes: a stretch often starts where the wearer slows into a stop,
+        // and the pace to compare is the one walked after it (on the 12,000-frame walk the
+        // first keyframes of such a stretch gave a pace 21x below the walk before).
+        let mut poses: Vec<_> = self
             .keyframes
             .range(p.first_keyframe..)
+            .rev()
             .filter(|(_, (s, _))| *s == p.segment)
             .filter(|(id, _)| self.observed_points(**id) >= options.min_observations)
             .map(|(_, (_, pose))| pose)
             .take(options.keyframes)
             .collect();
+        poses.reverse();
         let pace_after = crate::speed_continuity::walking_pace(&poses, floor, &options)?;
         self.provisional = None;
         let scale = p.pace_before / pace_after;
-        if !(scale.is_finite() && scale > 0.0) || scale.max(1.0 / scale) <= MIN_CORRECTION {
+        let depth_ratio = scale * depth / p.depth_before;
+        let implausible = depth_ratio.max(1.0 / depth_ratio) > MAX_DEPTH_CHANGE;
+        if !(scale.is_finite() && scale > 0.0)
+            || scale.max(1.0 / scale) <= MIN_CORRECTION
+            || implausible
+        {
+            if implausible {
+                tracing::debug!(
+                    scale,
+                    depth_ratio,
+                    "pace correction refused by the scene depth"
+                );
+            }
             return Some(SettledScale {
                 first_keyframe: p.first_keyframe,
                 scale: 1.0,
@@ -130,10 +156,12 @@ impl MapBuilder {
                 points: 0,
             });
         }
+        // About the stretch's first keyframe: the step from the keyframe before it carries
+        // the weak alignment's error, which a rescale about that keyframe would multiply
+        // (21x on the 12,000-frame walk, throwing a 30-keyframe stretch metres away).
         let pivot = self
             .keyframes
-            .range(..p.first_keyframe)
-            .rev()
+            .range(p.first_keyframe..)
             .find(|(_, (s, _))| *s == p.segment)
             .map(|(_, (_, pose))| pose.position)?;
         let mut keyframes = 0;

@@ -198,7 +198,8 @@ impl MapBuilder {
         relocalized_scale: Option<crate::RelocalizedScale>,
     ) -> (Similarity, f64, ScaleSource) {
         if !self.weakly_joined(segment, window, shared_points.len()) {
-            let (t, r) = align_shared(w, m, shared_points);
+            let rated = self.better_determined_shared_points(segment, window, MIN_CHAINING_POINTS);
+            let (t, r) = align_shared(w, m, &rated);
             return (t, r, ScaleSource::SharedPoints);
         }
         let valid = |s: &f64| s.is_finite() && *s > 0.0;
