@@ -121,8 +121,7 @@ impl MapBuilder {
         let depth = self.recent_scene_depth(p.segment)?;
         let floor = options.min_speed_depths_per_s * depth;
         // The newest keyframes: a stretch often starts where the wearer slows into a stop,
-        // and the pace to compare is the one walked after it (on the 12,000-frame walk the
-        // first keyframes of such a stretch gave a pace 21x below the walk before).
+        // and the pace to compare is the one walked after it.
         let mut poses: Vec<_> = self
             .keyframes
             .range(p.first_keyframe..)
