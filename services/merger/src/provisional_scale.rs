@@ -273,4 +273,22 @@ mod tests {
         );
         assert!(map.provisional_scale().is_none());
     }
+
+    #[test]
+    fn a_pace_that_would_change_the_scene_depth_fourfold_is_refused() {
+        let mut map = MapBuilder::new();
+        let walk = |t: f64| 1.2 * t.min(1.5);
+        map.add_window(&window(0..35, walk, 1000, 0));
+        map.add_window(&window(30..50, walk, 2000, 5));
+        assert!(map.provisional_scale().is_some());
+        // After the stop the stretch creeps at a quarter of the pace with the scene as deep
+        // as before: a slower wearer, not a scale error.
+        let creep = |t: f64| 1.8 + 0.3 * (t - 2.5).max(0.0);
+        map.add_window(&window(45..80, creep, 2000, 0));
+        let before = map.keyframe(79).expect("posed").1.position;
+        let settled = map.settle_provisional_scale().expect("settled");
+        assert_eq!((settled.scale, settled.keyframes), (1.0, 0), "{settled:?}");
+        assert_eq!(map.keyframe(79).expect("posed").1.position, before);
+        assert!(map.provisional_scale().is_none());
+    }
 }
