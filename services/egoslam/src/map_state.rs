@@ -166,7 +166,7 @@ impl MapState {
 
     /// The points map.ply holds: those known within `options` (every point when no
     /// confidence was attached, as before the first window brought the camera).
-    pub fn known_points(&self, options: &PointConfidenceOptions) -> Vec<Vector3<f64>> {
+    fn known_points(&self, options: &PointConfidenceOptions) -> Vec<Vector3<f64>> {
         self.points
             .iter()
             .filter(|(track, _)| match &self.confidence {
@@ -180,11 +180,12 @@ impl MapState {
     /// trajectory.tum, keyframes.tum, keyframe_segments.txt, map.ply, each written
     /// atomically. The segments file says which map segment (own gauge and scale) each
     /// keyframe is in, so that a run with breaks can be evaluated segment by segment.
+    /// Returns the number of points map.ply holds.
     pub fn write_files(
         &self,
         out: &Path,
         published: &PointConfidenceOptions,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<usize> {
         let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
         let points = self.known_points(published);
         write_atomically(
@@ -200,7 +201,8 @@ impl MapState {
             segments += &format!("{:.6} {}\n", k.pose.timestamp, k.segment);
         }
         write_atomically(&out.join("keyframe_segments.txt"), segments.as_bytes())?;
-        write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())
+        write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())?;
+        Ok(points.len())
     }
 }
 

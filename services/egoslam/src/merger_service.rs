@@ -73,9 +73,11 @@ impl Outputs {
         if let Some(confidence) = &self.confidence {
             snapshot = snapshot.with_confidence(Arc::clone(confidence));
         }
-        let published = snapshot.known_points(&self.point_confidence).len();
         if persist {
-            snapshot.write_files(out, &self.point_confidence)?;
+            let published = snapshot.write_files(out, &self.point_confidence)?;
+            stats
+                .counters
+                .insert("published_points".into(), published as u64);
         }
         stats.frames = index.frames.len() as u64;
         stats.keyframes = snapshot.keyframes.len() as u64;
@@ -94,9 +96,6 @@ impl Outputs {
         stats
             .counters
             .insert("map_points".into(), snapshot.points.len() as u64);
-        stats
-            .counters
-            .insert("published_points".into(), published as u64);
         if persist {
             stats.write(out)?;
         }

@@ -177,15 +177,27 @@ impl MapBuilder {
                 _ => None,
             })
             .collect();
-        let points = window
-            .points
-            .iter()
-            .filter_map(|(track, x)| match self.points.get(track) {
-                Some((s, xm)) if *s == segment => Some((*x, *xm)),
-                _ => None,
-            })
+        let points = self
+            .shared_points(window, segment)
+            .map(|(_, pair)| pair)
             .collect();
         (keyframes, points)
+    }
+
+    /// The points `window` shares with `segment`: track id, `(window position, map
+    /// position)`.
+    pub(crate) fn shared_points<'a>(
+        &'a self,
+        window: &'a WindowInput,
+        segment: u32,
+    ) -> impl Iterator<Item = (u64, PointPair)> + 'a {
+        window
+            .points
+            .iter()
+            .filter_map(move |(track, x)| match self.points.get(track) {
+                Some((s, xm)) if *s == segment => Some((*track, (*x, *xm))),
+                _ => None,
+            })
     }
 
     /// [`Self::add_window`]; when too few points are shared, `relocalized_scale` (if any)

@@ -66,6 +66,11 @@ pub struct Cut {
 /// the join with the map, judged when chaining) with two keyframes or more on each side, or
 /// `None` when the window has no such cut.
 pub fn weakest_cut(window: &WindowInput, first_new: usize) -> Option<Cut> {
+    weakest_cut_of(&track_views(window), window.poses.len(), first_new)
+}
+
+/// Indices (in `window.poses`) of the keyframes that observe each track.
+fn track_views(window: &WindowInput) -> HashMap<u64, Vec<usize>> {
     let index: HashMap<u64, usize> = window
         .poses
         .iter()
@@ -78,8 +83,17 @@ pub fn weakest_cut(window: &WindowInput, first_new: usize) -> Option<Cut> {
             views.entry(*track).or_default().push(*i);
         }
     }
+    views
+}
+
+/// [`weakest_cut`] over the track views of a window of `keyframes` keyframes.
+fn weakest_cut_of(
+    views: &HashMap<u64, Vec<usize>>,
+    keyframes: usize,
+    first_new: usize,
+) -> Option<Cut> {
     // Two keyframes on each side at least: a side of one has nothing seen twice.
-    let last = window.poses.len().checked_sub(3)?;
+    let last = keyframes.checked_sub(3)?;
     (first_new.max(1)..=last)
         .map(|after| {
             let transfer_points = views
@@ -107,7 +121,8 @@ pub fn rescale_after_weak_cut(
     first_new: usize,
     options: &InteriorCutOptions,
 ) -> Option<(WindowInput, Cut, f64)> {
-    let cut = weakest_cut(window, first_new)?;
+    let views = track_views(window);
+    let cut = weakest_cut_of(&views, window.poses.len(), first_new)?;
     if cut.transfer_points >= options.min_transfer_points {
         return None;
     }
@@ -120,7 +135,7 @@ pub fn rescale_after_weak_cut(
             .filter(|(id, _)| before_ids.contains(id) == keep_before)
             .copied()
             .collect(),
-        points: window.points.clone(),
+        points: Vec::new(), // the pace needs the poses and how well they are observed
         observations: window
             .observations
             .iter()
@@ -142,16 +157,16 @@ pub fn rescale_after_weak_cut(
         return None;
     }
     let pivot = window.poses[cut.after].1.position;
-    let mut sides: HashMap<u64, (bool, bool)> = HashMap::new();
-    for (kf, track, _) in &window.observations {
-        let entry = sides.entry(*track).or_default();
-        if before_ids.contains(kf) {
-            entry.0 = true;
-        } else {
-            entry.1 = true;
-        }
-    }
-    let across = |track: &u64| sides.get(track).is_some_and(|s| s.0 && s.1);
+    // (seen before the cut, seen after it) per track.
+    let sides = |track: &u64| {
+        views.get(track).map_or((false, false), |v| {
+            (
+                v.iter().any(|&i| i <= cut.after),
+                v.iter().any(|&i| i > cut.after),
+            )
+        })
+    };
+    let across = |track: &u64| sides(track) == (true, true);
     let mut rescaled = window.clone();
     for (id, pose) in &mut rescaled.poses {
         if !before_ids.contains(id) {
@@ -160,7 +175,7 @@ pub fn rescale_after_weak_cut(
     }
     rescaled.points.retain(|(track, _)| !across(track));
     for (track, x) in &mut rescaled.points {
-        if sides.get(track).is_some_and(|s| s.1) {
+        if sides(track).1 {
             *x = pivot + (*x - pivot) * scale;
         }
     }

@@ -112,14 +112,8 @@ impl MapBuilder {
         window: &crate::chaining::WindowInput,
         min_points: usize,
     ) -> Vec<crate::chaining::PointPair> {
-        let shared: Vec<(u64, crate::chaining::PointPair)> = window
-            .points
-            .iter()
-            .filter_map(|(track, x)| match self.points.get(track) {
-                Some((s, xm)) if *s == segment => Some((*track, (*x, *xm))),
-                _ => None,
-            })
-            .collect();
+        let shared: Vec<(u64, crate::chaining::PointPair)> =
+            self.shared_points(window, segment).collect();
         let all = || shared.iter().map(|(_, pair)| *pair).collect();
         if shared.len() < 2 * min_points {
             return all();
