@@ -47,7 +47,7 @@ fn paper_egomotion_profile() {
     // Measured 6.1 mm over 3.9 m (0.16 %).
     assert!(ate < 0.005 * path, "ATE {ate} m over {path} m");
     // map.ply against the rendered depth: the 499 of 3543 points known within 2 % of their
-    // depth (docs/merger.md, "Published points"), measured median 2.9 cm (6.1 cm over
+    // depth (docs/merger.md, "Published points"), measured median 3.1 cm (6.2 cm over
     // every point; RMSE 0.22 m, a few points at depth edges; docs/synth.md).
     let structure = &report["accuracy"]["structure"];
     assert!(structure["evaluated"].as_u64() > Some(300), "{structure}");
