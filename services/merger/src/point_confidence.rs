@@ -20,9 +20,9 @@ pub struct PointConfidenceOptions {
     pub pixel_sigma: f64,
     /// Largest standard deviation of a published point over its distance to the nearest
     /// camera that saw it. 2 %: 6 cm at 3 m, the scale of the structure errors the paper
-    /// reports (Table 2, 20-25 cm RMSE on a 5 m scene), and what separated the points of
-    /// the rendered frontal profile with a 4 cm median error (below) from those with 10-16
-    /// cm (above). `f64::INFINITY` publishes every point.
+    /// reports (Table 2, 20-25 cm RMSE on a 5 m scene). On the rendered frontal profile
+    /// the 177 points it keeps have a median error of 3.3 cm, the 857 it drops 11.6 cm.
+    /// `f64::INFINITY` publishes every point.
     pub max_relative_std: f64,
 }
 
