@@ -165,6 +165,8 @@ fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
         "structure_rmse_m": report["accuracy"]["structure"]["rmse_m"],
         "structure_median_m": report["accuracy"]["structure"]["median_m"],
         "structure_p90_m": report["accuracy"]["structure"]["p90_m"],
+        "surface_rmse_m": report["accuracy"]["structure"]["surface_rmse_m"],
+        "surface_median_m": report["accuracy"]["structure"]["surface_median_m"],
         "ms_per_frame": 1e3 * wall / frames.max(1.0),
         "peak_rss_mib": report["peak_rss_mib"]["sum"],
     }))
@@ -182,14 +184,14 @@ fn cell(v: &serde_json::Value, digits: usize) -> String {
 }
 
 fn markdown(rows: &[serde_json::Value]) -> String {
-    let mut s = String::from("| sequence | frames | keyframes | breaks | posed | ATE (m) | ATE per segment (m) | ATE / path (%) | RPE 1 s (%) | RPE 1 s (deg) | structure RMSE / median / p90 (m) | ms / frame | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let mut s = String::from("| sequence | frames | keyframes | breaks | posed | ATE (m) | ATE per segment (m) | ATE / path (%) | RPE 1 s (%) | RPE 1 s (deg) | structure RMSE / median / p90 (m) | surface distance RMSE / median (m) | ms / frame | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         if let Some(e) = r["error"].as_str() {
             s.push_str(&format!("| {} | {e} |\n", cell(&r["name"], 0)));
             continue;
         }
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} / {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} / {} | {} / {} | {} | {} |\n",
             cell(&r["name"], 0),
             cell(&r["frames"], 0),
             cell(&r["keyframes"], 0),
@@ -203,6 +205,8 @@ fn markdown(rows: &[serde_json::Value]) -> String {
             cell(&r["structure_rmse_m"], 3),
             cell(&r["structure_median_m"], 3),
             cell(&r["structure_p90_m"], 3),
+            cell(&r["surface_rmse_m"], 3),
+            cell(&r["surface_median_m"], 3),
             cell(&r["ms_per_frame"], 1),
             cell(&r["peak_rss_mib"], 0),
         ));

@@ -241,7 +241,11 @@ pub fn accuracy(
                             "map: structure RMSE {:.4} m (median {:.4}, 90th percentile {:.4}) over {} of {} points",
                             s.rmse_m, s.median_m, s.p90_m, s.evaluated, s.points
                         );
-                        acc.insert("structure".into(), json!({"rmse_m": s.rmse_m, "median_m": s.median_m, "p90_m": s.p90_m, "evaluated": s.evaluated, "points": s.points}));
+                        println!(
+                            "map: distance to the surface RMSE {:.4} m (median {:.4}, 90th percentile {:.4})",
+                            s.surface_rmse_m, s.surface_median_m, s.surface_p90_m
+                        );
+                        acc.insert("structure".into(), json!({"rmse_m": s.rmse_m, "median_m": s.median_m, "p90_m": s.p90_m, "evaluated": s.evaluated, "points": s.points, "surface_rmse_m": s.surface_rmse_m, "surface_median_m": s.surface_median_m, "surface_p90_m": s.surface_p90_m}));
                     }
                 }
                 acc.insert(key.into(), entry);

@@ -4,6 +4,15 @@
 //! depth, the error is the difference between its depth and that pixel's. A point hidden in
 //! one view is visible in another, so each point's error is its smallest over the views
 //! (and over the 3 x 3 pixels around its projection, for points on depth edges).
+//!
+//! Beside it, the *surface distance*: each point's distance to the nearest ground-truth
+//! surface point back-projected from the pixels around its projection (the "accuracy" of
+//! multi-view stereo benchmarks: Seitz et al. 2006, Schoeps et al. 2017). The depth
+//! difference charges a point a pixel or two across an occluding edge with the whole gap
+//! between the two surfaces: on the rendered frontal profile one corner of a near box, 2-3
+//! px off its silhouette, counts 4.45 m and makes 94 % of the squared error of 177 points.
+//! The surface distance charges it its distance to the box. Both are reported; the paper's
+//! Table 2 compares depths.
 
 use crate::alignment::{nearest_rotation, Similarity};
 use crate::camera::PinholeRadtan;
@@ -71,6 +80,26 @@ pub struct StructureReport {
     /// 90th percentile: with the median, says whether the RMSE is a few gross points or
     /// a spread of all of them.
     pub p90_m: f64,
+    /// The same three over each point's distance to the nearest ground-truth surface.
+    pub surface_rmse_m: f64,
+    pub surface_median_m: f64,
+    pub surface_p90_m: f64,
+}
+
+/// Pixels on each side of a projection searched for the nearest surface point: 8 px is
+/// 5 cm at 3 m for a 500 px focal length, well beyond the misplacement of a corner on an
+/// occluding edge, and a point off its surface along the ray (the common error) finds the
+/// foot of its perpendicular within it on any surface facing the camera.
+const SURFACE_SEARCH_PX: i64 = 8;
+
+/// RMSE, median and 90th percentile of `errors` (not empty).
+fn summary(errors: &mut [f64]) -> (f64, f64, f64) {
+    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    let mid = errors.len() / 2;
+    let median = *errors.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let p90 = (errors.len() * 9 / 10).min(errors.len() - 1);
+    let p90 = *errors.select_nth_unstable_by(p90, f64::total_cmp).1;
+    (rmse, median, p90)
 }
 
 /// `points` in the ground-truth frame; `views` are ground-truth camera poses with a depth
@@ -82,8 +111,13 @@ pub fn structure_error(
     depth: impl Fn(usize, u32, u32) -> Option<f64>,
 ) -> Option<StructureReport> {
     let mut errors = Vec::new();
+    let mut surface = Vec::new();
+    let inside = |x: i64, y: i64| {
+        x >= 0 && y >= 0 && x < i64::from(camera.width) && y < i64::from(camera.height)
+    };
     for x in points {
         let mut best: Option<f64> = None;
+        let mut nearest = f64::INFINITY;
         for (v, pose) in views.iter().enumerate() {
             let pc = pose.rotation.inverse() * (x - pose.position);
             if pc.z <= 0.05 {
@@ -95,36 +129,50 @@ pub fn structure_error(
             if !camera.contains(px) {
                 continue;
             }
-            // The 3 x 3 pixels around the projection: a point on a depth edge is compared
-            // with its own surface, not with the one behind it.
             let (cx, cy) = (px.x as i64, px.y as i64);
-            for (dx, dy) in (-1..=1).flat_map(|dx| (-1..=1).map(move |dy| (dx, dy))) {
-                let (x, y) = (cx + dx, cy + dy);
-                if x < 0 || y < 0 || x >= i64::from(camera.width) || y >= i64::from(camera.height) {
+            let r = SURFACE_SEARCH_PX;
+            for (dx, dy) in (-r..=r).flat_map(|dx| (-r..=r).map(move |dy| (dx, dy))) {
+                let (u, w) = (cx + dx, cy + dy);
+                if !inside(u, w) {
                     continue;
                 }
-                if let Some(d) = depth(v, x as u32, y as u32) {
+                let Some(d) = depth(v, u as u32, w as u32) else {
+                    continue;
+                };
+                // The 3 x 3 pixels around the projection: a point on a depth edge is
+                // compared with its own surface, not with the one behind it.
+                if dx.abs() <= 1 && dy.abs() <= 1 {
                     let e = (pc.z - d).abs();
                     best = Some(best.map_or(e, |b: f64| b.min(e)));
                 }
+                // The rendered pixel u shows the ray through its centre, u + 0.5.
+                let surface_point = Vector3::new(
+                    (u as f64 + 0.5 - camera.cx) / camera.fx * d,
+                    (w as f64 + 0.5 - camera.cy) / camera.fy * d,
+                    d,
+                );
+                nearest = nearest.min((surface_point - pc).norm());
             }
         }
-        errors.extend(best);
+        if let Some(e) = best {
+            errors.push(e);
+            surface.push(nearest);
+        }
     }
     if errors.is_empty() {
         return None;
     }
-    let rmse_m = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
-    let mid = errors.len() / 2;
-    let median_m = *errors.select_nth_unstable_by(mid, f64::total_cmp).1;
-    let p90 = (errors.len() * 9 / 10).min(errors.len() - 1);
-    let p90_m = *errors.select_nth_unstable_by(p90, f64::total_cmp).1;
+    let (rmse_m, median_m, p90_m) = summary(&mut errors);
+    let (surface_rmse_m, surface_median_m, surface_p90_m) = summary(&mut surface);
     Some(StructureReport {
         points: points.len(),
         evaluated: errors.len(),
         rmse_m,
         median_m,
         p90_m,
+        surface_rmse_m,
+        surface_median_m,
+        surface_p90_m,
     })
 }
 
@@ -154,6 +202,32 @@ mod tests {
         assert!((r.rmse_m - (0.01f64 / 3.0).sqrt()).abs() < 1e-9, "{r:?}");
         assert!(r.median_m.abs() < 1e-12);
         assert!(structure_error(&camera, &points, &[view], |_, _, _| None).is_none());
+    }
+
+    #[test]
+    fn a_corner_just_off_its_silhouette_is_near_its_surface_though_its_depth_is_not() {
+        // A near box (z = 2) covers the rows above 240 of a 640 x 480 view; a wall at z = 6
+        // is behind it. One point lies on the wall, 5 cm in front; one on the box's lower
+        // edge but 3 px below its silhouette, where the wall is seen.
+        let camera =
+            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let view = StampedPose {
+            timestamp: 0.0,
+            position: Vector3::zeros(),
+            rotation: UnitQuaternion::identity(),
+        };
+        let depth = |_: usize, _: u32, y: u32| Some(if y < 240 { 2.0 } else { 6.0 });
+        let on_wall = Vector3::new(0.6, 0.6, 5.95);
+        let off_silhouette = Vector3::new(0.1, 3.0 / 500.0 * 2.0, 2.0);
+        let r = structure_error(&camera, &[on_wall], &[view], depth).expect("seen");
+        assert!((r.rmse_m - 0.05).abs() < 1e-9, "{r:?}");
+        // The wall is sampled at pixel centres 1.2 cm apart: its nearest sample is within
+        // 1 cm of the perpendicular's foot.
+        assert!((r.surface_rmse_m - 0.05).abs() < 2e-3, "{r:?}");
+        let r = structure_error(&camera, &[off_silhouette], &[view], depth).expect("seen");
+        assert!((r.rmse_m - 4.0).abs() < 1e-9, "{r:?}");
+        // The centre of the box's last row, 3.5 px up, is 1.4 cm away at 2 m.
+        assert!(r.surface_rmse_m < 0.015, "{r:?}");
     }
 
     #[test]
