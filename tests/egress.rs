@@ -143,6 +143,16 @@ fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
         points.iter().filter(|p| p.relative_std.is_some()).count() * 10 > points.len() * 9,
         "relative_std missing"
     );
+    // Sigma is from the median over every observation: most points agree within 5 of it.
+    let sigmas: Vec<f64> = points
+        .iter()
+        .filter_map(|p| p.largest_reprojection_sigmas)
+        .collect();
+    assert!(sigmas.len() * 10 > points.len() * 9, "reprojection missing");
+    assert!(
+        sigmas.iter().filter(|&&s| s <= 5.0).count() * 2 > sigmas.len(),
+        "most points agree with their observations within 5 sigma"
+    );
     assert!(statuses.iter().any(|s| s.service == "merger"
         && s.state == pb::ServiceState::Running as i32
         && s.windows >= 1));

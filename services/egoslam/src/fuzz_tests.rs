@@ -94,6 +94,7 @@ fn window_sample() -> pb::WindowSolution {
             }),
             observations: 3,
             relative_std: None,
+            largest_reprojection_sigmas: None,
         }],
         observations: (0..3)
             .map(|k| pb::Observation {

@@ -291,6 +291,9 @@ pub fn publish(
             position: Some(vec3_to_pb(x)),
             observations: confidence.map_or(0, |c| c.views),
             relative_std: confidence.and_then(|c| c.relative_std),
+            largest_reprojection_sigmas: confidence
+                .map(|c| c.largest_reprojection_sigmas)
+                .filter(|s| s.is_finite()),
         }
     };
     let changed: Vec<pb::MapPoint> = changed_points

@@ -65,7 +65,7 @@ impl Outputs {
             // goes out over zenoh without its figure and the last scores serve the rest.
             if persist || self.confidence.is_none() {
                 let scored = stats.time("point_confidence", || {
-                    point_confidence(map, camera.fx, &self.point_confidence)
+                    point_confidence(map, camera, &self.point_confidence)
                 });
                 self.confidence = Some(Arc::new(scored));
             }

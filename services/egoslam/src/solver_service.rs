@@ -242,6 +242,7 @@ fn solve(
                 position: Some(vec3_to_pb(&p.position)),
                 observations: p.observations,
                 relative_std: None,
+                largest_reprojection_sigmas: None,
             })
             .collect(),
         observations: observation_messages(kfs, &solution.observations),
