@@ -8,6 +8,7 @@
 pub mod absolute_pose;
 pub mod descriptors;
 pub mod keyframe_database;
+pub mod patch_alignment;
 pub mod relocalizer;
 pub mod saved_map;
 pub mod vocabulary;
