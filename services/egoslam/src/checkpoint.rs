@@ -8,6 +8,7 @@ use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts, ProvisionalScale};
 use egoslam_messages::v1 as pb;
+use egoslam_relocalization::patch_alignment::Patch;
 use egoslam_relocalization::MapFeature;
 use nalgebra::Point2;
 use prost::Message;
@@ -37,6 +38,9 @@ pub struct MergerState {
     /// keyframe id -> its described tracks (relocalization map, --map-out). Not in the
     /// checkpoint: kept in the append-only features log (features_log.rs).
     pub features: BTreeMap<u64, Vec<MapFeature>>,
+    /// keyframe id -> the patches of the tracks first described in it (relocalization's patch
+    /// alignment). In the features log with the descriptors.
+    pub patches: BTreeMap<u64, Vec<(u64, Patch)>>,
 }
 
 impl MergerState {
@@ -264,6 +268,7 @@ impl MergerState {
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
             features: BTreeMap::new(),
+            patches: BTreeMap::new(),
             revisions: m
                 .revision_frame_ids
                 .iter()

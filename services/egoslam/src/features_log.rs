@@ -1,4 +1,4 @@
-//! The merger's keyframe descriptors on disk: an append-only log of length-delimited
+//! The merger's keyframe descriptors (and new tracks' patches) on disk: an append-only log of length-delimited
 //! `KeyframeFeatures` messages beside the checkpoint (docs/durability.md).
 //!
 //! Descriptors are most of the map's bytes (~40 KB per keyframe). Inside the checkpoint,
@@ -10,7 +10,8 @@
 
 use crate::record_log::{read_records, RecordLog};
 use egoslam_messages::v1 as pb;
-use egoslam_relocalization::saved_map::features_from_pb;
+use egoslam_relocalization::patch_alignment::Patch;
+use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_relocalization::MapFeature;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -23,13 +24,21 @@ pub fn open(dir: &Path) -> anyhow::Result<RecordLog> {
     RecordLog::open(&dir.join(FILE_NAME))
 }
 
-/// The features in the log at `dir`, later records replacing earlier ones.
-pub fn read(dir: &Path) -> anyhow::Result<BTreeMap<u64, Vec<MapFeature>>> {
-    let mut out = BTreeMap::new();
+/// Features (keyframe -> described tracks) and patches (keyframe -> tracks first described in
+/// it) of the log at `dir`, later records replacing earlier ones.
+pub type Descriptions = (
+    BTreeMap<u64, Vec<MapFeature>>,
+    BTreeMap<u64, Vec<(u64, Patch)>>,
+);
+
+/// The features and patches in the log at `dir`.
+pub fn read(dir: &Path) -> anyhow::Result<Descriptions> {
+    let (mut features, mut patches) = (BTreeMap::new(), BTreeMap::new());
     for r in read_records::<pb::KeyframeFeatures>(&dir.join(FILE_NAME))? {
-        match features_from_pb(&r) {
-            Some(features) => {
-                out.insert(r.keyframe_id, features);
+        match features_from_pb(&r).zip(patches_from_pb(&r)) {
+            Some((f, p)) => {
+                features.insert(r.keyframe_id, f);
+                patches.insert(r.keyframe_id, p);
             }
             None => tracing::warn!(
                 keyframe = r.keyframe_id,
@@ -37,7 +46,7 @@ pub fn read(dir: &Path) -> anyhow::Result<BTreeMap<u64, Vec<MapFeature>>> {
             ),
         }
     }
-    Ok(out)
+    Ok((features, patches))
 }
 
 #[cfg(test)]
@@ -54,22 +63,25 @@ mod tests {
             descriptors: vec![fill; 64],
             x: vec![1.0, 2.0],
             y: vec![3.0, 4.0],
+            patch_track_ids: vec![2],
+            patches: vec![fill; 100],
         };
         let mut log = open(dir.path()).expect("open");
         log.append(&record(0, 1)).expect("append");
         log.append(&record(1, 2)).expect("append");
         log.append(&record(0, 3)).expect("append");
         log.sync().expect("sync");
-        let back = read(dir.path()).expect("read");
+        let (back, patches) = read(dir.path()).expect("read");
         assert_eq!(back.len(), 2);
         assert_eq!(back[&0][0].descriptor, [3; 32]);
+        assert_eq!(patches[&1], vec![(2, [2; 100])]);
         // A kill mid-append leaves half a record.
         let path = dir.path().join(FILE_NAME);
         let mut bytes = std::fs::read(&path).expect("bytes");
         bytes.extend_from_slice(&record(2, 4).encode_length_delimited_to_vec()[..20]);
         std::fs::write(&path, &bytes).expect("write");
-        assert_eq!(read(dir.path()).expect("read").len(), 2);
+        assert_eq!(read(dir.path()).expect("read").0.len(), 2);
         log.truncate().expect("truncate");
-        assert!(read(dir.path()).expect("read").is_empty());
+        assert!(read(dir.path()).expect("read").0.is_empty());
     }
 }

@@ -11,9 +11,11 @@ use egoslam_frontend::{
 };
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
+use egoslam_relocalization::patch_alignment::extract_patch;
 use egoslam_sources::calibration::read_calibration_file;
 use opencv::core::{Mat, ToInputArray};
 use opencv::prelude::*;
+use std::collections::HashSet;
 use std::time::Instant;
 
 fn reason(r: KeyframeReason) -> pb::KeyframeReason {
@@ -59,16 +61,18 @@ fn track_message(t: &TrackPoint) -> pb::TrackObservation {
         x: t.undistorted.x,
         y: t.undistorted.y,
         descriptor: Vec::new(),
+        patch: Vec::new(),
     }
 }
 
 /// Attaches ORB descriptors (at the raw positions in `image`) to a keyframe's tracks, for
-/// relocalization (docs/relocalization.md). A failure costs the descriptors, not the
-/// keyframe.
+/// relocalization (docs/relocalization.md), and to each described track not `patched`
+/// in an earlier keyframe its patch. A failure costs the descriptors, not the keyframe.
 fn describe_tracks(
     describer: &mut OrbDescriber,
     image: &(impl MatTraitConst + ToInputArray),
     message: &mut pb::Keyframe,
+    patched: &mut HashSet<u64>,
 ) {
     let corners: Vec<_> = message
         .tracks
@@ -80,11 +84,21 @@ fn describe_tracks(
             for (t, d) in message.tracks.iter_mut().zip(descriptors) {
                 if let Some(d) = d {
                     t.descriptor = d.to_vec();
+                    if !patched.contains(&t.track_id) {
+                        let raw = nalgebra::Point2::new(f64::from(t.raw_x), f64::from(t.raw_y));
+                        if let Some(patch) = extract_patch(image, raw) {
+                            t.patch = patch.to_vec();
+                            patched.insert(t.track_id);
+                        }
+                    }
                 }
             }
         }
         Err(e) => tracing::warn!(keyframe = message.keyframe_id, error = %e, "no descriptors"),
     }
+    // A lost track never comes back: only the live ones need remembering.
+    let live: HashSet<u64> = message.tracks.iter().map(|t| t.track_id).collect();
+    patched.retain(|t| live.contains(t));
 }
 
 /// The proto message of a keyframe.
@@ -142,6 +156,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     };
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
+    // Live tracks whose patch went out with an earlier keyframe.
+    let mut patched: HashSet<u64> = HashSet::new();
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
     let state_path = args.out.join(ID_STATE_FILE);
     let mut keyframe_log = RecordLog::open(&args.out.join(KEYFRAME_LOG))?;
@@ -206,7 +222,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         if let Some(k) = &outcome.keyframe {
             let mut msg = keyframe_message(k, meta.timestamp, &intrinsics, Vec::new());
             stats.time("describe", || {
-                describe_tracks(&mut describer, &image, &mut msg)
+                describe_tracks(&mut describer, &image, &mut msg, &mut patched)
             });
             described = Some(msg);
         } else {
@@ -260,7 +276,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             std::mem::take(&mut skipped),
         );
         if !last_image.empty() {
-            describe_tracks(&mut describer, &last_image, &mut msg);
+            describe_tracks(&mut describer, &last_image, &mut msg, &mut patched);
         }
         log_and_send(&mut keyframe_log, &mut keyframes, &msg)?;
         stats.keyframes += 1;

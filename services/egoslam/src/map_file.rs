@@ -59,6 +59,14 @@ pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> Reloca
             // Every described track: all of them make the keyframe's bag of words, those
             // that are points give the matches.
             features: state.features.get(&id).cloned().unwrap_or_default(),
+            // Only for points: the other tracks' patches are never looked up.
+            patches: state.patches.get(&id).map_or_else(Vec::new, |patches| {
+                patches
+                    .iter()
+                    .filter(|(track, _)| points.contains_key(track))
+                    .copied()
+                    .collect()
+            }),
         })
         .collect();
     RelocalizationMap {

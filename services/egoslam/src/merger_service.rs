@@ -184,13 +184,15 @@ impl Merger {
             self.state.frames.add_stamp(k);
         }
         for f in &w.keyframe_features {
-            match egoslam_relocalization::saved_map::features_from_pb(f) {
-                Some(features) => {
+            use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
+            match features_from_pb(f).zip(patches_from_pb(f)) {
+                Some((features, patches)) => {
                     self.features_log.append(f)?;
                     if !self.state.features.contains_key(&f.keyframe_id) {
                         self.index_keyframe(f.keyframe_id, &features);
                     }
                     self.state.features.insert(f.keyframe_id, features);
+                    self.state.patches.insert(f.keyframe_id, patches);
                 }
                 None => {
                     tracing::warn!(
@@ -565,7 +567,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
-        state.features = crate::features_log::read(&merger.args.out)?;
+        (state.features, state.patches) = crate::features_log::read(&merger.args.out)?;
         for (keyframe, features) in &state.features {
             merger.index_keyframe(*keyframe, features);
         }

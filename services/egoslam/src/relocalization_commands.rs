@@ -239,8 +239,11 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
             .any(|t| (t - frame.timestamp).abs() < 1e-6);
         non_keyframes += u64::from(!is_keyframe);
         let started = Instant::now();
-        let result = query_features(&mut describer, &frame.image, &camera)
-            .map(|q| relocalizer.relocalize(&q, &options));
+        let result = query_features(&mut describer, &frame.image, &camera).map(|q| {
+            relocalizer
+                .relocalize(&q, &options)
+                .map(|found| relocalizer.refine_by_patches(found, &frame.image, &camera, &options))
+        });
         query_ms.push(started.elapsed().as_secs_f64() * 1e3);
         match result? {
             Ok(r) => {

@@ -9,6 +9,7 @@ use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
+use egoslam_relocalization::patch_alignment::PATCH_SIDE;
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
 use egoslam_solver::windowing::Window;
@@ -138,13 +139,17 @@ fn observation_messages(
         .collect()
 }
 
-/// The described tracks of a keyframe, forwarded once (in the first window holding the
+/// The described tracks of a keyframe (with the patches of those new in it), forwarded once (in the first window holding the
 /// keyframe) for the merger's relocalization map.
 fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
     let described: Vec<&pb::TrackObservation> = k
         .tracks
         .iter()
         .filter(|t| t.descriptor.len() == 32)
+        .collect();
+    let patched: Vec<&&pb::TrackObservation> = described
+        .iter()
+        .filter(|t| t.patch.len() == PATCH_SIDE * PATCH_SIDE)
         .collect();
     pb::KeyframeFeatures {
         keyframe_id: k.keyframe_id,
@@ -155,6 +160,11 @@ fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
             .collect(),
         x: described.iter().map(|t| t.x).collect(),
         y: described.iter().map(|t| t.y).collect(),
+        patch_track_ids: patched.iter().map(|t| t.track_id).collect(),
+        patches: patched
+            .iter()
+            .flat_map(|t| t.patch.iter().copied())
+            .collect(),
     }
 }
 

@@ -237,6 +237,8 @@ pub(crate) fn relocalize_consistently(
                 segment: s,
                 pose: *pose,
                 features: features.get(&id)?.clone(),
+                // Queries here are keyframes' own tracks, already where their points are.
+                patches: Vec::new(),
             })
         })
         .collect();

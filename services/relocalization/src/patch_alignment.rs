@@ -12,7 +12,7 @@
 
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::{Matrix2, Matrix4, Point2, Vector2, Vector3, Vector4};
-use opencv::core::{Mat, CV_8UC1};
+use opencv::core::CV_8UC1;
 use opencv::prelude::*;
 
 /// Side of a saved patch, pixels: 10, SVO's 8 x 8 patch with its one-pixel border, here
@@ -41,7 +41,7 @@ struct Sampler<'a> {
 }
 
 impl<'a> Sampler<'a> {
-    fn new(image: &'a Mat) -> Option<Self> {
+    fn new(image: &'a impl MatTraitConst) -> Option<Self> {
         if image.typ() != CV_8UC1 || image.empty() {
             return None;
         }
@@ -83,7 +83,7 @@ impl<'a> Sampler<'a> {
 
 /// The patch of `image` (8-bit grey) centred on the raw pixel `centre`; `None` when it
 /// does not fit inside the image.
-pub fn extract_patch(image: &Mat, centre: Point2<f64>) -> Option<Patch> {
+pub fn extract_patch(image: &impl MatTraitConst, centre: Point2<f64>) -> Option<Patch> {
     let sampler = Sampler::new(image)?;
     let mut patch = [0u8; PATCH_SIDE * PATCH_SIDE];
     for (i, value) in patch.iter_mut().enumerate() {
@@ -158,7 +158,7 @@ impl Default for AlignmentOptions {
 /// `None` when it leaves the image, does not converge within `options.max_shift_px`, or
 /// correlates less than `options.min_correlation` there.
 pub fn align_patch(
-    image: &Mat,
+    image: &impl MatTraitConst,
     patch: &Patch,
     predicted: Point2<f64>,
     warp: &Matrix2<f64>,
@@ -222,7 +222,7 @@ fn correlation(a: &[f64], b: &[f64]) -> f64 {
 mod tests {
     use super::*;
     use nalgebra::UnitQuaternion;
-    use opencv::core::Scalar;
+    use opencv::core::{Mat, Scalar};
 
     /// A smooth blob texture: intensity varies within a patch in both directions.
     fn image(shift: Vector2<f64>, gain: f64, bias: f64) -> Mat {

@@ -7,6 +7,7 @@
 //! names what is wrong, never a panic or a silently wrong map.
 
 use crate::descriptors::Descriptor;
+use crate::patch_alignment::{Patch, PATCH_SIDE};
 use crate::relocalizer::{MapFeature, MapKeyframe, RelocalizationMap};
 use crate::vocabulary::fnv1a;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -43,15 +44,38 @@ pub enum SavedMapError {
     Invalid(String),
 }
 
-/// The descriptors of a keyframe's tracks as the wire message.
-pub fn features_to_pb(keyframe_id: u64, features: &[MapFeature]) -> pb::KeyframeFeatures {
+/// The descriptors of a keyframe's tracks, and the patches of those first described in it, as
+/// the wire message.
+pub fn features_to_pb(
+    keyframe_id: u64,
+    features: &[MapFeature],
+    patches: &[(u64, Patch)],
+) -> pb::KeyframeFeatures {
     pb::KeyframeFeatures {
         keyframe_id,
         track_ids: features.iter().map(|f| f.track_id).collect(),
         descriptors: features.iter().flat_map(|f| f.descriptor).collect(),
         x: features.iter().map(|f| f.pixel.x).collect(),
         y: features.iter().map(|f| f.pixel.y).collect(),
+        patch_track_ids: patches.iter().map(|(t, _)| *t).collect(),
+        patches: patches
+            .iter()
+            .flat_map(|(_, p)| p.iter().copied())
+            .collect(),
     }
+}
+
+/// The patches of the wire message; `None` when their bytes do not match their tracks.
+pub fn patches_from_pb(m: &pb::KeyframeFeatures) -> Option<Vec<(u64, Patch)>> {
+    let side = PATCH_SIDE * PATCH_SIDE;
+    if m.patches.len() != side * m.patch_track_ids.len() {
+        return None;
+    }
+    m.patch_track_ids
+        .iter()
+        .zip(m.patches.chunks_exact(side))
+        .map(|(t, bytes)| Some((*t, bytes.try_into().ok()?)))
+        .collect()
 }
 
 /// The wire message back to features; `None` when its lists disagree in length or a pixel
@@ -119,7 +143,7 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
                     segment_id: k.segment,
                     ..Default::default()
                 }),
-                features: Some(features_to_pb(k.keyframe_id, &k.features)),
+                features: Some(features_to_pb(k.keyframe_id, &k.features, &k.patches)),
             })
             .collect(),
         points: {
@@ -215,10 +239,13 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
         if !(quaternion.coords.iter().all(|v| v.is_finite()) && quaternion.norm() > 0.5) {
             return Err(SavedMapError::Invalid(format!("{what}: bad orientation")));
         }
-        let features = match &k.features {
-            Some(f) => features_from_pb(f)
-                .ok_or_else(|| SavedMapError::Invalid(format!("{what}: inconsistent features")))?,
-            None => Vec::new(),
+        let inconsistent = || SavedMapError::Invalid(format!("{what}: inconsistent features"));
+        let (features, patches) = match &k.features {
+            Some(f) => (
+                features_from_pb(f).ok_or_else(inconsistent)?,
+                patches_from_pb(f).ok_or_else(inconsistent)?,
+            ),
+            None => (Vec::new(), Vec::new()),
         };
         keyframes.push(MapKeyframe {
             keyframe_id: k.keyframe_id,
@@ -229,6 +256,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
                 rotation: UnitQuaternion::from_quaternion(quaternion),
             },
             features,
+            patches,
         });
     }
     Ok((
@@ -264,6 +292,7 @@ mod tests {
                         pixel: Point2::new(10.0 * t as f32, 5.0),
                     })
                     .collect(),
+                patches: vec![(k, [k as u8 + 7; PATCH_SIDE * PATCH_SIDE])],
             })
             .collect();
         let points = (0..4u64)
@@ -285,6 +314,7 @@ mod tests {
         assert_eq!(back.keyframes.len(), 3);
         assert_eq!(back.points, map.points);
         assert_eq!(back.keyframes[2].features, map.keyframes[2].features);
+        assert_eq!(back.keyframes[2].patches, map.keyframes[2].patches);
         assert!((back.keyframes[2].pose.position - map.keyframes[2].pose.position).norm() < 1e-12);
 
         assert_eq!(decode_map(b"GIF89a"), Err(SavedMapError::BadMagic));

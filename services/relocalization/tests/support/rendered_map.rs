@@ -74,5 +74,7 @@ pub fn rendered_keyframe(
         segment: 0,
         pose: *pose,
         features: out,
+        // Points are at the corners themselves here: nothing for patches to correct.
+        patches: Vec::new(),
     }
 }
