@@ -2,7 +2,8 @@
 //! frame on one core). The map: 1,000 keyframes rendered along a 3,000-frame walk (every
 //! third frame, points from the rendered depth); the queries: 60 frames between keyframes,
 //! each relocalized from scratch. Reported: median and 90th percentile of the whole query
-//! (GFTT corners + ORB descriptors + relocalization) and of relocalization alone.
+//! (GFTT corners + ORB descriptors + relocalization + patch alignment) and of relocalization
+//! with patch alignment alone.
 //! `cargo bench -p egoslam-relocalization --bench relocalization_query`
 
 #[path = "../tests/support/mod.rs"]
@@ -59,6 +60,7 @@ fn main() {
     let index_s = started.elapsed().as_secs_f64();
     let options = RelocalizerOptions::default();
     let (mut whole, mut relocalize_only, mut found) = (Vec::new(), Vec::new(), 0);
+    let mut alignment = Vec::new();
     for (i, pose) in poses.iter().enumerate().skip(1).step_by(50) {
         let frame = render_frame(
             &scene,
@@ -76,9 +78,14 @@ fn main() {
         let _ = describer.describe(&image, &corners).expect("describe");
         let features_ms = t0.elapsed().as_secs_f64() * 1e3;
         // The same features as the map's (exact pixels), for the relocalization timing.
-        let (query, _) = described_frame(&scene, pose, 5000 + i as u64, &mut describer);
+        let (query, _, _) = described_frame(&scene, pose, 5000 + i as u64, &mut describer);
         let t1 = Instant::now();
-        found += usize::from(relocalizer.relocalize(&query, &options).is_ok());
+        if let Ok(r) = relocalizer.relocalize(&query, &options) {
+            let t2 = Instant::now();
+            let _ = relocalizer.refine_by_patches(r, &image, &camera(), &options);
+            alignment.push(t2.elapsed().as_secs_f64() * 1e3);
+            found += 1;
+        }
         let ms = t1.elapsed().as_secs_f64() * 1e3;
         relocalize_only.push(ms);
         whole.push(features_ms + ms);
@@ -97,5 +104,10 @@ fn main() {
         percentile(&mut whole, 0.9),
         percentile(&mut relocalize_only, 0.5),
         percentile(&mut relocalize_only, 0.9)
+    );
+    println!(
+        "of which patch alignment: median {:.1} ms, p90 {:.1} ms",
+        percentile(&mut alignment, 0.5),
+        percentile(&mut alignment, 0.9)
     );
 }

@@ -54,8 +54,7 @@ impl<'a> Sampler<'a> {
         })
     }
 
-    /// Bilinear intensity at `p`; `None` within a pixel of the border (the gradient reaches
-    /// one pixel further).
+    /// Bilinear intensity at `p`; `None` within a pixel of the border.
     fn at(&self, p: Vector2<f64>) -> Option<f64> {
         if !(p.x >= 1.0 && p.y >= 1.0) {
             return None;
@@ -70,14 +69,6 @@ impl<'a> Sampler<'a> {
             (1.0 - fy) * ((1.0 - fx) * v(x0, y0) + fx * v(x0 + 1, y0))
                 + fy * ((1.0 - fx) * v(x0, y0 + 1) + fx * v(x0 + 1, y0 + 1)),
         )
-    }
-
-    /// Intensity and its central-difference gradient at `p`.
-    fn with_gradient(&self, p: Vector2<f64>) -> Option<(f64, Vector2<f64>)> {
-        let (ex, ey) = (Vector2::new(1.0, 0.0), Vector2::new(0.0, 1.0));
-        let gx = (self.at(p + ex)? - self.at(p - ex)?) / 2.0;
-        let gy = (self.at(p + ey)? - self.at(p - ey)?) / 2.0;
-        Some((self.at(p)?, Vector2::new(gx, gy)))
     }
 }
 
@@ -171,20 +162,30 @@ pub fn align_patch(
     let sampler = Sampler::new(image)?;
     let offsets: Vec<Vector2<f64>> = (0..patch.len()).map(|i| warp * offset(i)).collect();
     let template: Vec<f64> = patch.iter().map(|&v| f64::from(v)).collect();
-    // Parameters: position (2), gain, bias; the residual is image - (gain * patch + bias).
+    // Inverse compositional (Baker and Matthews 2004): the Jacobian comes from the
+    // template's gradient, carried into the query by the warp, so it and the normal
+    // matrix are computed once and each iteration samples the image only. Parameters:
+    // position (2), gain, bias; the residual is image - (gain * patch + bias).
+    let to_query = warp.try_inverse()?.transpose();
+    let jacobians: Vec<Vector4<f64>> = (0..patch.len())
+        .map(|i| {
+            let g = to_query * template_gradient(&template, i);
+            Vector4::new(g.x, g.y, -template[i], -1.0)
+        })
+        .collect();
+    let normal: Matrix4<f64> = jacobians.iter().map(|j| j * j.transpose()).sum();
+    let normal = normal.try_inverse()?;
     let (mut position, mut gain, mut bias) = (predicted.coords, 1.0, 0.0);
     let mut converged = false;
     for _ in 0..options.max_iterations {
-        let (mut h, mut b) = (Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
-        for (d, t) in offsets.iter().zip(&template) {
-            let (value, gradient) = sampler.with_gradient(position + d)?;
-            let residual = value - (gain * t + bias);
-            let jacobian = Vector4::new(gradient.x, gradient.y, -t, -1.0);
-            h += jacobian * jacobian.transpose();
+        let mut b = Vector4::<f64>::zeros();
+        for ((d, t), jacobian) in offsets.iter().zip(&template).zip(&jacobians) {
+            let residual = sampler.at(position + d)? - (gain * t + bias);
             b += jacobian * residual;
         }
-        let step = h.lu().solve(&(-b))?;
-        position += Vector2::new(step[0], step[1]);
+        let step = -(normal * b);
+        // The position's Jacobian assumed unit gain: scale its step back.
+        position += Vector2::new(step[0], step[1]) / gain.max(0.1);
         gain += step[2];
         bias += step[3];
         if (position - predicted.coords).norm() > options.max_shift_px {
@@ -200,6 +201,20 @@ pub fn align_patch(
     }
     let seen: Option<Vec<f64>> = offsets.iter().map(|d| sampler.at(position + d)).collect();
     (correlation(&template, &seen?) >= options.min_correlation).then_some(Point2::from(position))
+}
+
+/// Gradient of the template at sample `i`: central differences inside the patch, one-sided
+/// on its border.
+fn template_gradient(template: &[f64], i: usize) -> Vector2<f64> {
+    let (x, y) = (i % PATCH_SIDE, i / PATCH_SIDE);
+    let at = |x: usize, y: usize| template[y * PATCH_SIDE + x];
+    let along = |lo: usize, hi: usize, value: &dyn Fn(usize) -> f64| {
+        (value(hi) - value(lo)) / (hi - lo) as f64
+    };
+    let last = PATCH_SIDE - 1;
+    let gx = along(x.saturating_sub(1), (x + 1).min(last), &|x| at(x, y));
+    let gy = along(y.saturating_sub(1), (y + 1).min(last), &|y| at(x, y));
+    Vector2::new(gx, gy)
 }
 
 /// Zero-mean normalised cross-correlation of two equally long samples.

@@ -100,6 +100,10 @@ pub struct RelocalizerOptions {
     /// Inlier threshold of the pose solved on aligned positions, pixels (default 1.5: they
     /// agree with the map as its own observations do, 0.3-0.8 px RMS).
     pub aligned_threshold_px: f64,
+    /// Inliers aligned at most, evenly spaced through them (default 150: a pose from 150
+    /// points at a third of a pixel is as good as from 600, and the alignment is most of
+    /// the cost of a query after matching).
+    pub max_aligned: usize,
 }
 
 impl Default for RelocalizerOptions {
@@ -122,6 +126,7 @@ impl Default for RelocalizerOptions {
             max_view_angle_deg: 60.0,
             alignment: AlignmentOptions::default(),
             aligned_threshold_px: 1.5,
+            max_aligned: 150,
         }
     }
 }
@@ -455,7 +460,12 @@ impl Relocalizer {
         let camera_from_world = found.pose.rotation.inverse();
         let mut aligned = Vec::new();
         let mut tracks = Vec::new();
-        for &(track, feature) in &found.inliers {
+        let every = found
+            .inliers
+            .len()
+            .div_ceil(options.max_aligned.max(1))
+            .max(1);
+        for &(track, feature) in found.inliers.iter().step_by(every) {
             let Some(&(k, p)) = self.patch_index.get(&track) else {
                 continue;
             };

@@ -3,6 +3,7 @@
 
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_relocalization::descriptors::{detect_corners, QueryCornerOptions};
+use egoslam_relocalization::patch_alignment::extract_patch;
 use egoslam_relocalization::{MapFeature, MapKeyframe, OrbDescriber, QueryFeatures};
 use egoslam_synth::{render_frame, RenderOptions, Scene};
 use nalgebra::{Point2, Vector3};
@@ -14,13 +15,14 @@ pub fn camera() -> PinholeRadtan {
     PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera")
 }
 
-/// Renders `pose` and returns its described corners with their depth (0: nothing hit).
+/// Renders `pose` and returns its described corners with their depth (0: nothing hit),
+/// and the image.
 pub fn described_frame(
     scene: &Scene,
     pose: &StampedPose,
     index: u64,
     describer: &mut OrbDescriber,
-) -> (QueryFeatures, Vec<f64>) {
+) -> (QueryFeatures, Vec<f64>, Mat) {
     let frame = render_frame(scene, &camera(), &[*pose], index, &RenderOptions::default());
     let wrapped =
         Mat::new_rows_cols_with_data(frame.height as i32, frame.width as i32, &frame.grey)
@@ -40,7 +42,7 @@ pub fn described_frame(
             query.descriptors.push(d);
         }
     }
-    (query, depths)
+    (query, depths, image)
 }
 
 /// A keyframe whose points are its corners back-projected with the rendered depth; track
@@ -54,8 +56,9 @@ pub fn rendered_keyframe(
     describer: &mut OrbDescriber,
 ) -> MapKeyframe {
     let c = camera();
-    let (features, depths) = described_frame(scene, pose, keyframe_id, describer);
+    let (features, depths, image) = described_frame(scene, pose, keyframe_id, describer);
     let mut out = Vec::new();
+    let mut patches = Vec::new();
     for ((px, descriptor), z) in features.pixels.iter().zip(features.descriptors).zip(depths) {
         if z <= 0.0 {
             continue;
@@ -67,6 +70,9 @@ pub fn rendered_keyframe(
             descriptor,
             pixel: Point2::new(px.x as f32, px.y as f32),
         });
+        if let Some(patch) = extract_patch(&image, *px) {
+            patches.push((*next_track, patch));
+        }
         *next_track += 1;
     }
     MapKeyframe {
@@ -74,7 +80,6 @@ pub fn rendered_keyframe(
         segment: 0,
         pose: *pose,
         features: out,
-        // Points are at the corners themselves here: nothing for patches to correct.
-        patches: Vec::new(),
+        patches,
     }
 }
