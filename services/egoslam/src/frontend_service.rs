@@ -301,3 +301,63 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{Scalar, CV_8UC1};
+
+    /// Blocks of random grey: corners everywhere, deterministic.
+    fn textured() -> Mat {
+        let mut img =
+            Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(0.0)).expect("image");
+        let mut state = 7u64;
+        for y in 0..240 {
+            for x in 0..320 {
+                if x % 8 == 0 && y % 8 == 0 {
+                    state = state
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                }
+                let v = ((state >> 56) as i32 + (x / 8 + y / 8) * 37) % 256;
+                *img.at_2d_mut::<u8>(y, x).expect("pixel") = v as u8;
+            }
+        }
+        img
+    }
+
+    fn keyframe(ids: &[u64]) -> pb::Keyframe {
+        pb::Keyframe {
+            tracks: ids
+                .iter()
+                .map(|&id| pb::TrackObservation {
+                    track_id: id,
+                    raw_x: 60.0 + 20.0 * id as f32,
+                    raw_y: 120.0,
+                    ..Default::default()
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_track_carries_its_patch_once_in_the_first_keyframe_that_describes_it() {
+        let image = textured();
+        let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
+        let mut patched = HashSet::new();
+        let mut first = keyframe(&[1, 2]);
+        describe_tracks(&mut describer, &image, &mut first, &mut patched);
+        assert!(first.tracks.iter().all(|t| t.descriptor.len() == 32));
+        assert!(first.tracks.iter().all(|t| t.patch.len() == 100));
+        // Track 1 is lost, 3 is new: only 3 gets a patch, and 1 is forgotten.
+        let mut second = keyframe(&[2, 3]);
+        describe_tracks(&mut describer, &image, &mut second, &mut patched);
+        assert!(second.tracks[0].patch.is_empty());
+        assert_eq!(second.tracks[1].patch.len(), 100);
+        assert_eq!(patched, HashSet::from([2, 3]));
+        // The patch is the image around the track's raw position.
+        let expected = extract_patch(&image, nalgebra::Point2::new(120.0, 120.0)).expect("inside");
+        assert_eq!(second.tracks[1].patch, expected.to_vec());
+    }
+}
