@@ -52,7 +52,12 @@ impl Default for LinkOptions {
             max_position_fraction: 0.05,
             max_queries: 12,
             only_newest: None,
-            relocalizer: RelocalizerOptions::default(),
+            // A link is a similarity from relocalized positions; a frame placed by
+            // rotation at a keyframe's centre has none of its own.
+            relocalizer: RelocalizerOptions {
+                place_by_rotation: false,
+                ..RelocalizerOptions::default()
+            },
         }
     }
 }

@@ -8,6 +8,7 @@ use crate::absolute_pose::{solve_pnp, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
 use crate::keyframe_database::KeyframeDatabase;
 use crate::patch_alignment::{align_patch, viewpoint_warp, AlignmentOptions, Patch};
+use crate::rotation_relocalization::relocalize_by_rotation;
 use crate::vocabulary::Vocabulary;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::{Point2, Vector3};
@@ -104,6 +105,19 @@ pub struct RelocalizerOptions {
     /// points at a third of a pixel is as good as from 600, and the alignment is most of
     /// the cost of a query after matching).
     pub max_aligned: usize,
+    /// Where a candidate keyframe turned in place and has no points
+    /// ([`crate::rotation_relocalization`]): largest angle between a query bearing turned by
+    /// the rotation and its keyframe bearing, in pixels at the focal length (default 2: a
+    /// pure rotation explains a match to the tracker's precision, parallax of a few
+    /// centimetres at 2 m does not), and the least share of the matches it must explain
+    /// (default 0.5).
+    pub rotation_threshold_px: f64,
+    pub rotation_min_inlier_ratio: f64,
+    /// Whether a frame no candidate's points can place may be placed by rotation at a
+    /// keyframe that turned in place (default true). Its position is then the keyframe's,
+    /// which says nothing about where the frame is beyond that: uses that need a position
+    /// from the points (segment linking, scale) turn it off.
+    pub place_by_rotation: bool,
 }
 
 impl Default for RelocalizerOptions {
@@ -127,6 +141,9 @@ impl Default for RelocalizerOptions {
             alignment: AlignmentOptions::default(),
             aligned_threshold_px: 1.5,
             max_aligned: 150,
+            rotation_threshold_px: 2.0,
+            rotation_min_inlier_ratio: 0.5,
+            place_by_rotation: true,
         }
     }
 }
@@ -436,6 +453,17 @@ impl Relocalizer {
                 keyframe_id: nearest.keyframe_id,
                 inliers,
             });
+        }
+        // No candidate's points gave a pose: a head turning in place leaves keyframes
+        // without points, placed by rotation alone.
+        let ranked: Vec<usize> = candidates
+            .iter()
+            .filter_map(|c| self.index.get(&c.keyframe_id).copied())
+            .collect();
+        if options.place_by_rotation {
+            if let Some(found) = relocalize_by_rotation(&self.map, query, &ranked, options) {
+                return Ok(found);
+            }
         }
         Err(RelocalizationError::NoPose {
             tried: candidates.len(),
