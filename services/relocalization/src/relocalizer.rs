@@ -461,6 +461,7 @@ impl Relocalizer {
             .filter_map(|c| self.index.get(&c.keyframe_id).copied())
             .collect();
         if options.place_by_rotation {
+            let _span = tracing::debug_span!("placement_by_rotation").entered();
             if let Some(found) = relocalize_by_rotation(&self.map, query, &ranked, options) {
                 return Ok(found);
             }
@@ -484,6 +485,8 @@ impl Relocalizer {
         raw_camera: &PinholeRadtan,
         options: &RelocalizerOptions,
     ) -> Relocalization {
+        let _span =
+            tracing::debug_span!("patch_alignment", inliers = found.inliers.len()).entered();
         let camera = &self.map.camera;
         let camera_from_world = found.pose.rotation.inverse();
         let mut aligned = Vec::new();
