@@ -147,6 +147,20 @@ fn kitti_every_frame_relocalized_from_scratch() {
     assert!(f(&acc["median_rotation_deg"]) < 1.0, "{acc}");
 }
 
+/// Renders a sequence with `egoslam synth ARGS` into `dir/sequence`.
+fn rendered(dir: &Path, args: &[&str]) -> std::path::PathBuf {
+    let sequence = dir.join("sequence");
+    let status = egoslam()
+        .arg("synth")
+        .args(args)
+        .arg("--out")
+        .arg(&sequence)
+        .status()
+        .expect("synth");
+    assert!(status.success());
+    sequence
+}
+
 /// Issue 7's rendered head-mounted case: the Project Aria head trajectory replayed through
 /// the rendered room (as `egoslam bench` does), mapped by the pipeline, every frame
 /// relocalized from scratch with patch alignment.
@@ -158,22 +172,18 @@ fn aria_head_trajectory_every_frame_relocalized_from_scratch() {
     let trajectory = trajectories
         .join("aria_head_mounted/projectaria_tools_mps_sample_closed_loop_trajectory.csv");
     let dir = tempfile::tempdir().expect("tempdir");
-    let sequence = dir.path().join("aria");
-    let status = egoslam()
-        .args([
-            "synth",
+    let trajectory = trajectory.to_str().expect("UTF-8 path");
+    let sequence = rendered(
+        dir.path(),
+        &[
             "--path",
             "replay",
             "--frames",
             "300",
             "--trajectory",
-        ])
-        .arg(&trajectory)
-        .arg("--out")
-        .arg(&sequence)
-        .status()
-        .expect("synth");
-    assert!(status.success());
+            trajectory,
+        ],
+    );
     let r = map_then_localize(&sequence, dir.path());
     // Measured: 300 of 300, median 1.13 cm / 0.183 deg against a map whose keyframes are
     // 0.95 cm / 0.125 deg off (1.92 cm / 0.277 deg before patch alignment).
@@ -193,13 +203,7 @@ fn aria_head_trajectory_every_frame_relocalized_from_scratch() {
 #[test]
 fn rendered_walk_meets_the_relocalization_targets() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let sequence = dir.path().join("walker");
-    let status = egoslam()
-        .args(["synth", "--path", "walker", "--frames", "150", "--out"])
-        .arg(&sequence)
-        .status()
-        .expect("synth");
-    assert!(status.success());
+    let sequence = rendered(dir.path(), &["--path", "walker", "--frames", "150"]);
     let r = map_then_localize(&sequence, dir.path());
     // Measured: 150 of 150 (118 before frames were placed by rotation), median 0.67 cm /
     // 0.091 deg against a map whose keyframes are 0.49 cm / 0.085 deg off.

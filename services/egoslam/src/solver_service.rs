@@ -139,8 +139,9 @@ fn observation_messages(
         .collect()
 }
 
-/// The described tracks of a keyframe (with the patches of those new in it), forwarded once (in the first window holding the
-/// keyframe) for the merger's relocalization map.
+/// The described tracks of a keyframe, with the patches of those first described in it,
+/// forwarded once (in the first window holding the keyframe) for the merger's
+/// relocalization map.
 fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
     let described: Vec<&pb::TrackObservation> = k
         .tracks

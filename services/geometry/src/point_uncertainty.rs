@@ -33,17 +33,19 @@ impl Default for PointInformation {
 
 impl PointInformation {
     /// Adds the view `world_from_camera` of an ideal pinhole camera with focal length
-    /// `focal_px`. A view with the point behind or on the camera adds nothing.
+    /// `focal_px`. A view with the point behind or on the camera adds nothing. Returns the
+    /// point in that camera's frame (callers that also reproject it need not transform it
+    /// again).
     pub fn add_view(
         &mut self,
         point: &Vector3<f64>,
         world_from_camera: &StampedPose,
         focal_px: f64,
-    ) {
+    ) -> Vector3<f64> {
         let camera_from_world = world_from_camera.rotation.inverse();
         let p = camera_from_world * (point - world_from_camera.position);
         if p.z <= 1e-9 {
-            return;
+            return p;
         }
         let z = p.z;
         let projection =
@@ -51,6 +53,7 @@ impl PointInformation {
         let jacobian = projection * camera_from_world.to_rotation_matrix().matrix();
         self.information += jacobian.transpose() * jacobian;
         self.nearest_depth = self.nearest_depth.min(z);
+        p
     }
 
     /// Largest standard deviation of the point (pixel noise `pixel_sigma`) over its depth in

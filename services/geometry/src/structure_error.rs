@@ -181,15 +181,20 @@ mod tests {
     use super::*;
     use nalgebra::UnitQuaternion;
 
+    /// A ground-truth view at the origin, looking down +z.
+    fn at_origin() -> StampedPose {
+        StampedPose {
+            timestamp: 0.0,
+            position: Vector3::zeros(),
+            rotation: UnitQuaternion::identity(),
+        }
+    }
+
     #[test]
     fn points_on_a_wall_against_its_depth() {
         let camera =
             PinholeRadtan::new(64, 48, [50.0, 50.0, 32.0, 24.0], [0.0; 5]).expect("camera");
-        let view = StampedPose {
-            timestamp: 0.0,
-            position: Vector3::zeros(),
-            rotation: UnitQuaternion::identity(),
-        };
+        let view = at_origin();
         // A wall at z = 4; two points on it, one 10 cm in front, one outside the image.
         let points = [
             Vector3::new(0.0, 0.0, 4.0),
@@ -211,11 +216,7 @@ mod tests {
         // edge but 3 px below its silhouette, where the wall is seen.
         let camera =
             PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
-        let view = StampedPose {
-            timestamp: 0.0,
-            position: Vector3::zeros(),
-            rotation: UnitQuaternion::identity(),
-        };
+        let view = at_origin();
         let depth = |_: usize, _: u32, y: u32| Some(if y < 240 { 2.0 } else { 6.0 });
         let on_wall = Vector3::new(0.6, 0.6, 5.95);
         let off_silhouette = Vector3::new(0.1, 3.0 / 500.0 * 2.0, 2.0);

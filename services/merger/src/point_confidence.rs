@@ -107,9 +107,8 @@ pub fn point_confidence(
             continue;
         }
         let (info, views, largest) = information.entry(track).or_default();
-        info.add_view(point, &pose, camera.fx);
+        let in_camera = info.add_view(point, &pose, camera.fx);
         *views += 1;
-        let in_camera = pose.rotation.inverse() * (point - pose.position);
         let error = camera
             .project_undistorted(&in_camera)
             .map_or(f64::INFINITY, |p| (p - observed).norm());
@@ -222,6 +221,15 @@ mod tests {
             .insert((keyframe, track), pixel + Vector2::new(offset, 0.0));
     }
 
+    /// An empty map with its one segment current.
+    fn one_segment() -> MapParts {
+        MapParts {
+            segments: 1,
+            current_segment: Some(0),
+            ..MapParts::default()
+        }
+    }
+
     fn pose(x: f64, z: f64) -> StampedPose {
         StampedPose {
             timestamp: x + z,
@@ -232,11 +240,7 @@ mod tests {
 
     #[test]
     fn a_point_beside_a_sideways_walk_is_known_one_far_ahead_of_a_forward_walk_is_not() {
-        let mut parts = MapParts {
-            segments: 1,
-            current_segment: Some(0),
-            ..MapParts::default()
-        };
+        let mut parts = one_segment();
         // Keyframes 0-4 walk sideways 1 m, 10-14 walk forward 1 m.
         for i in 0..5 {
             parts.keyframes.insert(i, (0, pose(0.25 * i as f64, 0.0)));
@@ -264,11 +268,7 @@ mod tests {
 
     #[test]
     fn a_point_its_observations_contradict_or_only_two_views_see_is_not_known() {
-        let mut parts = MapParts {
-            segments: 1,
-            current_segment: Some(0),
-            ..MapParts::default()
-        };
+        let mut parts = one_segment();
         for i in 0..5 {
             parts.keyframes.insert(i, (0, pose(0.25 * i as f64, 0.0)));
         }
@@ -320,18 +320,9 @@ mod tests {
 
     #[test]
     fn shared_points_seen_from_a_short_baseline_do_not_rate_the_join() {
-        let mut parts = MapParts {
-            segments: 1,
-            current_segment: Some(0),
-            ..MapParts::default()
-        };
+        let mut parts = one_segment();
         for i in 0..10u64 {
-            let pose = StampedPose {
-                timestamp: i as f64,
-                position: Vector3::new(0.2 * i as f64, 0.0, 0.0),
-                rotation: UnitQuaternion::identity(),
-            };
-            parts.keyframes.insert(i, (0, pose));
+            parts.keyframes.insert(i, (0, pose(0.2 * i as f64, 0.0)));
         }
         let pixel = Point2::new(0.0, 0.0);
         for t in 0..80u64 {

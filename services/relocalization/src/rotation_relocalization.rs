@@ -13,8 +13,8 @@ use crate::descriptors::{hamming_all, pack};
 use crate::relocalizer::{
     MapKeyframe, QueryFeatures, Relocalization, RelocalizationMap, RelocalizerOptions,
 };
-use egoslam_geometry::{PinholeRadtan, StampedPose};
-use nalgebra::{Matrix3, Point2, Rotation3, UnitQuaternion, Vector3};
+use egoslam_geometry::{nearest_rotation, StampedPose};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 /// Draws of the 2-point RANSAC (200: at half inliers, an all-inlier pair is missed with
 /// probability 0.75^200).
@@ -34,25 +34,14 @@ fn turns_in_place(map: &RelocalizationMap, i: usize) -> bool {
     (i > 0 && same(i - 1)) || same(i + 1)
 }
 
-fn bearing(camera: &PinholeRadtan, p: &Point2<f64>) -> Vector3<f64> {
-    Vector3::new(
-        (p.x - camera.cx) / camera.fx,
-        (p.y - camera.cy) / camera.fy,
-        1.0,
-    )
-    .normalize()
-}
-
 /// The rotation `r` minimising sum |r a - b|^2 over the pairs (Kabsch).
 fn rotation_between(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
-    let h: Matrix3<f64> = pairs.iter().map(|(a, b)| b * a.transpose()).sum();
-    let svd = h.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Rotation3::identity();
-    };
-    let mut d = Matrix3::identity();
-    d[(2, 2)] = (u * v_t).determinant().signum();
-    Rotation3::from_matrix_unchecked(u * d * v_t)
+    nearest_rotation(
+        &pairs
+            .iter()
+            .map(|(a, b)| b * a.transpose())
+            .sum::<Matrix3<f64>>(),
+    )
 }
 
 /// Query features matched to all described tracks of `keyframe` (points or not): nearest
@@ -111,8 +100,8 @@ pub(crate) fn relocalize_by_rotation(
             .iter()
             .map(|&(qi, fi)| {
                 (
-                    bearing(camera, &query.pixels[qi]),
-                    bearing(camera, &pixel(fi)),
+                    camera.bearing_from_undistorted(query.pixels[qi]),
+                    camera.bearing_from_undistorted(pixel(fi)),
                 )
             })
             .collect();
@@ -170,6 +159,7 @@ pub(crate) fn relocalize_by_rotation(
 mod tests {
     use super::*;
     use crate::relocalizer::MapFeature;
+    use egoslam_geometry::PinholeRadtan;
     use std::collections::HashMap;
 
     fn camera() -> PinholeRadtan {
