@@ -7,8 +7,9 @@
 //! corner response: on the rendered Aria head trajectory the two differ by 1.5 px (median)
 //! while the map's own observations agree with its points within 0.44 px. Aligning each
 //! inlier's saved patch, warped by the viewpoint change, to the query image finds the track's
-//! position in the query; the pose solved on those positions agrees with the map (a
-//! keyframe relocalized from scratch lands 0.5-1.2 mm from its own pose instead of 5-20 mm).
+//! position in the query; the pose solved on those positions agrees with the map. Keyframes
+//! relocalized from scratch landed 2-39 mm (median 11 mm, first 20 keyframes) from their
+//! own pose from the corners, and 0.5-1.2 mm (first five) with aligned patches.
 
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::{Matrix2, Matrix4, Point2, Vector2, Vector3, Vector4};
