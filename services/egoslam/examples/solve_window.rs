@@ -33,6 +33,9 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("RANSAC_PX") {
         options.view_graph.relative_pose.ransac_threshold_px = v;
     }
+    if let Some(v) = env("REFINE_EDGES") {
+        options.view_graph.relative_pose.refine = v != 0.0;
+    }
     if let Some(v) = env("MIN_TRACK_VIEWS") {
         options.min_track_views = v as usize;
     }
@@ -70,10 +73,11 @@ fn main() -> anyhow::Result<()> {
             let (edges, _) = egoslam_solver::view_graph::build_view_graph(
                 &camera,
                 &obs,
-                &Default::default(),
+                &options.view_graph,
                 &mut EdgeCache::new(),
             );
-            for e in edges.iter().filter(|e| e.i < 3) {
+            let all = std::env::var_os("EDGES").is_some_and(|v| v == "all");
+            for e in edges.iter().filter(|e| all || e.i < 3) {
                 let (Some(gi), Some(gj)) = (near(obs[e.i].timestamp), near(obs[e.j].timestamp))
                 else {
                     continue;

@@ -6,6 +6,7 @@
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
 pub mod bundle_adjustment;
+pub mod essential_refinement;
 pub mod relative_pose;
 pub mod rotation_averaging;
 pub mod schur;
