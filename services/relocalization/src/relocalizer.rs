@@ -183,7 +183,15 @@ pub struct Relocalizer {
     /// track id -> (keyframe index, index in its patches, the track's pixel there): where
     /// each point's patch was cut, found once here rather than per query.
     patch_index: HashMap<u64, (usize, usize, Point2<f64>)>,
+    /// Per keyframe, per feature: where its track's point is in `point_positions`, or
+    /// `NO_POINT`. The matching loops visit ~30,000 features per query; a hash lookup of
+    /// each in `map.points` was a third of the projection search.
+    feature_points: Vec<Vec<u32>>,
+    point_positions: Vec<Vector3<f64>>,
 }
+
+/// A feature whose track has no map point.
+const NO_POINT: u32 = u32::MAX;
 
 impl Relocalizer {
     /// Indexes every keyframe of `map` with `vocabulary`.
@@ -193,6 +201,23 @@ impl Relocalizer {
         let mut database = KeyframeDatabase::new();
         let mut index = HashMap::new();
         let mut patch_index = HashMap::new();
+        let (mut dense, mut point_positions) = (HashMap::new(), Vec::new());
+        let feature_points = map
+            .keyframes
+            .iter()
+            .map(|k| {
+                k.features
+                    .iter()
+                    .map(|f| match map.points.get(&f.track_id) {
+                        Some((_, x)) => *dense.entry(f.track_id).or_insert_with(|| {
+                            point_positions.push(*x);
+                            (point_positions.len() - 1) as u32
+                        }),
+                        None => NO_POINT,
+                    })
+                    .collect()
+            })
+            .collect();
         for (i, k) in map.keyframes.iter().enumerate() {
             let descriptors: Vec<Descriptor> = k.features.iter().map(|f| f.descriptor).collect();
             database.add(k.keyframe_id, &vocabulary.bag_of_words(&descriptors));
@@ -216,6 +241,8 @@ impl Relocalizer {
             database,
             index,
             patch_index,
+            feature_points,
+            point_positions,
         }
     }
 
@@ -256,11 +283,13 @@ impl Relocalizer {
         // comparisons several-fold at no loss, the descriptors of one track being alike.
         let mut seen: HashMap<u64, usize> = HashMap::new();
         let (mut tracks, mut packed) = (Vec::new(), Vec::new());
-        for f in keyframes
-            .iter()
-            .flat_map(|&k| self.map.keyframes[k].features.iter())
-        {
-            if !self.map.points.contains_key(&f.track_id) {
+        for (f, &point) in keyframes.iter().flat_map(|&k| {
+            self.map.keyframes[k]
+                .features
+                .iter()
+                .zip(&self.feature_points[k])
+        }) {
+            if point == NO_POINT {
                 continue;
             }
             let n = seen.entry(f.track_id).or_default();
@@ -312,29 +341,67 @@ impl Relocalizer {
         pose: &StampedPose,
         options: &RelocalizerOptions,
     ) -> Vec<(u64, usize)> {
-        const CELL: f64 = 16.0;
-        let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
-        for (i, p) in query.pixels.iter().enumerate() {
-            let key = ((p.x / CELL).floor() as i64, (p.y / CELL).floor() as i64);
-            grid.entry(key).or_default().push(i);
+        // A dense grid of the query's features over their bounding box: looked up 9 times
+        // per projected point, so a hash map here cost more than the distances. Cells of
+        // 16 px (at least the search radius, so the 3x3 block around a projection holds
+        // every feature in reach), coarser only if the features spread over more than
+        // 4096 px, so that the grid stays under 256 x 256 cells whatever the input.
+        let valid = |p: &Point2<f64>| p.x.is_finite() && p.y.is_finite();
+        let (mut lo, mut hi) = (
+            Point2::new(f64::MAX, f64::MAX),
+            Point2::new(f64::MIN, f64::MIN),
+        );
+        for p in query.pixels.iter().filter(|p| valid(p)) {
+            (lo.x, lo.y, hi.x, hi.y) = (lo.x.min(p.x), lo.y.min(p.y), hi.x.max(p.x), hi.y.max(p.y));
         }
+        if lo.x > hi.x {
+            return Vec::new();
+        }
+        let size = 16f64
+            .max(options.projection_radius_px)
+            .max((hi.x - lo.x).max(hi.y - lo.y) / 254.0);
+        // Cells on multiples of their size, as the hash grid's were: the features are then
+        // visited in the same order, and ties in distance go the same way.
+        let lo = Point2::new((lo.x / size).floor() * size, (lo.y / size).floor() * size);
+        let cell_of = |p: &Point2<f64>| {
+            (
+                ((p.x - lo.x) / size).floor() as i64,
+                ((p.y - lo.y) / size).floor() as i64,
+            )
+        };
+        let (cols, rows) = (cell_of(&hi).0 + 1, cell_of(&hi).1 + 1);
+        let mut grid: Vec<Vec<usize>> = vec![Vec::new(); (cols * rows) as usize];
+        for (i, p) in query.pixels.iter().enumerate().filter(|(_, p)| valid(p)) {
+            let (x, y) = cell_of(p);
+            grid[(y * cols + x) as usize].push(i);
+        }
+        let cell = |x: i64, y: i64| -> &[usize] {
+            if x < 0 || y < 0 || x >= cols || y >= rows {
+                return &[];
+            }
+            &grid[(y * cols + x) as usize]
+        };
         let r_cw = pose.rotation.inverse();
         let camera = &self.map.camera;
         let radius = options.projection_radius_px;
         let mut best_of_query: BTreeMap<usize, (u32, u64)> = BTreeMap::new();
         for &k in keyframes {
-            for f in &self.map.keyframes[k].features {
-                let Some((_, x)) = self.map.points.get(&f.track_id) else {
+            for (f, &point) in self.map.keyframes[k]
+                .features
+                .iter()
+                .zip(&self.feature_points[k])
+            {
+                let Some(x) = self.point_positions.get(point as usize) else {
                     continue;
                 };
                 let Some(px) = camera.project_undistorted(&(r_cw * (x - pose.position))) else {
                     continue;
                 };
-                let (cx, cy) = ((px.x / CELL).floor() as i64, (px.y / CELL).floor() as i64);
+                let (cx, cy) = cell_of(&px);
                 let mut best = (u32::MAX, usize::MAX);
                 for gx in cx - 1..=cx + 1 {
                     for gy in cy - 1..=cy + 1 {
-                        for &qi in grid.get(&(gx, gy)).map_or(&[][..], Vec::as_slice) {
+                        for &qi in cell(gx, gy) {
                             if (query.pixels[qi] - px).norm() > radius {
                                 continue;
                             }

@@ -89,3 +89,58 @@ fn frames_between_rendered_keyframes_relocalize_to_millimetres() {
         }
     }
 }
+
+/// Query features far outside the image or not finite (a broken undistortion, a corrupt
+/// feature file) must neither panic nor blow up the search grid, and must not cost the
+/// frame its pose.
+#[test]
+fn stray_query_pixels_leave_relocalization_intact() {
+    let scene = Scene::room(7);
+    let poses: Vec<StampedPose> = CameraPath::Walker(WalkerOptions::default()).poses(40, 30.0);
+    let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
+    let (mut points, mut next_track) = (HashMap::new(), 0);
+    let keyframes = poses
+        .iter()
+        .step_by(6)
+        .enumerate()
+        .map(|(k, pose)| {
+            rendered_keyframe(
+                &scene,
+                pose,
+                k as u64,
+                &mut next_track,
+                &mut points,
+                &mut describer,
+            )
+        })
+        .collect();
+    let map = RelocalizationMap {
+        camera: camera(),
+        keyframes,
+        points,
+    };
+    let relocalizer = Relocalizer::new(default_vocabulary().expect("built-in vocabulary"), map);
+    let truth = poses[15];
+    let (mut query, _, _) = described_frame(&scene, &truth, 2000, &mut describer);
+    let clean = relocalizer
+        .relocalize(&query, &RelocalizerOptions::default())
+        .expect("clean query relocalizes");
+    let descriptor = query.descriptors[0];
+    for pixel in [
+        nalgebra::Point2::new(f64::NAN, 10.0),
+        nalgebra::Point2::new(1e12, -1e12),
+        nalgebra::Point2::new(f64::INFINITY, 5.0),
+    ] {
+        query.pixels.push(pixel);
+        query.descriptors.push(descriptor);
+    }
+    let found = relocalizer
+        .relocalize(&query, &RelocalizerOptions::default())
+        .expect("relocalizes with stray features");
+    let moved = (found.pose.position - clean.pose.position).norm();
+    assert!(
+        moved < 0.005,
+        "pose moved {moved} m with three stray features"
+    );
+    assert!((found.pose.position - truth.position).norm() < 0.01);
+}
