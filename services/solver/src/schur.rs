@@ -70,7 +70,10 @@ impl SchurSystem {
         for (ja, &ia) in jr.iter().zip(idx) {
             self.g[ia] += w * ja.dot(r);
             for (jb, &ib) in jr.iter().zip(idx) {
-                self.h[(ia, ib)] += w * ja.dot(jb);
+                // Lower triangle only: the Cholesky in `solve` reads nothing else.
+                if ib <= ia {
+                    self.h[(ia, ib)] += w * ja.dot(jb);
+                }
             }
         }
         if let Some((k, jp)) = point {
@@ -85,7 +88,9 @@ impl SchurSystem {
     }
 
     /// Solves `(H + lambda diag(H)) dx = -g` (Levenberg-Marquardt damping, Marquardt's scaled
-    /// form) with the points eliminated. `None` when the reduced system is not positive
+    /// form) with the points eliminated. The reduced matrix is symmetric and its Cholesky
+    /// factorisation reads the lower triangle only, so only that is accumulated (half the
+    /// work of the elimination, which is most of a window's bundle adjustment). `None` when the reduced system is not positive
     /// definite (the caller raises lambda).
     pub fn solve(&self, lambda: f64) -> Option<SchurStep> {
         let n = self.g.len();
@@ -105,7 +110,9 @@ impl SchurSystem {
                 let wa_vinv = wa.transpose() * inv;
                 rhs[*ia] += (wa_vinv * block.g)[0];
                 for (ib, wb) in &block.coupling {
-                    s[(*ia, *ib)] -= (wa_vinv * wb)[0];
+                    if ib <= ia {
+                        s[(*ia, *ib)] -= (wa_vinv * wb)[0];
+                    }
                 }
             }
             v_inv.push(inv);
