@@ -6,8 +6,9 @@
 //! on normalised, undistorted coordinates; the essential matrix is decomposed here
 //! (Hartley-Zisserman result 9.19, cheirality by midpoint triangulation), which is 50x
 //! cheaper than `recoverPose`. The RANSAC fits on 200 matches; rotation and direction can
-//! then be refined on every inlier ([`crate::essential_refinement`], off by default). Egocentric video often turns the head without moving it; then the essential
-//! matrix is degenerate (its rotation unreliable, its translation noise). Each edge is
+//! then be refined on every inlier ([`crate::essential_refinement`], off by default).
+//! Egocentric video often turns the head without moving it; then the essential matrix is
+//! degenerate (its rotation unreliable, its translation noise). Each edge is
 //! therefore also fitted with a rotation-only model (Kabsch on bearings, trimmed), and the
 //! median residual of that model (the parallax no rotation can explain; model selection in
 //! the spirit of Torr's GRIC and ORB-SLAM's homography/fundamental test) decides:
@@ -16,7 +17,7 @@
 //! - below: the rotation-only estimate is used and the edge carries no translation
 //!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
 
-use crate::essential_refinement::{refine_relative_pose, EssentialRefinementOptions};
+use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
@@ -109,10 +110,6 @@ pub enum RelativePoseError {
 fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
     let m: Matrix3<f64> = pairs.iter().map(|(bi, bj)| bj * bi.transpose()).sum();
     egoslam_geometry::nearest_rotation(&m)
-}
-
-fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
