@@ -223,6 +223,37 @@ pub fn estimate_relative_pose(
         return Err(RelativePoseError::TooFewMatches(n));
     }
     let cv = |e: opencv::Error| RelativePoseError::OpenCv(e.to_string());
+    // The rotation-only model first: an edge without parallax is decided by it alone, and
+    // the five-point RANSAC (most of a window's solve time) is not run for it. Half of
+    // TUM fr1_rpy's edges are such.
+    let bearing = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0).normalize();
+    let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n)
+        .map(|m| (bearing(&points_i[m]), bearing(&points_j[m])))
+        .collect();
+    let (rotation_r, parallax) = rotation_only(&all_pairs);
+    let parallax_px = parallax * focal_px;
+    // The matches the rotation explains within the agreement threshold.
+    let agreeing = || {
+        let thr = options.rotation_agreement_px / focal_px;
+        all_pairs
+            .iter()
+            .filter(|(bi, bj)| angle(&(rotation_r * bi), bj) < thr.max(parallax * 3.0))
+            .count()
+    };
+    if parallax_px < options.min_parallax_px {
+        let agree = agreeing();
+        if agree < options.min_inliers {
+            return Err(RelativePoseError::TooFewInliers(agree));
+        }
+        return Ok(RelativePose {
+            rotation: rotation_r,
+            translation: Vector3::zeros(),
+            has_translation: false,
+            inliers: agree,
+            matches: n,
+            parallax_px,
+        });
+    }
     // RANSAC on at most `ransac_points` evenly strided matches: the five-point hypotheses
     // are as good, and scoring cost is linear in the points (measured 1.3-5 ms per edge on
     // 300-700 KITTI matches, a third of that on 200).
@@ -306,30 +337,9 @@ pub fn estimate_relative_pose(
     } else {
         (rotation_e, t, inlier_idx.len())
     };
-    let bearing = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0).normalize();
-    let all_pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n)
-        .map(|m| (bearing(&points_i[m]), bearing(&points_j[m])))
-        .collect();
-    let (rotation_r, parallax) = rotation_only(&all_pairs);
-    let parallax_px = parallax * focal_px;
-    if parallax_px < options.min_parallax_px || inliers < options.min_inliers {
-        // Rotation only: count the matches the rotation explains within the threshold.
-        let thr = options.rotation_agreement_px / focal_px;
-        let agree = all_pairs
-            .iter()
-            .filter(|(bi, bj)| angle(&(rotation_r * bi), bj) < thr.max(parallax * 3.0))
-            .count();
-        if parallax_px >= options.min_parallax_px || agree < options.min_inliers {
-            return Err(RelativePoseError::TooFewInliers(inliers.max(agree)));
-        }
-        return Ok(RelativePose {
-            rotation: rotation_r,
-            translation: Vector3::zeros(),
-            has_translation: false,
-            inliers: agree,
-            matches: n,
-            parallax_px,
-        });
+    if inliers < options.min_inliers {
+        // Parallax without a supported essential matrix: no edge.
+        return Err(RelativePoseError::TooFewInliers(inliers.max(agreeing())));
     }
     Ok(RelativePose {
         rotation: rotation_e,
