@@ -264,7 +264,7 @@ fn spread(rows: &[serde_json::Value]) -> Option<String> {
     }
     v.sort_by(f64::total_cmp);
     let mid = v.len() / 2;
-    let median = if v.len() % 2 == 0 {
+    let median = if v.len().is_multiple_of(2) {
         0.5 * (v[mid - 1] + v[mid])
     } else {
         v[mid]
