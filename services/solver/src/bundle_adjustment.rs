@@ -8,6 +8,7 @@
 //! Parameter", 1964. After convergence, observations whose error exceeds a threshold are
 //! removed, reported, and the problem is solved again without them.
 
+use crate::huber;
 use crate::schur::{SchurStep, SchurSystem};
 use crate::sparse_schur::SparseSchurSystem;
 use crate::triangulation::CameraPose;
@@ -181,22 +182,6 @@ fn project(
     Some((pixel, j_n * j_pc, j_intr))
 }
 
-fn huber_weight(r: f64, delta: f64) -> f64 {
-    if r <= delta {
-        1.0
-    } else {
-        delta / r
-    }
-}
-
-fn huber_cost(r: f64, delta: f64) -> f64 {
-    if r <= delta {
-        0.5 * r * r
-    } else {
-        delta * (r - 0.5 * delta)
-    }
-}
-
 /// Robust cost; observations behind a camera count as a large constant.
 fn cost(
     camera: &PinholeRadtan,
@@ -211,8 +196,8 @@ fn cost(
         .map(|(o, _)| {
             let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
             match project(camera, st.focal_scale, st.radial_k, &pc) {
-                Some((p, _, _)) => huber_cost((p - o.pixel.coords).norm(), delta),
-                None => huber_cost(1e3, delta),
+                Some((p, _, _)) => huber::cost((p - o.pixel.coords).norm(), delta),
+                None => huber::cost(1e3, delta),
             }
         })
         .sum()
@@ -244,7 +229,7 @@ fn levenberg_marquardt(
                 continue;
             };
             let r = p - o.pixel.coords;
-            let w = huber_weight(r.norm(), options.huber_px);
+            let w = huber::weight(r.norm(), options.huber_px);
             let r_mat = pose.rotation.matrix();
             // d pc / d rotation (left perturbation): -[pc]x ; d pc / d centre: -R ; d pc / d X: R
             let j_rot = j_pc * -pc.cross_matrix();

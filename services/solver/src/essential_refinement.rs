@@ -13,6 +13,7 @@
 //! basis of the plane orthogonal to `t`; Gauss-Newton with Huber weights and a step halving
 //! when the cost does not fall.
 
+use crate::huber;
 use nalgebra::{Matrix3, Rotation3, SMatrix, SVector, Vector3};
 
 /// Options; defaults with their reason.
@@ -79,28 +80,10 @@ fn sampson(e: &Matrix3<f64>, a: &Vector3<f64>, b: &Vector3<f64>) -> Sampson {
     }
 }
 
-fn huber_weight(r: f64, delta: f64) -> f64 {
-    let a = r.abs();
-    if a <= delta {
-        1.0
-    } else {
-        delta / a
-    }
-}
-
-fn huber_cost(r: f64, delta: f64) -> f64 {
-    let a = r.abs();
-    if a <= delta {
-        0.5 * r * r
-    } else {
-        delta * (a - 0.5 * delta)
-    }
-}
-
 fn total_cost(e: &Matrix3<f64>, pairs: &[(Vector3<f64>, Vector3<f64>)], delta: f64) -> f64 {
     pairs
         .iter()
-        .map(|(a, b)| huber_cost(sampson(e, a, b).residual, delta))
+        .map(|(a, b)| huber::cost(sampson(e, a, b).residual.abs(), delta))
         .sum()
 }
 
@@ -136,7 +119,7 @@ pub fn refine_relative_pose(
         let mut g = SVector::<f64, 5>::zeros();
         for (a, b) in pairs {
             let s = sampson(&e, a, b);
-            let w = huber_weight(s.residual, delta);
+            let w = huber::weight(s.residual.abs(), delta);
             let inv_sqrt = 1.0 / s.denominator.sqrt();
             let mut jac = SVector::<f64, 5>::zeros();
             for (k, de) in derivatives.iter().enumerate() {

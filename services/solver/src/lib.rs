@@ -7,6 +7,7 @@
 
 pub mod bundle_adjustment;
 pub mod essential_refinement;
+mod huber;
 pub mod relative_pose;
 pub mod rotation_averaging;
 pub mod schur;

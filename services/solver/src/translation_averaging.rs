@@ -13,6 +13,7 @@
 //! ECCV 2024): with points, cameras moving along one line (the egocentric walk, the car) are
 //! no longer degenerate, because the points off that line fix the relative scales.
 
+use crate::huber;
 use crate::schur::SchurSystem;
 use nalgebra::{DMatrix, Matrix3, Vector3};
 
@@ -222,14 +223,6 @@ fn direction_residual(v: &Vector3<f64>, diff: &Vector3<f64>) -> (Vector3<f64>, M
     (v - u, jb)
 }
 
-fn huber_weight(r: f64, k: f64) -> f64 {
-    if r <= k {
-        1.0
-    } else {
-        k / r
-    }
-}
-
 /// 1DSfM-style refinement by Levenberg-Marquardt; positions rescaled to their initial
 /// spread after each step (the objective is scale-free).
 fn refine(
@@ -245,13 +238,7 @@ fn refine(
             .map(|c| {
                 let (a, b) = endpoints_of(c, cams);
                 let r = direction_residual(&c.direction, &(x[b] - x[a])).0.norm();
-                let k = options.huber;
-                c.weight
-                    * if r <= k {
-                        0.5 * r * r
-                    } else {
-                        k * (r - 0.5 * k)
-                    }
+                c.weight * huber::cost(r, options.huber)
             })
             .sum()
     };
@@ -266,7 +253,7 @@ fn refine(
         for c in constraints {
             let (a, b) = endpoints_of(c, cams);
             let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
-            let w = c.weight * huber_weight(r.norm(), options.huber);
+            let w = c.weight * huber::weight(r.norm(), options.huber);
             idx.clear();
             cols.clear();
             if a != 0 {
