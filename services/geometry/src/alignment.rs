@@ -63,6 +63,18 @@ impl Similarity {
     }
 }
 
+/// The rotation `R` minimising `sum |R a_i - b_i|^2` over the pairs `(a_i, b_i)` (Kabsch
+/// 1976 / Wahba's problem): the bearings of one view turned onto another's. Used by the
+/// rotation-only model of a keyframe pair and by placing a frame by rotation.
+pub fn rotation_aligning(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
+    nearest_rotation(
+        &pairs
+            .iter()
+            .map(|(a, b)| b * a.transpose())
+            .sum::<Matrix3<f64>>(),
+    )
+}
+
 /// The rotation closest to `m` in the Frobenius norm (SVD projection onto SO(3), with the
 /// reflection fix). Used for chordal rotation means and Kabsch/Wahba fits: for
 /// `m = sum b_i a_i^T` it is the rotation best mapping the `a_i` onto the `b_i`.

@@ -13,8 +13,8 @@ use crate::descriptors::{hamming_all, pack};
 use crate::relocalizer::{
     MapKeyframe, QueryFeatures, Relocalization, RelocalizationMap, RelocalizerOptions,
 };
-use egoslam_geometry::{nearest_rotation, StampedPose};
-use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use egoslam_geometry::{rotation_aligning, StampedPose};
+use nalgebra::{Rotation3, UnitQuaternion, Vector3};
 
 /// Draws of the 2-point RANSAC (200: at half inliers, an all-inlier pair is missed with
 /// probability 0.75^200).
@@ -32,16 +32,6 @@ fn turns_in_place(map: &RelocalizationMap, i: usize) -> bool {
         })
     };
     (i > 0 && same(i - 1)) || same(i + 1)
-}
-
-/// The rotation `r` minimising sum |r a - b|^2 over the pairs (Kabsch).
-fn rotation_between(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
-    nearest_rotation(
-        &pairs
-            .iter()
-            .map(|(a, b)| b * a.transpose())
-            .sum::<Matrix3<f64>>(),
-    )
 }
 
 /// Query features matched to all described tracks of `keyframe` (points or not): nearest
@@ -124,12 +114,12 @@ pub(crate) fn relocalize_by_rotation(
             if a == b {
                 continue;
             }
-            let inliers = inliers_of(&rotation_between(&[pairs[a], pairs[b]]));
+            let inliers = inliers_of(&rotation_aligning(&[pairs[a], pairs[b]]));
             if inliers.len() > best.len() {
                 best = inliers;
             }
         }
-        let refined = rotation_between(&best.iter().map(|&m| pairs[m]).collect::<Vec<_>>());
+        let refined = rotation_aligning(&best.iter().map(|&m| pairs[m]).collect::<Vec<_>>());
         let inliers = inliers_of(&refined);
         let enough = inliers.len() >= options.pnp.min_inliers
             && inliers.len() as f64 >= options.rotation_min_inlier_ratio * pairs.len() as f64;

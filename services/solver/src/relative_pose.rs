@@ -18,6 +18,7 @@
 //!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
 
 use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};
+use egoslam_geometry::rotation_aligning;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
@@ -106,12 +107,6 @@ pub enum RelativePoseError {
     OpenCv(String),
 }
 
-/// Rotation R minimising sum |b_j - R b_i|^2 (Kabsch/Wahba by SVD).
-fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f64> {
-    let m: Matrix3<f64> = pairs.iter().map(|(bi, bj)| bj * bi.transpose()).sum();
-    egoslam_geometry::nearest_rotation(&m)
-}
-
 fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
         return 0.0;
@@ -127,7 +122,7 @@ fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
 /// Rotation-only fit, trimmed twice to the matches within 3x the median residual.
 fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64) {
     let mut kept: Vec<(Vector3<f64>, Vector3<f64>)> = pairs.to_vec();
-    let mut r = kabsch(&kept);
+    let mut r = rotation_aligning(&kept);
     for _ in 0..2 {
         let res: Vec<f64> = pairs.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
         let cut = 3.0 * median(res.clone()).max(1e-6);
@@ -140,7 +135,7 @@ fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64
         if kept.len() < 3 {
             break;
         }
-        r = kabsch(&kept);
+        r = rotation_aligning(&kept);
     }
     let res: Vec<f64> = kept.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
     (r, median(res))
