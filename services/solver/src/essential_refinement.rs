@@ -160,46 +160,16 @@ pub fn refine_relative_pose(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// Deterministic Gaussian noise (Box-Muller on an LCG).
-    struct Noise(u64);
-    impl Noise {
-        fn uniform(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn gauss(&mut self) -> f64 {
-            let (a, b) = (self.uniform().max(1e-12), self.uniform());
-            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-        }
-    }
+    use crate::test_support::noisy_matches;
+    use rand::rngs::StdRng;
+    use rand::SeedableRng;
 
     #[test]
     fn refinement_moves_a_perturbed_pose_back_to_the_truth() {
-        let mut noise = Noise(5);
         let focal = 500.0;
         let r = Rotation3::from_euler_angles(0.02, 0.08, -0.01);
         let t = Vector3::new(0.2, 0.03, 0.4).normalize();
-        let pairs: Vec<_> = (0..800)
-            .map(|_| {
-                let x = Vector3::new(
-                    8.0 * noise.uniform() - 4.0,
-                    4.0 * noise.uniform() - 2.0,
-                    3.0 + 10.0 * noise.uniform(),
-                );
-                let y = r * x + t;
-                let mut a = x / x.z;
-                let mut b = y / y.z;
-                a.x += noise.gauss() / focal;
-                a.y += noise.gauss() / focal;
-                b.x += noise.gauss() / focal;
-                b.y += noise.gauss() / focal;
-                (a, b)
-            })
-            .collect();
+        let pairs = noisy_matches(&mut StdRng::seed_from_u64(5), 800, (&r, &t), 1.0, focal);
         let start_r = Rotation3::from_euler_angles(0.005, -0.004, 0.006) * r;
         let start_t = (t + Vector3::new(0.05, -0.04, 0.0)).normalize();
         let (rr, rt) = refine_relative_pose(
