@@ -8,14 +8,10 @@ use common::*;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-/// One test of this file at a time. The frontend kill replays in real time: when the
-/// merger test's three pipeline runs share the two cores with it, the restarted frontend
-/// fell behind and the replay dropped 37-40 frames (69-79 of 120 posed, against 104-109
-/// alone), which is a measure of the machine's load, not of the restart.
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
-}
+// One test of this file at a time (`one_test_at_a_time`). The frontend kill replays in
+// real time: when the merger test's three pipeline runs share the two cores with it, the
+// restarted frontend fell behind and the replay dropped 37-40 frames (69-79 of 120 posed,
+// against 104-109 alone), which is a measure of the machine's load, not of the restart.
 
 fn keyframes(out: &Path) -> String {
     std::fs::read_to_string(out.join("keyframes.tum")).expect("keyframes.tum")
@@ -42,7 +38,7 @@ fn wait_success(mut run: std::process::Child) {
 
 #[test]
 fn a_killed_merger_resumes_and_loses_nothing() {
-    let _turn = one_at_a_time();
+    let _turn = one_test_at_a_time();
     let undisturbed = tempfile::tempdir().expect("tempdir");
     wait_success(run_fixture(undisturbed.path(), None));
     let expected = keyframes(undisturbed.path());
@@ -109,7 +105,7 @@ fn kill_mid_run(service: &str, after: Duration, realtime: bool) -> (serde_json::
 
 #[test]
 fn a_killed_frontend_or_solver_is_restarted_and_the_run_completes() {
-    let _turn = one_at_a_time();
+    let _turn = one_test_at_a_time();
     // The frontend continues its ids; what the killed frontend held is lost (its few
     // frames in flight; measured 94-104 of 120 posed). The map goes on, in a new segment
     // when the restart broke the tracks, which relocalization may link back.

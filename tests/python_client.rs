@@ -17,8 +17,7 @@ mod pki;
 /// 3 of the 120 frames in two runs, and the run itself then posed 119 and 117, which the
 /// client matched but the frame count below did not. One run at a time all the same.
 fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], run_args: &[String]) {
-    static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _turn = one_test_at_a_time();
     let python = repo().join("target/python/bin/python");
     assert!(
         python.exists(),

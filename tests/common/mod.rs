@@ -107,3 +107,11 @@ pub fn sigkill(service: &str, out: &Path) {
         .expect("kill");
     assert!(status.success());
 }
+
+/// Serialises the tests of one test file (each file is its own binary, so each gets its own
+/// lock): for tests that replay in real time or run whole pipelines, whose results measure
+/// the machine's load when they share the two cores.
+pub fn one_test_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
