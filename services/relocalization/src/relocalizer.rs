@@ -471,8 +471,9 @@ impl Relocalizer {
         let mut best_inliers = 0;
         for (segment, group) in &groups {
             let local = self.local_keyframes(group, options.neighbours);
-            let mut matches = self.match_appearance(query, group, options);
-            matches.retain(|(t, _)| self.map.points.contains_key(t));
+            // Both matchers return only tracks with a map point (`feature_points`), so the
+            // correspondences line up with the matches index for index.
+            let matches = self.match_appearance(query, group, options);
             let correspondences = self.correspondences(query, &matches);
             let solved = solve_pnp(camera, &correspondences, None, &options.pnp);
             tracing::debug!(
@@ -501,8 +502,7 @@ impl Relocalizer {
                 continue;
             }
             // Pose-only refinement on the matches found by projection.
-            let mut projected = self.match_projection(query, &local, &solution.pose, options);
-            projected.retain(|(t, _)| self.map.points.contains_key(t));
+            let projected = self.match_projection(query, &local, &solution.pose, options);
             let refine = PnpOptions {
                 min_inlier_ratio: 0.0,
                 ransac_iterations: 50,
