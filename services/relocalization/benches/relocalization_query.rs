@@ -10,15 +10,12 @@
 mod support;
 
 use egoslam_relocalization::descriptors::{detect_corners, DescriberOptions, QueryCornerOptions};
-use egoslam_relocalization::{
-    default_vocabulary, OrbDescriber, RelocalizationMap, Relocalizer, RelocalizerOptions,
-};
+use egoslam_relocalization::{default_vocabulary, OrbDescriber, Relocalizer, RelocalizerOptions};
 use egoslam_synth::{render_frame, CameraPath, RenderOptions, Scene, WalkerOptions};
 use opencv::core::Mat;
 use opencv::prelude::*;
-use std::collections::HashMap;
 use std::time::Instant;
-use support::rendered_map::{camera, described_frame, rendered_keyframe};
+use support::rendered_map::{camera, described_frame, rendered_map};
 
 fn percentile(v: &mut [f64], p: f64) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -29,32 +26,13 @@ fn main() {
     let scene = Scene::room(3);
     let poses = CameraPath::Walker(WalkerOptions::default()).poses(3000, 30.0);
     let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
-    let (mut points, mut next_track) = (HashMap::new(), 0);
     let started = Instant::now();
-    let keyframes = poses
-        .iter()
-        .step_by(3)
-        .enumerate()
-        .map(|(k, pose)| {
-            if k % 100 == 0 {
-                eprintln!("rendering keyframe {k} of 1000");
-            }
-            rendered_keyframe(
-                &scene,
-                pose,
-                k as u64,
-                &mut next_track,
-                &mut points,
-                &mut describer,
-            )
-        })
-        .collect::<Vec<_>>();
+    let map = rendered_map(&scene, &poses, 3, &mut describer, |k| {
+        if k % 100 == 0 {
+            eprintln!("rendering keyframe {k} of 1000");
+        }
+    });
     eprintln!("map built in {:.0} s", started.elapsed().as_secs_f64());
-    let map = RelocalizationMap {
-        camera: camera(),
-        keyframes,
-        points,
-    };
     let started = Instant::now();
     let relocalizer = Relocalizer::new(default_vocabulary().expect("vocabulary"), map);
     let index_s = started.elapsed().as_secs_f64();

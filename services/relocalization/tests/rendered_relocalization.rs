@@ -7,40 +7,16 @@ mod support;
 
 use egoslam_geometry::StampedPose;
 use egoslam_relocalization::descriptors::DescriberOptions;
-use egoslam_relocalization::{
-    default_vocabulary, OrbDescriber, RelocalizationMap, Relocalizer, RelocalizerOptions,
-};
+use egoslam_relocalization::{default_vocabulary, OrbDescriber, Relocalizer, RelocalizerOptions};
 use egoslam_synth::{CameraPath, Scene, WalkerOptions};
-use std::collections::HashMap;
-use support::rendered_map::{camera, described_frame, rendered_keyframe};
+use support::rendered_map::{camera, described_frame, rendered_map};
 
 #[test]
 fn frames_between_rendered_keyframes_relocalize_to_millimetres() {
     let scene = Scene::room(7);
     let poses: Vec<StampedPose> = CameraPath::Walker(WalkerOptions::default()).poses(150, 30.0);
     let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
-    let (mut points, mut next_track) = (HashMap::new(), 0);
-    let keyframes = poses
-        .iter()
-        .step_by(6)
-        .enumerate()
-        .map(|(k, pose)| {
-            let id = k as u64;
-            rendered_keyframe(
-                &scene,
-                pose,
-                id,
-                &mut next_track,
-                &mut points,
-                &mut describer,
-            )
-        })
-        .collect();
-    let map = RelocalizationMap {
-        camera: camera(),
-        keyframes,
-        points,
-    };
+    let map = rendered_map(&scene, &poses, 6, &mut describer, |_| {});
     let relocalizer = Relocalizer::new(default_vocabulary().expect("built-in vocabulary"), map);
     let options = RelocalizerOptions::default();
     // Errors of the poses from the query's corners, and after patch alignment.
@@ -98,27 +74,7 @@ fn stray_query_pixels_leave_relocalization_intact() {
     let scene = Scene::room(7);
     let poses: Vec<StampedPose> = CameraPath::Walker(WalkerOptions::default()).poses(40, 30.0);
     let mut describer = OrbDescriber::new(DescriberOptions::default()).expect("orb");
-    let (mut points, mut next_track) = (HashMap::new(), 0);
-    let keyframes = poses
-        .iter()
-        .step_by(6)
-        .enumerate()
-        .map(|(k, pose)| {
-            rendered_keyframe(
-                &scene,
-                pose,
-                k as u64,
-                &mut next_track,
-                &mut points,
-                &mut describer,
-            )
-        })
-        .collect();
-    let map = RelocalizationMap {
-        camera: camera(),
-        keyframes,
-        points,
-    };
+    let map = rendered_map(&scene, &poses, 6, &mut describer, |_| {});
     let relocalizer = Relocalizer::new(default_vocabulary().expect("built-in vocabulary"), map);
     let truth = poses[15];
     let (mut query, _, _) = described_frame(&scene, &truth, 2000, &mut describer);

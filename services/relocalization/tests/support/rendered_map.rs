@@ -83,3 +83,36 @@ pub fn rendered_keyframe(
         patches,
     }
 }
+
+/// A relocalization map of every `step`-th of `poses` rendered in `scene` (track ids and
+/// points shared across keyframes); `progress` is told each keyframe's index as it is made.
+pub fn rendered_map(
+    scene: &Scene,
+    poses: &[StampedPose],
+    step: usize,
+    describer: &mut OrbDescriber,
+    mut progress: impl FnMut(usize),
+) -> egoslam_relocalization::RelocalizationMap {
+    let (mut points, mut next_track) = (HashMap::new(), 0);
+    let keyframes = poses
+        .iter()
+        .step_by(step)
+        .enumerate()
+        .map(|(k, pose)| {
+            progress(k);
+            rendered_keyframe(
+                scene,
+                pose,
+                k as u64,
+                &mut next_track,
+                &mut points,
+                describer,
+            )
+        })
+        .collect();
+    egoslam_relocalization::RelocalizationMap {
+        camera: camera(),
+        keyframes,
+        points,
+    }
+}
