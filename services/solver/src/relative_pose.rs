@@ -62,7 +62,7 @@ pub struct RelativePoseOptions {
     /// ([`crate::essential_refinement`]). Default false: it lowers the median edge
     /// rotation error (rendered walks 0.08-0.12 -> 0.02-0.05 deg, KITTI 0.127 -> 0.106
     /// deg), but windows after bundle adjustment did not follow, and KITTI without motion
-    /// prediction went 0.40 -> 0.61 m keyframe ATE (docs/solver.md).
+    /// prediction went 0.41 -> 0.61 m keyframe ATE (docs/solver.md).
     pub refine: bool,
 }
 
