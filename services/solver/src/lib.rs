@@ -9,6 +9,7 @@ pub mod bundle_adjustment;
 pub mod essential_refinement;
 mod huber;
 pub mod relative_pose;
+pub mod retriangulation;
 pub mod rotation_averaging;
 pub mod schur;
 pub mod sparse_schur;

@@ -2,14 +2,16 @@
 //! rotation averaging -> translation averaging (with camera-point constraints) ->
 //! triangulation -> bundle adjustment. Pure: keyframe tracks in, poses and points out.
 
-use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions, Observation};
+use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions};
+use crate::retriangulation::{
+    retriangulate_and_adjust, triangulate_tracks, RetriangulationOptions, Structure,
+    TrackObservations,
+};
 use crate::rotation_averaging::{average_rotations, RelativeRotation, RotationAveragingOptions};
 use crate::translation_averaging::{
     average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions,
 };
-use crate::triangulation::{
-    triangulate_track, CameraPose, TriangulationFailure, TriangulationOptions,
-};
+use crate::triangulation::{CameraPose, TriangulationOptions};
 use crate::unobserved_centres::{place_unobserved_centres, UnobservedCentreOptions};
 use crate::view_graph::{
     build_view_graph, EdgeCache, KeyframeObservations, ViewEdge, ViewGraphOptions,
@@ -27,6 +29,7 @@ pub struct WindowSolverOptions {
     pub translation: TranslationAveragingOptions,
     pub triangulation: TriangulationOptions,
     pub bundle_adjustment: BundleAdjustmentOptions,
+    pub retriangulation: RetriangulationOptions,
     /// Edges whose measured rotation disagrees with the averaged one by more than this are
     /// dropped before translation averaging, degrees (default 5: the robust scale of the
     /// rotation IRLS, so only edges it already down-weighted are removed).
@@ -62,6 +65,7 @@ impl Default for WindowSolverOptions {
             translation: TranslationAveragingOptions::default(),
             triangulation: TriangulationOptions::default(),
             bundle_adjustment: BundleAdjustmentOptions::default(),
+            retriangulation: RetriangulationOptions::default(),
             max_edge_rotation_residual_deg: 5.0,
             min_track_views: 3,
             max_averaging_tracks: 800,
@@ -176,9 +180,6 @@ fn timed<T>(
     timings.push((stage, start.elapsed().as_secs_f64() * 1e3));
     out
 }
-
-/// A track's observations in the window: (keyframe index, undistorted pixel).
-type TrackObservations = Vec<(usize, Point2<f64>)>;
 
 /// Tracks for translation averaging: the longest first, but every keyframe gets at least a
 /// share of its own (a keyframe no selected track reaches would be left unconstrained).
@@ -422,39 +423,16 @@ fn solve_connected(
         .map(|(id, _)| *id)
         .collect();
     ids.sort_unstable();
-    let (points, observations, weak) = timed(&mut timings, "triangulation", || {
-        let mut points: Vec<(u64, Vector3<f64>)> = Vec::new();
-        let mut observations: Vec<Observation> = Vec::new();
-        let mut weak = Vec::new();
-        for id in &ids {
-            let obs = &tracks[id];
-            match triangulate_track(camera, &poses, obs, &options.triangulation) {
-                Ok(p) => {
-                    let index = points.len();
-                    points.push((*id, p.position));
-                    for o in p.inliers {
-                        observations.push(Observation {
-                            camera: obs[o].0,
-                            point: index,
-                            pixel: obs[o].1,
-                        });
-                    }
-                }
-                Err(TriangulationFailure::LowAngle) => {
-                    weak.extend(obs.iter().map(|(k, px)| (*k, *id, *px)));
-                }
-                Err(_) => {}
-            }
-        }
-        (points, observations, weak)
+    let structure = timed(&mut timings, "triangulation", || {
+        triangulate_tracks(camera, &poses, &tracks, &ids, &options.triangulation)
     });
-    if points.len() < options.min_points {
+    if structure.points.len() < options.min_points {
         // Centres that no point confirms are set by a handful of directions and the rays of
         // tracks too short to triangulate; on rendered walks such windows put centres metres
         // off and handed the merger a scale 50x wrong. The rotations stand.
         let reason = format!(
             "{} points triangulated (fewer than {})",
-            points.len(),
+            structure.points.len(),
             options.min_points
         );
         let mut solution = WindowSolution::rotation_only(
@@ -464,16 +442,15 @@ fn solve_connected(
             translation_edges.len(),
             timings,
         );
-        solution.weak_observations = weak;
+        solution.weak_observations = structure.weak;
         return solution;
     }
-    let positions: Vec<Vector3<f64>> = points.iter().map(|p| p.1).collect();
     let adjusted = match timed(&mut timings, "bundle_adjustment", || {
         bundle_adjust(
             camera,
             &poses,
-            &positions,
-            &observations,
+            &structure.positions(),
+            &structure.observations,
             &options.bundle_adjustment,
         )
     }) {
@@ -482,6 +459,31 @@ fn solve_connected(
             return WindowSolution::failed(format!("bundle adjustment: {e}"), timings, edges.len())
         }
     };
+    let readjusted = timed(&mut timings, "retriangulation", || {
+        retriangulate_and_adjust(
+            camera,
+            &tracks,
+            &ids,
+            structure,
+            adjusted,
+            &options.retriangulation,
+            &options.triangulation,
+            &options.bundle_adjustment,
+        )
+    });
+    if readjusted.passes > 0 {
+        tracing::debug!(
+            passes = readjusted.passes,
+            observations = readjusted.structure.observations.len(),
+            "re-triangulated and adjusted again"
+        );
+    }
+    let Structure {
+        points,
+        observations,
+        weak,
+    } = readjusted.structure;
+    let adjusted = readjusted.adjusted;
     let mut outlier = vec![false; observations.len()];
     for &n in &adjusted.outliers {
         outlier[n] = true;

@@ -1,14 +1,10 @@
 //! Tests of the window solver on synthetic truth (fixed seeds).
 
 use super::*;
-use crate::test_support::gaussian;
+use crate::test_support::{camera, head_poses, observe, random_points};
 use egoslam_geometry::umeyama;
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
-
-fn camera() -> PinholeRadtan {
-    PinholeRadtan::new(640, 480, [520.0, 520.0, 320.0, 240.0], [0.0; 5]).expect("camera")
-}
+use rand::SeedableRng;
 
 /// A window solved with default options and a fresh edge cache.
 fn solve(keyframes: &[KeyframeObservations]) -> WindowSolution {
@@ -18,67 +14,6 @@ fn solve(keyframes: &[KeyframeObservations]) -> WindowSolution {
         &WindowSolverOptions::default(),
         &mut EdgeCache::new(),
     )
-}
-
-/// A head walking forward and looking around, 20 keyframes.
-fn head_poses() -> Vec<CameraPose> {
-    (0..20)
-        .map(|i| {
-            let t = i as f64;
-            CameraPose {
-                rotation: Rotation3::from_euler_angles(
-                    0.03 * (0.7 * t).sin(),
-                    0.12 * (0.3 * t).sin(),
-                    0.02 * t.cos(),
-                ),
-                centre: Vector3::new(0.03 * (0.5 * t).sin(), 0.01 * t.cos(), 0.08 * t),
-            }
-        })
-        .collect()
-}
-
-fn random_points(rng: &mut StdRng, n: usize) -> Vec<Vector3<f64>> {
-    (0..n)
-        .map(|_| {
-            Vector3::new(
-                rng.random_range(-6.0..6.0),
-                rng.random_range(-3.0..3.0),
-                rng.random_range(3.0..15.0),
-            )
-        })
-        .collect()
-}
-
-/// Tracks of every visible point in every keyframe, with Gaussian pixel noise `sigma`.
-fn observe(
-    poses: &[CameraPose],
-    points: &[Vector3<f64>],
-    sigma: f64,
-    rng: &mut StdRng,
-) -> Vec<KeyframeObservations> {
-    let camera = camera();
-    poses
-        .iter()
-        .enumerate()
-        .map(|(k, pose)| {
-            let mut tracks = BTreeMap::new();
-            for (id, x) in points.iter().enumerate() {
-                if let Some(p) = camera.project_undistorted(&pose.to_camera(x)) {
-                    if camera.contains(p) {
-                        tracks.insert(
-                            id as u64,
-                            Point2::new(p.x + sigma * gaussian(rng), p.y + sigma * gaussian(rng)),
-                        );
-                    }
-                }
-            }
-            KeyframeObservations {
-                id: k as u64,
-                timestamp: k as f64 * 0.2,
-                tracks,
-            }
-        })
-        .collect()
 }
 
 #[test]
@@ -118,7 +53,8 @@ fn whole_window_from_noisy_tracks_is_accurate() {
             "rotation_averaging",
             "translation_averaging",
             "triangulation",
-            "bundle_adjustment"
+            "bundle_adjustment",
+            "retriangulation"
         ]
     );
 }
