@@ -185,12 +185,13 @@ fn aria_head_trajectory_every_frame_relocalized_from_scratch() {
         ],
     );
     let r = map_then_localize(&sequence, dir.path());
-    // Measured: 300 of 300, median 1.13 cm / 0.183 deg against a map whose keyframes are
-    // 0.95 cm / 0.125 deg off (1.92 cm / 0.277 deg before patch alignment).
+    // Measured: 300 of 300, median 0.95 cm / 0.161 deg against a map whose keyframes are
+    // 0.78 cm / 0.098 deg off (1.13 cm / 0.183 deg before the window solver re-triangulated,
+    // 1.92 cm / 0.277 deg before patch alignment). Held to issue 7's targets.
     assert!(f(&r["localized"]) >= 285.0, "{r}");
     let acc = &r["accuracy"];
-    assert!(f(&acc["median_position_m"]) < 0.015, "{acc}");
-    assert!(f(&acc["median_rotation_deg"]) < 0.23, "{acc}");
+    assert!(f(&acc["median_position_m"]) <= 0.010, "{acc}");
+    assert!(f(&acc["median_rotation_deg"]) <= 0.2, "{acc}");
     assert!(
         f(&acc["median_position_m"]) < 1.35 * f(&acc["map_keyframe_median_position_m"]),
         "{acc}"

@@ -29,6 +29,7 @@ pub struct WindowSolverOptions {
     pub translation: TranslationAveragingOptions,
     pub triangulation: TriangulationOptions,
     pub bundle_adjustment: BundleAdjustmentOptions,
+    /// Re-triangulation from the adjusted poses and adjustment again (retriangulation.rs).
     pub retriangulation: RetriangulationOptions,
     /// Edges whose measured rotation disagrees with the averaged one by more than this are
     /// dropped before translation averaging, degrees (default 5: the robust scale of the
