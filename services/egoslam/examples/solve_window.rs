@@ -36,6 +36,9 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("REFINE_EDGES") {
         options.view_graph.relative_pose.refine = v != 0.0;
     }
+    if let Some(v) = env("LOOP_CLOSURE_SPAN") {
+        options.view_graph.loop_closure_span = v as usize;
+    }
     if let Some(v) = env("RETRIANGULATION_PASSES") {
         options.retriangulation.max_passes = v as usize;
     }

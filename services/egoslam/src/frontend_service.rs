@@ -1,6 +1,7 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
 use crate::cli::ServiceArgs;
+use crate::log_compaction;
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
@@ -36,14 +37,39 @@ pub const KEYFRAME_LOG: &str = "keyframes.log";
 /// log. Flushed to the kernel (not synced): the threat is a killed process, and the page
 /// cache survives it.
 fn log_and_send(
-    log: &mut RecordLog,
+    log: &mut CompactingLog,
     publisher: &mut MessagePublisher<pb::Keyframe>,
     message: &pb::Keyframe,
 ) -> anyhow::Result<()> {
-    log.append(message)?;
-    log.flush()?;
+    log.log.append(message)?;
+    log.log.flush()?;
     publisher.send(message)?;
-    Ok(())
+    log.compact_if_due()
+}
+
+/// The keyframe log with its compaction (log_compaction.rs): keyframes older than the
+/// solver's mark are dropped once the log outgrows its schedule.
+struct CompactingLog {
+    log: RecordLog,
+    schedule: log_compaction::CompactionSchedule,
+    solver_mark: std::path::PathBuf,
+}
+
+impl CompactingLog {
+    fn compact_if_due(&mut self) -> anyhow::Result<()> {
+        if !self.schedule.outgrown(self.log.len_bytes()?) {
+            return Ok(());
+        }
+        let mark = log_compaction::read_mark(&self.solver_mark);
+        if let Some(mark @ (_, first)) = self.schedule.fresh(mark) {
+            let dropped = self
+                .log
+                .compact(|k: &pb::Keyframe| k.end_of_stream || k.keyframe_id >= first)?;
+            tracing::info!(dropped, "keyframe log compacted");
+            self.schedule.compacted(mark, self.log.len_bytes()?);
+        }
+        Ok(())
+    }
 }
 
 /// File (in the output folder) with the ids a restarted frontend continues from.
@@ -162,9 +188,17 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let state_path = args.out.join(ID_STATE_FILE);
     let mut keyframe_log = RecordLog::open(&args.out.join(KEYFRAME_LOG))?;
     let resuming = state_path.exists();
+    let solver_mark = args.out.join(log_compaction::SOLVER_MARK);
     if !resuming {
         keyframe_log.truncate()?;
+        // The mark of an earlier run names its keyframe ids, which this one reuses.
+        log_compaction::remove_mark(&solver_mark)?;
     }
+    let mut keyframe_log = CompactingLog {
+        log: keyframe_log,
+        schedule: log_compaction::CompactionSchedule::from_env(),
+        solver_mark,
+    };
     if let Ok(text) = std::fs::read_to_string(&state_path) {
         let ids: serde_json::Value = serde_json::from_str(&text)
             .with_context(|| format!("{}: unreadable", state_path.display()))?;

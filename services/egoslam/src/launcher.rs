@@ -229,6 +229,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         crate::features_log::FILE_NAME,
         crate::frontend_service::KEYFRAME_LOG,
         crate::frontend_service::ID_STATE_FILE,
+        crate::log_compaction::MERGER_MARK,
+        crate::log_compaction::SOLVER_MARK,
     ] {
         let _ = std::fs::remove_file(out.join(stale));
     }

@@ -16,6 +16,7 @@ mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
 mod launcher;
+mod log_compaction;
 mod map_file;
 mod map_state;
 mod merger_service;

@@ -10,6 +10,7 @@ use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
 use crate::frame_poses;
+use crate::log_compaction;
 use crate::map_state::{self, MapState, Revisions};
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
@@ -17,7 +18,7 @@ use crate::window_journal;
 
 #[path = "merger_relocalization.rs"]
 mod relocalization;
-use anyhow::bail;
+use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
@@ -245,6 +246,14 @@ impl Merger {
             let save_start = std::time::Instant::now();
             self.features_log.sync()?;
             self.state.save(&self.checkpoint_path())?;
+            // The solver may now drop the journal's records before the next one.
+            if let Some(stream) = self.state.stream_id {
+                log_compaction::write_mark(
+                    &self.args.out.join(log_compaction::MERGER_MARK),
+                    stream,
+                    self.state.next_sequence(),
+                )?;
+            }
             self.stats
                 .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
             self.last_persist = Some(std::time::Instant::now());
@@ -310,12 +319,13 @@ impl Merger {
         };
         self.begin_stream(journal.stream_id)?;
         let first = self.state.next_sequence();
-        let last = until.map_or(journal.messages.len() as u64, |(s, _)| s);
-        if last > journal.messages.len() as u64 {
+        let last = until.map_or(journal.next_sequence(), |(s, _)| s);
+        if last > journal.next_sequence() || (first < last && first < journal.first_sequence) {
             bail!(
-                "windows {first}..{last} were missed and {} holds only {}",
+                "windows {first}..{last} were missed and {} holds only {}..{}",
                 path.display(),
-                journal.messages.len()
+                journal.first_sequence,
+                journal.next_sequence()
             );
         }
         if first < last {
@@ -323,7 +333,10 @@ impl Merger {
             self.stats.count("recovered_windows", last - first);
         }
         for sequence in first..last {
-            self.apply(sequence, &journal.messages[sequence as usize])?;
+            let message = journal
+                .message(sequence)
+                .with_context(|| format!("{}: no window {sequence}", path.display()))?;
+            self.apply(sequence, message)?;
         }
         Ok(())
     }

@@ -7,12 +7,16 @@ use std::io::Write;
 use std::path::Path;
 
 /// Writes `bytes` to `path` via a temporary file and a rename, so readers (and a crash)
-/// only ever see the old or the new complete file.
+/// only ever see the old or the new complete file. The temporary file is `path` with
+/// `.tmp` appended: one per target file, so processes writing different files of one
+/// folder (`keyframes.tum` by the merger, `keyframes.log` by the frontend) never share it.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let tmp = path.with_extension("tmp");
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = std::path::PathBuf::from(tmp);
     let mut f =
         std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
     f.write_all(bytes)

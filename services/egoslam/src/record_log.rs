@@ -56,6 +56,41 @@ impl RecordLog {
             .with_context(|| format!("syncing {}", self.path.display()))
     }
 
+    /// Bytes in the log, including what is still buffered.
+    pub fn len_bytes(&mut self) -> anyhow::Result<u64> {
+        self.flush()?;
+        Ok(self
+            .writer
+            .get_ref()
+            .metadata()
+            .with_context(|| format!("reading the size of {}", self.path.display()))?
+            .len())
+    }
+
+    /// Rewrites the log atomically with only the records `keep` accepts (a reader sees the
+    /// old or the new log, both holding every kept record), then appends after them.
+    /// Returns the number of records dropped.
+    pub fn compact<M: Message + Default>(
+        &mut self,
+        keep: impl Fn(&M) -> bool,
+    ) -> anyhow::Result<usize> {
+        self.flush()?;
+        let records: Vec<M> = read_records(&self.path)?;
+        let mut bytes = Vec::new();
+        let mut kept = 0;
+        for record in records.iter().filter(|r| keep(r)) {
+            record.encode_length_delimited(&mut bytes)?;
+            kept += 1;
+        }
+        crate::output::write_atomically(&self.path, &bytes)?;
+        let file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&self.path)
+            .with_context(|| format!("reopening {}", self.path.display()))?;
+        self.writer = std::io::BufWriter::new(file);
+        Ok(records.len() - kept)
+    }
+
     /// Empties the log (a new stream starts a new map).
     pub fn truncate(&mut self) -> anyhow::Result<()> {
         self.flush()?;
@@ -94,4 +129,56 @@ pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>>
         rest = &probe[length..];
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use egoslam_messages::v1 as pb;
+
+    fn keyframe(id: u64) -> pb::Keyframe {
+        pb::Keyframe {
+            keyframe_id: id,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn compaction_keeps_what_is_asked_and_appending_goes_on() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("keyframes.log");
+        let mut log = RecordLog::open(&path).expect("open");
+        for id in 0..10 {
+            log.append(&keyframe(id)).expect("append");
+        }
+        let end = pb::Keyframe {
+            end_of_stream: true,
+            ..Default::default()
+        };
+        log.append(&end).expect("append");
+        let before = log.len_bytes().expect("len");
+        let dropped = log
+            .compact(|k: &pb::Keyframe| k.end_of_stream || k.keyframe_id >= 6)
+            .expect("compact");
+        assert_eq!(dropped, 6);
+        assert!(log.len_bytes().expect("len") < before);
+        log.append(&keyframe(10)).expect("append");
+        log.flush().expect("flush");
+        let ids: Vec<(u64, bool)> = read_records::<pb::Keyframe>(&path)
+            .expect("read")
+            .iter()
+            .map(|k| (k.keyframe_id, k.end_of_stream))
+            .collect();
+        assert_eq!(
+            ids,
+            [
+                (6, false),
+                (7, false),
+                (8, false),
+                (9, false),
+                (0, true),
+                (10, false)
+            ]
+        );
+    }
 }

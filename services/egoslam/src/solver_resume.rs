@@ -27,7 +27,7 @@ pub struct Resume {
 impl Resume {
     /// Windows already published (the next window's id).
     pub fn windows(&self) -> u64 {
-        self.journal.messages.len() as u64
+        self.journal.next_sequence()
     }
 
     /// Highest keyframe id the new solver has taken (tail or replay); live keyframes up

@@ -3,6 +3,7 @@
 
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_to_pb, vec3_to_pb};
+use crate::log_compaction;
 use crate::stats::ServiceStats;
 use crate::window_journal::{self, JournalWriter};
 use anyhow::bail;
@@ -373,6 +374,12 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     crate::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
+    let (merger_mark, solver_mark) = (
+        args.out.join(log_compaction::MERGER_MARK),
+        args.out.join(log_compaction::SOLVER_MARK),
+    );
+    let overlap = args.pipeline.overlap;
+    let mut schedule = log_compaction::CompactionSchedule::from_env();
     let mut publish = |message: pb::WindowSolution| -> anyhow::Result<()> {
         let message = pb::WindowSolution {
             stream_id,
@@ -380,6 +387,20 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         };
         journal.append(&message)?;
         windows.send(&message)?;
+        // A restarted solver now resumes after this window: it reads back its overlap
+        // keyframes and those after it, so the frontend may drop older ones.
+        let ids = &message.keyframe_ids;
+        if let Some(first) = ids[ids.len().saturating_sub(overlap)..].iter().min() {
+            log_compaction::write_mark(&solver_mark, stream_id, *first)?;
+        }
+        if schedule.outgrown(journal.len_bytes()?) {
+            let mark = log_compaction::read_mark(&merger_mark).filter(|(s, _)| *s == stream_id);
+            if let Some(mark @ (_, next)) = schedule.fresh(mark) {
+                let dropped = journal.compact_before(next)?;
+                tracing::info!(dropped, "window journal compacted");
+                schedule.compacted(mark, journal.len_bytes()?);
+            }
+        }
         Ok(())
     };
     let mut trailing = Vec::new();

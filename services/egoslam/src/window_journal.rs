@@ -1,9 +1,12 @@
 //! The solver's journal of window messages: written before each message is sent, read by a
 //! restarted merger to recover what it had not yet checkpointed (docs/durability.md).
 //!
-//! Layout: the magic `EGOSLAMJ`, a little-endian `u32` format version (1) and `u64` stream
-//! id, then every `WindowSolution` sent, length-delimited (protobuf varint prefix). Record
-//! `i` is the message the solver sent with bus sequence number `i`.
+//! Layout: the magic `EGOSLAMJ`, a little-endian `u32` format version (2), `u64` stream id
+//! and `u64` first sequence number, then the `WindowSolution`s sent from that one on,
+//! length-delimited (protobuf varint prefix): record `i` is the message the solver sent
+//! with bus sequence number `first + i`. The first sequence number is 0 until the solver
+//! compacts the journal (log_compaction.rs). Version 1 (no first sequence number, always
+//! 0) is still read.
 
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;
@@ -12,8 +15,18 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"EGOSLAMJ";
-const VERSION: u32 = 1;
-const HEADER_LEN: usize = 8 + 4 + 8;
+const VERSION: u32 = 2;
+const HEADER_LEN_V1: usize = 8 + 4 + 8;
+const HEADER_LEN: usize = HEADER_LEN_V1 + 8;
+
+fn header(stream_id: u64, first_sequence: u64) -> Vec<u8> {
+    let mut header = Vec::with_capacity(HEADER_LEN);
+    header.extend_from_slice(MAGIC);
+    header.extend_from_slice(&VERSION.to_le_bytes());
+    header.extend_from_slice(&stream_id.to_le_bytes());
+    header.extend_from_slice(&first_sequence.to_le_bytes());
+    header
+}
 
 /// File name of the journal inside the output folder.
 pub const FILE_NAME: &str = "windows.journal";
@@ -23,6 +36,11 @@ pub struct JournalWriter {
     path: PathBuf,
     file: std::fs::File,
     buffer: Vec<u8>,
+    stream_id: u64,
+    /// Sequence number of the file's first record.
+    first_sequence: u64,
+    /// Records in the file.
+    records: u64,
 }
 
 impl JournalWriter {
@@ -30,16 +48,15 @@ impl JournalWriter {
     pub fn create(path: &Path, stream_id: u64) -> anyhow::Result<Self> {
         let mut file = std::fs::File::create(path)
             .with_context(|| format!("creating the window journal {}", path.display()))?;
-        let mut header = Vec::with_capacity(HEADER_LEN);
-        header.extend_from_slice(MAGIC);
-        header.extend_from_slice(&VERSION.to_le_bytes());
-        header.extend_from_slice(&stream_id.to_le_bytes());
-        file.write_all(&header)
+        file.write_all(&header(stream_id, 0))
             .with_context(|| format!("writing {}", path.display()))?;
         Ok(Self {
             path: path.to_path_buf(),
             file,
             buffer: Vec::new(),
+            stream_id,
+            first_sequence: 0,
+            records: 0,
         })
     }
 
@@ -57,7 +74,53 @@ impl JournalWriter {
             path: path.to_path_buf(),
             file,
             buffer: Vec::new(),
+            stream_id: journal.stream_id,
+            first_sequence: journal.first_sequence,
+            records: journal.messages.len() as u64,
         })
+    }
+
+    /// Bytes in the journal file.
+    pub fn len_bytes(&self) -> anyhow::Result<u64> {
+        Ok(self
+            .file
+            .metadata()
+            .with_context(|| format!("reading the size of {}", self.path.display()))?
+            .len())
+    }
+
+    /// Drops the records before `sequence` (a merger checkpoint holds them), always keeping
+    /// the last one: a restarted solver continues after it. The file is rewritten
+    /// atomically (a reader sees the old or the new journal, both holding every record from
+    /// `sequence` on). Returns the number of records dropped.
+    pub fn compact_before(&mut self, sequence: u64) -> anyhow::Result<u64> {
+        let keep_from = sequence.min((self.first_sequence + self.records).saturating_sub(1));
+        if keep_from <= self.first_sequence {
+            return Ok(0);
+        }
+        let dropped = keep_from - self.first_sequence;
+        let bytes = std::fs::read(&self.path)
+            .with_context(|| format!("reading {}", self.path.display()))?;
+        let header_len = header_len(&bytes, &self.path)?;
+        let mut rest = &bytes[header_len..];
+        for _ in 0..dropped {
+            let len = prost::encoding::decode_varint(&mut rest)
+                .ok()
+                .and_then(|l| usize::try_from(l).ok())
+                .filter(|l| *l <= rest.len())
+                .with_context(|| format!("{}: record boundaries lost", self.path.display()))?;
+            rest = &rest[len..];
+        }
+        let mut compacted = header(self.stream_id, keep_from);
+        compacted.extend_from_slice(rest);
+        crate::output::write_atomically(&self.path, &compacted)?;
+        self.file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&self.path)
+            .with_context(|| format!("reopening {}", self.path.display()))?;
+        self.first_sequence = keep_from;
+        self.records -= dropped;
+        Ok(dropped)
     }
 
     /// Appends one message and hands it to the kernel (and the disk) before returning, so
@@ -68,7 +131,9 @@ impl JournalWriter {
         self.file
             .write_all(&self.buffer)
             .and_then(|()| self.file.sync_data())
-            .with_context(|| format!("appending to {}", self.path.display()))
+            .with_context(|| format!("appending to {}", self.path.display()))?;
+        self.records += 1;
+        Ok(())
     }
 }
 
@@ -76,10 +141,43 @@ impl JournalWriter {
 #[derive(Debug)]
 pub struct Journal {
     pub stream_id: u64,
-    /// Messages in sequence order (index = bus sequence number).
+    /// Bus sequence number of `messages[0]` (0 unless the journal was compacted).
+    pub first_sequence: u64,
+    /// Messages in sequence order (index = bus sequence number - `first_sequence`).
     pub messages: Vec<pb::WindowSolution>,
     /// Bytes up to the end of the last complete record (what a resumed writer keeps).
     pub valid_len: u64,
+}
+
+impl Journal {
+    /// The sequence number the next message gets (how many the stream has sent).
+    pub fn next_sequence(&self) -> u64 {
+        self.first_sequence + self.messages.len() as u64
+    }
+
+    /// The message with bus sequence number `sequence`, if the journal holds it.
+    pub fn message(&self, sequence: u64) -> Option<&pb::WindowSolution> {
+        let index = usize::try_from(sequence.checked_sub(self.first_sequence)?).ok()?;
+        self.messages.get(index)
+    }
+}
+
+/// Length of the header of the journal `bytes` (by its version); an error for anything
+/// that is not a journal this egoslam reads.
+fn header_len(bytes: &[u8], path: &Path) -> anyhow::Result<usize> {
+    if bytes.len() < HEADER_LEN_V1 || &bytes[..8] != MAGIC {
+        bail!("{}: not an egoslam window journal", path.display());
+    }
+    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+    match version {
+        1 => Ok(HEADER_LEN_V1),
+        2 if bytes.len() >= HEADER_LEN => Ok(HEADER_LEN),
+        2 => bail!("{}: journal header cut short", path.display()),
+        _ => bail!(
+            "{}: journal format version {version}, this egoslam reads 1 and {VERSION}",
+            path.display()
+        ),
+    }
 }
 
 /// Reads a journal. A last record cut short (the solver died while appending) is dropped:
@@ -87,20 +185,19 @@ pub struct Journal {
 pub fn read(path: &Path) -> anyhow::Result<Journal> {
     let bytes =
         std::fs::read(path).with_context(|| format!("reading the journal {}", path.display()))?;
-    if bytes.len() < HEADER_LEN || &bytes[..8] != MAGIC {
-        bail!("{}: not an egoslam window journal", path.display());
-    }
-    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-    if version != VERSION {
-        bail!(
-            "{}: journal format version {version}, this egoslam reads {VERSION}",
-            path.display()
-        );
-    }
-    let mut id = [0u8; 8];
-    id.copy_from_slice(&bytes[12..20]);
-    let stream_id = u64::from_le_bytes(id);
-    let mut rest = &bytes[HEADER_LEN..];
+    let header_len = header_len(&bytes, path)?;
+    let word = |at: usize| {
+        let mut w = [0u8; 8];
+        w.copy_from_slice(&bytes[at..at + 8]);
+        u64::from_le_bytes(w)
+    };
+    let stream_id = word(12);
+    let first_sequence = if header_len == HEADER_LEN {
+        word(20)
+    } else {
+        0
+    };
+    let mut rest = &bytes[header_len..];
     let mut messages = Vec::new();
     while !rest.is_empty() {
         let mut cursor = rest;
@@ -119,6 +216,7 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
     }
     Ok(Journal {
         stream_id,
+        first_sequence,
         messages,
         valid_len: (bytes.len() - rest.len()) as u64,
     })
@@ -158,5 +256,56 @@ mod tests {
             e.to_string().contains("not an egoslam window journal"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn compaction_keeps_the_tail_and_appending_goes_on() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(FILE_NAME);
+        let mut w = JournalWriter::create(&path, 42).expect("create");
+        for i in 0..5 {
+            w.append(&window(i)).expect("append");
+        }
+        let before = w.len_bytes().expect("len");
+        assert_eq!(w.compact_before(3).expect("compact"), 3);
+        assert!(w.len_bytes().expect("len") < before);
+        // Nothing more to drop before 3; a mark past the end keeps the last record.
+        assert_eq!(w.compact_before(3).expect("compact"), 0);
+        w.append(&window(5)).expect("append");
+        let j = read(&path).expect("read");
+        assert_eq!((j.stream_id, j.first_sequence), (42, 3));
+        assert_eq!(j.next_sequence(), 6);
+        assert_eq!(j.message(2), None);
+        assert_eq!(j.message(4), Some(&window(4)));
+        assert_eq!(j.message(6), None);
+        assert_eq!(w.compact_before(100).expect("compact"), 2);
+        let j = read(&path).expect("read");
+        assert_eq!((j.first_sequence, j.messages.clone()), (5, vec![window(5)]));
+        // A resumed writer knows where the file starts.
+        let mut resumed = JournalWriter::resume(&path, &j).expect("resume");
+        resumed.append(&window(6)).expect("append");
+        assert_eq!(resumed.compact_before(7).expect("compact"), 1);
+        assert_eq!(read(&path).expect("read").message(6), Some(&window(6)));
+    }
+
+    #[test]
+    fn version_1_journals_are_read_from_sequence_0() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(FILE_NAME);
+        let mut bytes = Vec::new();
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&1u32.to_le_bytes());
+        bytes.extend_from_slice(&9u64.to_le_bytes());
+        window(0)
+            .encode_length_delimited(&mut bytes)
+            .expect("encode");
+        std::fs::write(&path, &bytes).expect("write");
+        let j = read(&path).expect("read");
+        assert_eq!((j.stream_id, j.first_sequence), (9, 0));
+        assert_eq!(j.message(0), Some(&window(0)));
+        bytes[8] = 3;
+        std::fs::write(&path, &bytes).expect("write");
+        let e = read(&path).expect_err("version 3");
+        assert!(e.to_string().contains("version 3"), "{e}");
     }
 }
