@@ -394,4 +394,41 @@ mod tests {
         let expected = extract_patch(&image, nalgebra::Point2::new(120.0, 120.0)).expect("inside");
         assert_eq!(second.tracks[1].patch, expected.to_vec());
     }
+
+    #[test]
+    fn the_keyframe_log_drops_what_the_solver_no_longer_needs_once_it_has_grown() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(KEYFRAME_LOG);
+        let mut log = CompactingLog {
+            log: RecordLog::open(&path).expect("log"),
+            schedule: log_compaction::CompactionSchedule::new(1),
+            solver_mark: dir.path().join(log_compaction::SOLVER_MARK),
+        };
+        let numbered = |id: u64| pb::Keyframe {
+            keyframe_id: id,
+            ..keyframe(&[1, 2, 3])
+        };
+        let ids = |path: &std::path::Path| -> Vec<u64> {
+            crate::record_log::read_records::<pb::Keyframe>(path)
+                .expect("read")
+                .iter()
+                .map(|k| k.keyframe_id)
+                .collect()
+        };
+        for id in 0..4 {
+            log.log.append(&numbered(id)).expect("append");
+            // No mark yet (the solver has published no window): nothing is dropped.
+            log.compact_if_due().expect("compact");
+        }
+        assert_eq!(ids(&path), [0, 1, 2, 3]);
+        log_compaction::write_mark(&log.solver_mark, 9, 2).expect("mark");
+        log.log.append(&numbered(4)).expect("append");
+        log.compact_if_due().expect("compact");
+        assert_eq!(ids(&path), [2, 3, 4]);
+        // The mark has not moved: the log is not rewritten, only appended to.
+        log.log.append(&numbered(5)).expect("append");
+        log.compact_if_due().expect("compact");
+        log.log.flush().expect("flush");
+        assert_eq!(ids(&path), [2, 3, 4, 5]);
+    }
 }

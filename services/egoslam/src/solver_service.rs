@@ -351,7 +351,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 r.journal.stream_id,
                 JournalWriter::resume(&journal_path, &r.journal)?,
                 adaptive(WindowBuilder::resume(window_options, r.tail)?),
-                r.journal.messages.len() as u64,
+                r.journal.next_sequence(),
                 r.replay,
                 last,
             )
