@@ -7,6 +7,7 @@
 use crate::relative_pose::{
     estimate_relative_pose, RelativePose, RelativePoseError, RelativePoseOptions,
 };
+use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::Point2;
 use std::collections::{BTreeMap, HashMap};
@@ -48,6 +49,28 @@ pub struct ViewEdge {
     pub i: usize,
     pub j: usize,
     pub pose: RelativePose,
+}
+
+impl ViewEdge {
+    /// Angle, degrees, between the edge's measured translation direction and the one the
+    /// camera `poses` give (`R_j (c_i - c_j)`); `None` for an edge without a direction or
+    /// coinciding centres. How far a solution strays from the two-view evidence, which no
+    /// triangulation or adjustment has touched.
+    pub fn direction_disagreement_deg(&self, poses: &[CameraPose]) -> Option<f64> {
+        if !self.pose.has_translation {
+            return None;
+        }
+        let (pi, pj) = (poses.get(self.i)?, poses.get(self.j)?);
+        let t = pj.rotation * (pi.centre - pj.centre);
+        let norm = t.norm();
+        (norm > 0.0 && norm.is_finite()).then(|| {
+            (t / norm)
+                .dot(&self.pose.translation)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees()
+        })
+    }
 }
 
 /// Relative poses already computed, by keyframe id pair: overlapping windows share them.
@@ -95,4 +118,55 @@ pub fn build_view_graph(
         }
     }
     (edges, failures)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::relative_pose::RelativePose;
+    use nalgebra::{Rotation3, Vector3};
+
+    #[test]
+    fn direction_disagreement_is_the_angle_to_the_poses_own_direction() {
+        let poses = [
+            CameraPose {
+                rotation: Rotation3::identity(),
+                centre: Vector3::zeros(),
+            },
+            CameraPose {
+                rotation: Rotation3::from_euler_angles(0.0, 0.3, 0.0),
+                centre: Vector3::new(0.0, 0.0, 1.0),
+            },
+        ];
+        // x_j = R_j (x - c_j): the first centre seen from the second camera.
+        let truth = (poses[1].rotation * (poses[0].centre - poses[1].centre)).normalize();
+        let edge = |translation: Vector3<f64>, has_translation: bool| ViewEdge {
+            i: 0,
+            j: 1,
+            pose: RelativePose {
+                rotation: poses[1].rotation,
+                translation,
+                has_translation,
+                inliers: 100,
+                matches: 100,
+                parallax_px: 10.0,
+            },
+        };
+        let same = edge(truth, true).direction_disagreement_deg(&poses);
+        assert!(same.is_some_and(|a| a < 1e-6), "{same:?}");
+        let opposite = edge(-truth, true).direction_disagreement_deg(&poses);
+        assert!(
+            opposite.is_some_and(|a| (a - 180.0).abs() < 1e-6),
+            "{opposite:?}"
+        );
+        let side = truth.cross(&Vector3::y()).normalize();
+        let right = edge(side, true).direction_disagreement_deg(&poses);
+        assert!(right.is_some_and(|a| (a - 90.0).abs() < 1e-6), "{right:?}");
+        assert_eq!(edge(truth, false).direction_disagreement_deg(&poses), None);
+        let together = [poses[0], poses[0]];
+        assert_eq!(
+            edge(truth, true).direction_disagreement_deg(&together),
+            None
+        );
+    }
 }

@@ -4,7 +4,7 @@
 
 use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions};
 use crate::retriangulation::{
-    retriangulate_and_adjust, triangulate_tracks, RetriangulationOptions, Structure,
+    retriangulate_and_adjust, tracks_of, triangulate_tracks, RetriangulationOptions, Structure,
     TrackObservations,
 };
 use crate::rotation_averaging::{average_rotations, RelativeRotation, RotationAveragingOptions};
@@ -367,12 +367,7 @@ fn solve_connected(
     }
 
     // Tracks of the window: track id -> [(keyframe index, pixel)].
-    let mut tracks: BTreeMap<u64, TrackObservations> = BTreeMap::new();
-    for (k, kf) in keyframes.iter().enumerate() {
-        for (id, p) in &kf.tracks {
-            tracks.entry(*id).or_default().push((k, *p));
-        }
-    }
+    let tracks = tracks_of(keyframes);
     let long = select_averaging_tracks(&tracks, n, options);
 
     let mut constraints: Vec<DirectionConstraint> = translation_edges
@@ -465,6 +460,7 @@ fn solve_connected(
             camera,
             &tracks,
             &ids,
+            &translation_edges,
             structure,
             adjusted,
             &options.retriangulation,
