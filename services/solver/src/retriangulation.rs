@@ -238,6 +238,26 @@ mod tests {
         (sq / est.len() as f64).sqrt()
     }
 
+    /// [`retriangulate_and_adjust`] with default options and no view-graph edges.
+    fn readjust_by_default(
+        tracks: &BTreeMap<u64, TrackObservations>,
+        ids: &[u64],
+        first: Structure,
+        adjusted: BundleAdjustmentResult,
+    ) -> Readjusted {
+        retriangulate_and_adjust(
+            &camera(),
+            tracks,
+            ids,
+            &[],
+            first,
+            adjusted,
+            &RetriangulationOptions::default(),
+            &TriangulationOptions::default(),
+            &BundleAdjustmentOptions::default(),
+        )
+    }
+
     /// The synthetic walking head's poses, the tracks of `points` random points seen with
     /// 1 px noise, and the ids of those seen twice or more.
     fn walking_head(
@@ -289,17 +309,7 @@ mod tests {
             .expect("adjusted");
         let kept_first = first.observations.len() - adjusted.outliers.len();
         let error_first = centre_error(&adjusted.poses, &truth);
-        let again = retriangulate_and_adjust(
-            &cam,
-            &tracks,
-            &ids,
-            &[],
-            first,
-            adjusted,
-            &RetriangulationOptions::default(),
-            &tri,
-            &ba,
-        );
+        let again = readjust_by_default(&tracks, &ids, first, adjusted);
         let kept = again.structure.observations.len() - again.adjusted.outliers.len();
         let error = centre_error(&again.adjusted.poses, &truth);
         assert!(again.passes >= 1, "no pass ran");
@@ -336,17 +346,7 @@ mod tests {
         let adjusted = bundle_adjust(&cam, &truth, &first.positions(), &first.observations, &ba)
             .expect("adjusted");
         let before = adjusted.clone();
-        let again = retriangulate_and_adjust(
-            &cam,
-            &tracks,
-            &ids,
-            &[],
-            first,
-            adjusted,
-            &RetriangulationOptions::default(),
-            &tri,
-            &ba,
-        );
+        let again = readjust_by_default(&tracks, &ids, first, adjusted);
         assert_eq!(again.passes, 0);
         assert_eq!(again.adjusted, before);
     }
