@@ -41,31 +41,81 @@ fn log_and_send(
     publisher: &mut MessagePublisher<pb::Keyframe>,
     message: &pb::Keyframe,
 ) -> anyhow::Result<()> {
-    log.log.append(message)?;
-    log.log.flush()?;
+    log.append(message)?;
     publisher.send(message)?;
     log.compact_if_due()
 }
 
 /// The keyframe log with its compaction (log_compaction.rs): keyframes older than the
-/// solver's mark are dropped once the log outgrows its schedule.
+/// solver's mark are dropped once the log outgrows its schedule. The log's keyframe ids
+/// only grow (a restarted frontend continues them), so everything before the first
+/// record the mark still needs goes: an index of record offsets finds that cut without
+/// decoding the log, which would stall the frame loop (decoding a 45 MB log took 0.37 s).
 struct CompactingLog {
     log: RecordLog,
     schedule: log_compaction::CompactionSchedule,
     solver_mark: std::path::PathBuf,
+    /// `(byte offset, keyframe id, end of stream)` of every record in the log, in order.
+    index: std::collections::VecDeque<(u64, u64, bool)>,
 }
 
 impl CompactingLog {
+    /// The log at `path`: continued and indexed when `resuming` (a restarted frontend's
+    /// log holds its predecessor's records: read once here), else emptied.
+    fn open(
+        path: &std::path::Path,
+        solver_mark: std::path::PathBuf,
+        resuming: bool,
+    ) -> anyhow::Result<Self> {
+        let mut log = RecordLog::open(path)?;
+        let index = if resuming {
+            crate::record_log::read_records_at::<pb::Keyframe>(path)?
+                .into_iter()
+                .map(|(offset, k)| (offset, k.keyframe_id, k.end_of_stream))
+                .collect()
+        } else {
+            log.truncate()?;
+            Default::default()
+        };
+        Ok(Self {
+            log,
+            schedule: log_compaction::CompactionSchedule::from_env(),
+            solver_mark,
+            index,
+        })
+    }
+
+    /// Appends a keyframe message and hands it to the kernel.
+    fn append(&mut self, message: &pb::Keyframe) -> anyhow::Result<()> {
+        let offset = self.log.len_bytes()?;
+        self.log.append(message)?;
+        self.log.flush()?;
+        self.index
+            .push_back((offset, message.keyframe_id, message.end_of_stream));
+        Ok(())
+    }
+
     fn compact_if_due(&mut self) -> anyhow::Result<()> {
-        if !self.schedule.outgrown(self.log.len_bytes()?) {
+        let len = self.log.len_bytes()?;
+        if !self.schedule.outgrown(len) {
             return Ok(());
         }
         let mark = log_compaction::read_mark(&self.solver_mark);
         if let Some(mark @ (_, first)) = self.schedule.fresh(mark) {
-            let dropped = self
-                .log
-                .compact(|k: &pb::Keyframe| k.end_of_stream || k.keyframe_id >= first)?;
-            tracing::info!(dropped, "keyframe log compacted");
+            let cut = self
+                .index
+                .iter()
+                .find(|(_, id, end)| *end || *id >= first)
+                .map_or(len, |(offset, _, _)| *offset);
+            let dropped = self.index.iter().take_while(|(o, _, _)| *o < cut).count();
+            if dropped > 0 {
+                self.log.cut_before(cut)?;
+                self.index.drain(..dropped);
+                for entry in &mut self.index {
+                    entry.0 -= cut;
+                }
+                tracing::info!(dropped, "keyframe log compacted");
+            }
             self.schedule.compacted(mark, self.log.len_bytes()?);
         }
         Ok(())
@@ -186,19 +236,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut patched: HashSet<u64> = HashSet::new();
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
     let state_path = args.out.join(ID_STATE_FILE);
-    let mut keyframe_log = RecordLog::open(&args.out.join(KEYFRAME_LOG))?;
     let resuming = state_path.exists();
     let solver_mark = args.out.join(log_compaction::SOLVER_MARK);
     if !resuming {
-        keyframe_log.truncate()?;
         // The mark of an earlier run names its keyframe ids, which this one reuses.
         log_compaction::remove_mark(&solver_mark)?;
     }
-    let mut keyframe_log = CompactingLog {
-        log: keyframe_log,
-        schedule: log_compaction::CompactionSchedule::from_env(),
-        solver_mark,
-    };
+    let mut keyframe_log =
+        CompactingLog::open(&args.out.join(KEYFRAME_LOG), solver_mark, resuming)?;
     if let Ok(text) = std::fs::read_to_string(&state_path) {
         let ids: serde_json::Value = serde_json::from_str(&text)
             .with_context(|| format!("{}: unreadable", state_path.display()))?;
@@ -399,11 +444,10 @@ mod tests {
     fn the_keyframe_log_drops_what_the_solver_no_longer_needs_once_it_has_grown() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join(KEYFRAME_LOG);
-        let mut log = CompactingLog {
-            log: RecordLog::open(&path).expect("log"),
-            schedule: log_compaction::CompactionSchedule::new(1),
-            solver_mark: dir.path().join(log_compaction::SOLVER_MARK),
-        };
+        let mut log =
+            CompactingLog::open(&path, dir.path().join(log_compaction::SOLVER_MARK), false)
+                .expect("log");
+        log.schedule = log_compaction::CompactionSchedule::new(1);
         let numbered = |id: u64| pb::Keyframe {
             keyframe_id: id,
             ..keyframe(&[1, 2, 3])
@@ -416,19 +460,28 @@ mod tests {
                 .collect()
         };
         for id in 0..4 {
-            log.log.append(&numbered(id)).expect("append");
+            log.append(&numbered(id)).expect("append");
             // No mark yet (the solver has published no window): nothing is dropped.
             log.compact_if_due().expect("compact");
         }
         assert_eq!(ids(&path), [0, 1, 2, 3]);
         log_compaction::write_mark(&log.solver_mark, 9, 2).expect("mark");
-        log.log.append(&numbered(4)).expect("append");
+        log.append(&numbered(4)).expect("append");
         log.compact_if_due().expect("compact");
         assert_eq!(ids(&path), [2, 3, 4]);
         // The mark has not moved: the log is not rewritten, only appended to.
-        log.log.append(&numbered(5)).expect("append");
+        log.append(&numbered(5)).expect("append");
         log.compact_if_due().expect("compact");
-        log.log.flush().expect("flush");
         assert_eq!(ids(&path), [2, 3, 4, 5]);
+        // A restarted frontend indexes what its predecessor logged and cuts it the same way.
+        drop(log);
+        let mut log =
+            CompactingLog::open(&path, dir.path().join(log_compaction::SOLVER_MARK), true)
+                .expect("log");
+        log.schedule = log_compaction::CompactionSchedule::new(1);
+        log_compaction::write_mark(&log.solver_mark, 9, 4).expect("mark");
+        log.append(&numbered(6)).expect("append");
+        log.compact_if_due().expect("compact");
+        assert_eq!(ids(&path), [4, 5, 6]);
     }
 }

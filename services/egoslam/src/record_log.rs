@@ -67,28 +67,25 @@ impl RecordLog {
             .len())
     }
 
-    /// Rewrites the log atomically with only the records `keep` accepts (a reader sees the
-    /// old or the new log, both holding every kept record), then appends after them.
-    /// Returns the number of records dropped.
-    pub fn compact<M: Message + Default>(
-        &mut self,
-        keep: impl Fn(&M) -> bool,
-    ) -> anyhow::Result<usize> {
+    /// Drops everything before byte `offset` (a record boundary): the rest is copied to a
+    /// new file that atomically replaces the log, without decoding a record. Only the kept
+    /// tail is read, so the cost does not grow with what is dropped.
+    pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<()> {
+        use std::io::{Read, Seek};
         self.flush()?;
-        let records: Vec<M> = read_records(&self.path)?;
-        let mut bytes = Vec::new();
-        let mut kept = 0;
-        for record in records.iter().filter(|r| keep(r)) {
-            record.encode_length_delimited(&mut bytes)?;
-            kept += 1;
-        }
-        crate::output::write_atomically(&self.path, &bytes)?;
+        let mut tail = Vec::new();
+        let mut file = std::fs::File::open(&self.path)
+            .with_context(|| format!("opening {}", self.path.display()))?;
+        file.seek(std::io::SeekFrom::Start(offset))
+            .and_then(|_| file.read_to_end(&mut tail))
+            .with_context(|| format!("reading {}", self.path.display()))?;
+        crate::output::write_atomically(&self.path, &tail)?;
         let file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)
             .with_context(|| format!("reopening {}", self.path.display()))?;
         self.writer = std::io::BufWriter::new(file);
-        Ok(records.len() - kept)
+        Ok(())
     }
 
     /// Empties the log (a new stream starts a new map).
@@ -104,6 +101,11 @@ impl RecordLog {
 /// The records of the log at `path` in order; an absent log is empty, a torn or oversized
 /// final record (a kill mid-append) is dropped with a warning, an undecodable one skipped.
 pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>> {
+    Ok(read_records_at(path)?.into_iter().map(|(_, r)| r).collect())
+}
+
+/// [`read_records`] with each record's byte offset in the log.
+pub fn read_records_at<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<(u64, M)>> {
     let bytes = match std::fs::read(path) {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
@@ -121,7 +123,7 @@ pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>>
             }
         };
         match M::decode(&probe[..length]) {
-            Ok(record) => out.push(record),
+            Ok(record) => out.push(((bytes.len() - rest.len()) as u64, record)),
             Err(e) => {
                 tracing::warn!(path = %path.display(), error = %e, "invalid record in a log skipped")
             }
@@ -144,41 +146,27 @@ mod tests {
     }
 
     #[test]
-    fn compaction_keeps_what_is_asked_and_appending_goes_on() {
+    fn cutting_at_a_record_keeps_the_rest_and_appending_goes_on() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("keyframes.log");
         let mut log = RecordLog::open(&path).expect("open");
         for id in 0..10 {
             log.append(&keyframe(id)).expect("append");
         }
-        let end = pb::Keyframe {
-            end_of_stream: true,
-            ..Default::default()
-        };
-        log.append(&end).expect("append");
+        log.flush().expect("flush");
+        let at: Vec<(u64, pb::Keyframe)> = read_records_at(&path).expect("read");
+        assert_eq!(at.len(), 10);
+        assert_eq!(at[0].0, 0);
         let before = log.len_bytes().expect("len");
-        let dropped = log
-            .compact(|k: &pb::Keyframe| k.end_of_stream || k.keyframe_id >= 6)
-            .expect("compact");
-        assert_eq!(dropped, 6);
-        assert!(log.len_bytes().expect("len") < before);
+        log.cut_before(at[6].0).expect("cut");
+        assert_eq!(log.len_bytes().expect("len"), before - at[6].0);
         log.append(&keyframe(10)).expect("append");
         log.flush().expect("flush");
-        let ids: Vec<(u64, bool)> = read_records::<pb::Keyframe>(&path)
+        let ids: Vec<u64> = read_records::<pb::Keyframe>(&path)
             .expect("read")
             .iter()
-            .map(|k| (k.keyframe_id, k.end_of_stream))
+            .map(|k| k.keyframe_id)
             .collect();
-        assert_eq!(
-            ids,
-            [
-                (6, false),
-                (7, false),
-                (8, false),
-                (9, false),
-                (0, true),
-                (10, false)
-            ]
-        );
+        assert_eq!(ids, [6, 7, 8, 9, 10]);
     }
 }
