@@ -102,12 +102,15 @@ impl CompactingLog {
         }
         let mark = log_compaction::read_mark(&self.solver_mark);
         if let Some(mark @ (_, first)) = self.schedule.fresh(mark) {
-            let cut = self
+            let dropped = self
                 .index
                 .iter()
-                .find(|(_, id, end)| *end || *id >= first)
+                .position(|(_, id, end)| *end || *id >= first)
+                .unwrap_or(self.index.len());
+            let cut = self
+                .index
+                .get(dropped)
                 .map_or(len, |(offset, _, _)| *offset);
-            let dropped = self.index.iter().take_while(|(o, _, _)| *o < cut).count();
             if dropped > 0 {
                 self.log.cut_before(cut)?;
                 self.index.drain(..dropped);

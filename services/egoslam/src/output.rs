@@ -25,6 +25,20 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     std::fs::rename(&tmp, path).with_context(|| format!("renaming to {}", path.display()))
 }
 
+/// Replaces the file at `path` with `prefix` followed by its bytes from `offset` on, via
+/// [`write_atomically`]: how an append-only log drops its head (the journal with a new
+/// header, the keyframe log with none). Only the kept tail is read.
+pub fn keep_tail_atomically(path: &Path, offset: u64, prefix: &[u8]) -> anyhow::Result<()> {
+    use std::io::{Read, Seek};
+    let mut bytes = prefix.to_vec();
+    let mut file =
+        std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    file.seek(std::io::SeekFrom::Start(offset))
+        .and_then(|_| file.read_to_end(&mut bytes))
+        .with_context(|| format!("reading {}", path.display()))?;
+    write_atomically(path, &bytes)
+}
+
 /// TUM trajectory text: `timestamp tx ty tz qx qy qz qw`.
 pub fn tum_text(poses: &[StampedPose]) -> String {
     let mut s = String::from("# timestamp tx ty tz qx qy qz qw (world_from_camera)\n");

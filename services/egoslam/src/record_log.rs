@@ -71,15 +71,8 @@ impl RecordLog {
     /// new file that atomically replaces the log, without decoding a record. Only the kept
     /// tail is read, so the cost does not grow with what is dropped.
     pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<()> {
-        use std::io::{Read, Seek};
         self.flush()?;
-        let mut tail = Vec::new();
-        let mut file = std::fs::File::open(&self.path)
-            .with_context(|| format!("opening {}", self.path.display()))?;
-        file.seek(std::io::SeekFrom::Start(offset))
-            .and_then(|_| file.read_to_end(&mut tail))
-            .with_context(|| format!("reading {}", self.path.display()))?;
-        crate::output::write_atomically(&self.path, &tail)?;
+        crate::output::keep_tail_atomically(&self.path, offset, &[])?;
         let file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)

@@ -39,8 +39,9 @@ pub struct JournalWriter {
     stream_id: u64,
     /// Sequence number of the file's first record.
     first_sequence: u64,
-    /// Records in the file.
-    records: u64,
+    /// Byte offset of each record in the file, oldest first: compaction cuts at one
+    /// without reading what it drops.
+    record_offsets: std::collections::VecDeque<u64>,
 }
 
 impl JournalWriter {
@@ -56,7 +57,7 @@ impl JournalWriter {
             buffer: Vec::new(),
             stream_id,
             first_sequence: 0,
-            records: 0,
+            record_offsets: Default::default(),
         })
     }
 
@@ -76,7 +77,7 @@ impl JournalWriter {
             buffer: Vec::new(),
             stream_id: journal.stream_id,
             first_sequence: journal.first_sequence,
-            records: journal.messages.len() as u64,
+            record_offsets: journal.record_offsets.iter().copied().collect(),
         })
     }
 
@@ -94,45 +95,37 @@ impl JournalWriter {
     /// atomically (a reader sees the old or the new journal, both holding every record from
     /// `sequence` on). Returns the number of records dropped.
     pub fn compact_before(&mut self, sequence: u64) -> anyhow::Result<u64> {
-        let keep_from = sequence.min((self.first_sequence + self.records).saturating_sub(1));
+        let records = self.record_offsets.len() as u64;
+        let keep_from = sequence.min((self.first_sequence + records).saturating_sub(1));
         if keep_from <= self.first_sequence {
             return Ok(0);
         }
         let dropped = keep_from - self.first_sequence;
-        let bytes = std::fs::read(&self.path)
-            .with_context(|| format!("reading {}", self.path.display()))?;
-        let header_len = header_len(&bytes, &self.path)?;
-        let mut rest = &bytes[header_len..];
-        for _ in 0..dropped {
-            let len = prost::encoding::decode_varint(&mut rest)
-                .ok()
-                .and_then(|l| usize::try_from(l).ok())
-                .filter(|l| *l <= rest.len())
-                .with_context(|| format!("{}: record boundaries lost", self.path.display()))?;
-            rest = &rest[len..];
-        }
-        let mut compacted = header(self.stream_id, keep_from);
-        compacted.extend_from_slice(rest);
-        crate::output::write_atomically(&self.path, &compacted)?;
+        self.record_offsets.drain(..dropped as usize);
+        let cut = self.record_offsets.front().copied().unwrap_or(0);
+        crate::output::keep_tail_atomically(&self.path, cut, &header(self.stream_id, keep_from))?;
         self.file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)
             .with_context(|| format!("reopening {}", self.path.display()))?;
+        for offset in &mut self.record_offsets {
+            *offset = *offset - cut + HEADER_LEN as u64;
+        }
         self.first_sequence = keep_from;
-        self.records -= dropped;
         Ok(dropped)
     }
 
     /// Appends one message and hands it to the kernel (and the disk) before returning, so
     /// that a message is in the journal before anyone can have received it.
     pub fn append(&mut self, message: &pb::WindowSolution) -> anyhow::Result<()> {
+        let offset = self.len_bytes()?;
         self.buffer.clear();
         message.encode_length_delimited(&mut self.buffer)?;
         self.file
             .write_all(&self.buffer)
             .and_then(|()| self.file.sync_data())
             .with_context(|| format!("appending to {}", self.path.display()))?;
-        self.records += 1;
+        self.record_offsets.push_back(offset);
         Ok(())
     }
 }
@@ -145,6 +138,8 @@ pub struct Journal {
     pub first_sequence: u64,
     /// Messages in sequence order (index = bus sequence number - `first_sequence`).
     pub messages: Vec<pb::WindowSolution>,
+    /// Byte offset of each message's record in the file.
+    pub record_offsets: Vec<u64>,
     /// Bytes up to the end of the last complete record (what a resumed writer keeps).
     pub valid_len: u64,
 }
@@ -199,6 +194,7 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
     };
     let mut rest = &bytes[header_len..];
     let mut messages = Vec::new();
+    let mut record_offsets = Vec::new();
     while !rest.is_empty() {
         let mut cursor = rest;
         let Ok(len) = prost::encoding::decode_varint(&mut cursor) else {
@@ -212,12 +208,14 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
         let message = pb::WindowSolution::decode(&cursor[..len])
             .with_context(|| format!("{}: record {} is corrupt", path.display(), messages.len()))?;
         messages.push(message);
+        record_offsets.push((bytes.len() - rest.len()) as u64);
         rest = &cursor[len..];
     }
     Ok(Journal {
         stream_id,
         first_sequence,
         messages,
+        record_offsets,
         valid_len: (bytes.len() - rest.len()) as u64,
     })
 }
