@@ -114,8 +114,11 @@ fn main() -> anyhow::Result<()> {
         if !finite {
             println!("{}: non-finite poses", file.display());
         }
-        let est: Vec<StampedPose> = kfs
+        // A partial window poses only its largest connected piece: `s.keyframes` says which.
+        let est: Vec<StampedPose> = s
+            .keyframes
             .iter()
+            .map(|k| &kfs[*k])
             .zip(&s.poses)
             .map(|(k, p)| StampedPose {
                 timestamp: k.timestamp_s,
