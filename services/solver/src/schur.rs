@@ -18,15 +18,19 @@ struct PointBlock {
 }
 
 impl PointBlock {
+    /// The coupling to reduced parameter `index`, kept sorted by index: a binary search
+    /// instead of a scan per Jacobian column, and `SchurSystem::solve` walks the lower
+    /// triangle in index order without sorting. Observations usually arrive in camera
+    /// order, so the insertion is mostly at the end.
     fn coupling_mut(&mut self, index: usize) -> &mut Vector3<f64> {
-        match self.coupling.iter().position(|(i, _)| *i == index) {
-            Some(p) => &mut self.coupling[p].1,
-            None => {
-                self.coupling.push((index, Vector3::zeros()));
-                let last = self.coupling.len() - 1;
-                &mut self.coupling[last].1
+        let p = match self.coupling.binary_search_by_key(&index, |(i, _)| *i) {
+            Ok(p) => p,
+            Err(p) => {
+                self.coupling.insert(p, (index, Vector3::zeros()));
+                p
             }
-        }
+        };
+        &mut self.coupling[p].1
     }
 }
 
@@ -100,19 +104,26 @@ impl SchurSystem {
         }
         let mut rhs = -self.g.clone();
         let mut v_inv = Vec::with_capacity(self.points.len());
+        // Each point's couplings are sorted by index (`PointBlock::coupling_mut`); with
+        // V^-1 w_b computed once, the lower triangle (a >= b) is a plain run over the list,
+        // column by column of the column-major matrix, with no per-entry test (the test
+        // and the bounds checks had been most of this loop).
+        let mut inv_w: Vec<Vector3<f64>> = Vec::new();
+        let lower = s.as_mut_slice();
         for block in &self.points {
             let mut v = block.v;
             for d in 0..3 {
                 v[(d, d)] += lambda * block.v[(d, d)].max(1e-12) + 1e-12;
             }
             let inv = v.try_inverse().unwrap_or_else(Matrix3::zeros);
-            for (ia, wa) in &block.coupling {
-                let wa_vinv = wa.transpose() * inv;
-                rhs[*ia] += (wa_vinv * block.g)[0];
-                for (ib, wb) in &block.coupling {
-                    if ib <= ia {
-                        s[(*ia, *ib)] -= (wa_vinv * wb)[0];
-                    }
+            let inv_g = inv * block.g;
+            inv_w.clear();
+            inv_w.extend(block.coupling.iter().map(|(_, w)| inv * w));
+            for (b, ((ib, wb), yb)) in block.coupling.iter().zip(&inv_w).enumerate() {
+                rhs[*ib] += wb.dot(&inv_g);
+                let column = &mut lower[ib * n..(ib + 1) * n];
+                for (ia, wa) in &block.coupling[b..] {
+                    column[*ia] -= wa.dot(yb);
                 }
             }
             v_inv.push(inv);
