@@ -42,6 +42,12 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("RETRIANGULATION_PASSES") {
         options.retriangulation.max_passes = v as usize;
     }
+    if let Some(v) = env("LUD_ITERS") {
+        options.translation.lud_iterations = v as usize;
+    }
+    if let Some(v) = env("REFINE_ITERS") {
+        options.translation.refine_iterations = v as usize;
+    }
     if let Some(v) = env("MIN_TRACK_VIEWS") {
         options.min_track_views = v as usize;
     }

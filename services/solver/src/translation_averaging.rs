@@ -88,67 +88,106 @@ fn endpoints_of(c: &DirectionConstraint, cams: usize) -> (usize, usize) {
     }
 }
 
+/// Which camera-to-point constraints touch each point, built once per averaging: the IRLS
+/// changes weights, not structure, so each solve walks these lists instead of allocating
+/// one per point (compressed rows: point k's constraints are `constraint[start[k]..start[k + 1]]`).
+struct PointConstraints {
+    start: Vec<usize>,
+    constraint: Vec<usize>,
+}
+
+impl PointConstraints {
+    fn new(cams: usize, pts: usize, constraints: &[DirectionConstraint]) -> Self {
+        let mut start = vec![0usize; pts + 1];
+        for c in constraints {
+            if let Endpoints::CameraPoint { point, .. } = c.endpoints {
+                start[point + 1] += 1;
+            }
+        }
+        for k in 0..pts {
+            start[k + 1] += start[k];
+        }
+        let mut next = start.clone();
+        let mut constraint = vec![0usize; start[pts]];
+        for (n, c) in constraints.iter().enumerate() {
+            let (_, b) = endpoints_of(c, cams);
+            if b >= cams {
+                constraint[next[b - cams]] = n;
+                next[b - cams] += 1;
+            }
+        }
+        Self { start, constraint }
+    }
+
+    fn of(&self, point: usize) -> &[usize] {
+        &self.constraint[self.start[point]..self.start[point + 1]]
+    }
+}
+
 /// One IRLS solve of `min sum w |x_b - x_a - s v|^2` with x_0 = 0, per axis (the system is
 /// isotropic), points eliminated (each touches cameras only).
 fn weighted_positions(
     cams: usize,
     pts: usize,
     constraints: &[DirectionConstraint],
+    by_point: &PointConstraints,
     weights: &[f64],
     scales: &[f64],
 ) -> Option<Vec<Vector3<f64>>> {
     let m = cams - 1;
     let mut h = DMatrix::<f64>::zeros(m, m);
     let mut rhs = DMatrix::<f64>::zeros(m, 3);
-    let mut point_diag = vec![0.0; pts];
-    let mut point_rhs = vec![Vector3::zeros(); pts];
-    let mut point_links: Vec<Vec<(usize, f64)>> = vec![Vec::new(); pts];
-    for ((c, &w), &s) in constraints.iter().zip(weights).zip(scales) {
+    let target = |n: usize| constraints[n].direction * scales[n] * weights[n];
+    for (n, c) in constraints.iter().enumerate() {
         let (a, b) = endpoints_of(c, cams);
-        let target = c.direction * s * w; // x_b - x_a should equal s v
-        if b < cams {
-            for (u, su) in [(a, -1.0), (b, 1.0)] {
-                if u == 0 {
-                    continue;
-                }
-                for (v, sv) in [(a, -1.0), (b, 1.0)] {
-                    if v != 0 {
-                        h[(u - 1, v - 1)] += w * su * sv;
-                    }
-                }
-                for d in 0..3 {
-                    rhs[(u - 1, d)] += su * target[d];
+        if b >= cams {
+            continue; // camera-to-point: below, point by point
+        }
+        let (w, t) = (weights[n], target(n)); // x_b - x_a should equal s v
+        for (u, su) in [(a, -1.0), (b, 1.0)] {
+            if u == 0 {
+                continue;
+            }
+            for (v, sv) in [(a, -1.0), (b, 1.0)] {
+                if v != 0 {
+                    h[(u - 1, v - 1)] += w * su * sv;
                 }
             }
-        } else {
-            let k = b - cams;
-            point_diag[k] += w;
-            point_rhs[k] += target;
-            if a != 0 {
-                h[(a - 1, a - 1)] += w;
-                for d in 0..3 {
-                    rhs[(a - 1, d)] -= target[d];
-                }
+            for d in 0..3 {
+                rhs[(u - 1, d)] += su * t[d];
             }
-            point_links[k].push((a, w));
         }
     }
-    // Eliminate points: x_k = (r_k + sum w x_a) / D_k.
+    // Each point enters through its constraints x_k - x_a = s v, and is eliminated:
+    // x_k = (r_k + sum w x_a) / D_k.
+    let mut point_diag = vec![0.0; pts];
+    let mut point_rhs = vec![Vector3::zeros(); pts];
     for k in 0..pts {
-        let dk = point_diag[k];
-        if dk <= 0.0 {
-            continue;
-        }
-        for &(a, wa) in &point_links[k] {
+        let links = by_point.of(k);
+        let dk: f64 = links.iter().map(|&n| weights[n]).sum();
+        let rk: Vector3<f64> = links.iter().map(|&n| target(n)).sum();
+        point_diag[k] = dk;
+        point_rhs[k] = rk;
+        for &n in links {
+            let (a, _) = endpoints_of(&constraints[n], cams);
             if a == 0 {
                 continue;
             }
+            let (wa, ta) = (weights[n], target(n));
+            h[(a - 1, a - 1)] += wa;
             for d in 0..3 {
-                rhs[(a - 1, d)] += wa * point_rhs[k][d] / dk;
+                rhs[(a - 1, d)] -= ta[d];
             }
-            for &(b, wb) in &point_links[k] {
+            if dk <= 0.0 {
+                continue;
+            }
+            for d in 0..3 {
+                rhs[(a - 1, d)] += wa * rk[d] / dk;
+            }
+            for &nb in links {
+                let (b, _) = endpoints_of(&constraints[nb], cams);
                 if b != 0 {
-                    h[(a - 1, b - 1)] -= wa * wb / dk;
+                    h[(a - 1, b - 1)] -= wa * weights[nb] / dk;
                 }
             }
         }
@@ -169,8 +208,9 @@ fn weighted_positions(
     for k in 0..pts {
         if point_diag[k] > 0.0 {
             let mut acc = point_rhs[k];
-            for &(a, wa) in &point_links[k] {
-                acc += wa * x[a];
+            for &n in by_point.of(k) {
+                let (a, _) = endpoints_of(&constraints[n], cams);
+                acc += weights[n] * x[a];
             }
             x[cams + k] = acc / point_diag[k];
         }
@@ -189,7 +229,8 @@ fn lud(
 ) -> Option<Vec<Vector3<f64>>> {
     let mut weights: Vec<f64> = constraints.iter().map(|c| c.weight).collect();
     let mut scales = vec![1.0; constraints.len()];
-    let mut x = weighted_positions(cams, pts, constraints, &weights, &scales)?;
+    let by_point = PointConstraints::new(cams, pts, constraints);
+    let mut x = weighted_positions(cams, pts, constraints, &by_point, &weights, &scales)?;
     for _ in 0..options.lud_iterations {
         for (n, c) in constraints.iter().enumerate() {
             let (a, b) = endpoints_of(c, cams);
@@ -198,7 +239,7 @@ fn lud(
             let e = (diff - scales[n] * c.direction).norm();
             weights[n] = c.weight / e.max(options.lud_delta);
         }
-        let next = weighted_positions(cams, pts, constraints, &weights, &scales)?;
+        let next = weighted_positions(cams, pts, constraints, &by_point, &weights, &scales)?;
         // Converged when no position moves by more than 1e-6 of the largest distance.
         let size = next.iter().map(|p| p.norm()).fold(0.0, f64::max).max(1e-12);
         let moved = next
