@@ -3,6 +3,13 @@
 //! against ground truth, so estimator changes can be judged without the whole pipeline.
 //!
 //! `cargo run --example solve_window -- DIR GROUND_TRUTH`
+//!
+//! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
+//! REFINE_EDGES, LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
+//! MIN_TRACK_VIEWS. Output: EDGES (first edges' errors; EDGES=all every edge),
+//! PER_KEYFRAME (each posed keyframe's error and its mean angle to the two-view directions
+//! of its edges), with TAIL as well one line per window comparing its last five keyframes
+//! (the next window's overlap) with the rest.
 
 use egoslam_geometry::{absolute_trajectory_error, PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
@@ -139,6 +146,29 @@ fn main() -> anyhow::Result<()> {
             .map(|(st, ms)| format!("{st} {ms:.0}"))
             .collect();
         if std::env::var_os("PER_KEYFRAME").is_some() {
+            // Per keyframe: the mean angle between the solution's direction to each
+            // view-graph neighbour and the two-view direction of that edge.
+            let (edges, _) = egoslam_solver::view_graph::build_view_graph(
+                &camera,
+                &obs,
+                &options.view_graph,
+                &mut EdgeCache::new(),
+            );
+            let mut by_window = vec![None; kfs.len()];
+            for (k, p) in s.keyframes.iter().zip(&s.poses) {
+                by_window[*k] = Some(*p);
+            }
+            let disagreement = |k: usize| {
+                let poses: Option<Vec<_>> = by_window.iter().copied().collect();
+                let poses = poses?;
+                let angles: Vec<f64> = edges
+                    .iter()
+                    .filter(|e| e.i == k || e.j == k)
+                    .filter_map(|e| e.direction_disagreement_deg(&poses))
+                    .collect();
+                (!angles.is_empty()).then(|| angles.iter().sum::<f64>() / angles.len() as f64)
+            };
+            let mut tail_rows: Vec<(f64, f64)> = Vec::new();
             if let Ok(r) = &ate {
                 for (k, e) in est.iter().enumerate() {
                     let g = gt.poses.iter().min_by(|a, b| {
@@ -148,16 +178,37 @@ fn main() -> anyhow::Result<()> {
                     });
                     if let Some(g) = g {
                         let err = (r.alignment.apply(&e.position) - g.position).norm();
-                        let kf = &kfs[k];
+                        if std::env::var_os("TAIL").is_some() {
+                            tail_rows.push((err, disagreement(s.keyframes[k]).unwrap_or(f64::NAN)));
+                            continue;
+                        }
+                        let kf = &kfs[s.keyframes[k]];
                         println!(
-                            "  kf {} t {:.2} tracks {} err {:.3}",
+                            "  kf {} t {:.2} tracks {} err {:.3} disagreement {:.1} deg",
                             kf.keyframe_id,
                             kf.timestamp_s,
                             kf.tracks.len(),
-                            err
+                            err,
+                            disagreement(s.keyframes[k]).unwrap_or(f64::NAN)
                         );
                     }
                 }
+            }
+            if tail_rows.len() > 10 {
+                let o = 5;
+                let (interior, tail) = tail_rows.split_at(tail_rows.len() - o);
+                let mut d: Vec<f64> = interior
+                    .iter()
+                    .map(|r| r.1)
+                    .filter(|v| v.is_finite())
+                    .collect();
+                d.sort_by(f64::total_cmp);
+                let med = d.get(d.len() / 2).copied().unwrap_or(f64::NAN);
+                let td: Vec<f64> = tail.iter().map(|r| r.1).filter(|v| v.is_finite()).collect();
+                let tmean = td.iter().sum::<f64>() / td.len().max(1) as f64;
+                let ie = interior.iter().map(|r| r.0).sum::<f64>() / interior.len() as f64;
+                let te = tail.iter().map(|r| r.0).sum::<f64>() / tail.len() as f64;
+                println!("TAIL {} interior_d {med:.1} tail_d {tmean:.1} ratio {:.2} interior_err {ie:.4} tail_err {te:.4} err_ratio {:.2}", file.display(), tmean / med, te / ie.max(1e-9));
             }
         }
         match ate {
