@@ -107,14 +107,19 @@ fn kill_mid_run(service: &str, after: Duration, realtime: bool) -> (serde_json::
 fn a_killed_frontend_or_solver_is_restarted_and_the_run_completes() {
     let _turn = one_test_at_a_time();
     // The frontend continues its ids; what the killed frontend held is lost (its few
-    // frames in flight; measured 94-104 of 120 posed). The map goes on, in a new segment
-    // when the restart broke the tracks, which relocalization may link back.
+    // frames in flight). The map goes on, in a new segment when the restart broke the
+    // tracks, which relocalization may link back. The replay is real-time, so frames it
+    // could not hand over meanwhile are dropped, and how many depends on the machine's
+    // load: measured 115 posed + 1 dropped on an idle machine, 105 + 10 beside three busy
+    // loops, 63 posed once in CI beside a parallel test run. What the restart may lose is
+    // the rest: 4-5 frames in those runs.
     let (r, _) = kill_mid_run("frontend", Duration::from_millis(1800), true);
     assert_eq!(r["restarts"]["frontend"], 1, "{r}");
     let posed = r["posed_frames"].as_u64().expect("posed");
+    let dropped = r["dropped_frames"].as_u64().expect("dropped");
     assert!(
-        posed >= 80,
-        "frontend: only {posed} of 120 frames posed: {r}"
+        posed + dropped >= 105 && posed >= 40,
+        "frontend: {posed} of 120 frames posed, {dropped} dropped by the replay: {r}"
     );
     // A killed solver loses nothing: the restarted one continues its stream from its
     // journal and replays the frontend's keyframe log, so every keyframe the frontend made
