@@ -208,7 +208,28 @@ fn main() -> anyhow::Result<()> {
                 let tmean = td.iter().sum::<f64>() / td.len().max(1) as f64;
                 let ie = interior.iter().map(|r| r.0).sum::<f64>() / interior.len() as f64;
                 let te = tail.iter().map(|r| r.0).sum::<f64>() / tail.len() as f64;
-                println!("TAIL {} interior_d {med:.1} tail_d {tmean:.1} ratio {:.2} interior_err {ie:.4} tail_err {te:.4} err_ratio {:.2}", file.display(), tmean / med, te / ie.max(1e-9));
+                // Tracks tying the last five keyframes to the rest: seen twice on each side.
+                let cut_strength = |c: usize| {
+                    let mut views: std::collections::HashMap<u64, (usize, usize)> =
+                        Default::default();
+                    for (k, kf) in obs.iter().enumerate() {
+                        for id in kf.tracks.keys() {
+                            let e = views.entry(*id).or_default();
+                            if k < c {
+                                e.0 += 1
+                            } else {
+                                e.1 += 1
+                            }
+                        }
+                    }
+                    views.values().filter(|(a, b)| *a >= 2 && *b >= 2).count()
+                };
+                let n = obs.len();
+                let tail_cut = cut_strength(n - o);
+                let mut cuts: Vec<usize> = (2..n - 1).map(cut_strength).collect();
+                cuts.sort_unstable();
+                let median_cut = cuts.get(cuts.len() / 2).copied().unwrap_or(0);
+                println!("TAIL {} interior_d {med:.1} tail_d {tmean:.1} ratio {:.2} interior_err {ie:.4} tail_err {te:.4} err_ratio {:.2} tail_cut {tail_cut} median_cut {median_cut}", file.display(), tmean / med, te / ie.max(1e-9));
             }
         }
         match ate {
