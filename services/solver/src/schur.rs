@@ -108,7 +108,11 @@ impl SchurSystem {
         // V^-1 w_b computed once, the lower triangle (a >= b) is a plain run over the list,
         // column by column of the column-major matrix, with no per-entry test (the test
         // and the bounds checks had been most of this loop).
-        let mut inv_w: Vec<Vector3<f64>> = Vec::new();
+        // Per point, the couplings as columns (x, y, z kept apart) and where each run of
+        // consecutive indices ends (a camera's six parameters): the update of one column
+        // of the lower triangle is then a contiguous slice per run, which vectorises.
+        let (mut wx, mut wy, mut wz) = (Vec::new(), Vec::new(), Vec::new());
+        let mut run_end: Vec<usize> = Vec::new();
         let lower = s.as_mut_slice();
         for block in &self.points {
             let mut v = block.v;
@@ -117,13 +121,39 @@ impl SchurSystem {
             }
             let inv = v.try_inverse().unwrap_or_else(Matrix3::zeros);
             let inv_g = inv * block.g;
-            inv_w.clear();
-            inv_w.extend(block.coupling.iter().map(|(_, w)| inv * w));
-            for (b, ((ib, wb), yb)) in block.coupling.iter().zip(&inv_w).enumerate() {
+            let k = block.coupling.len();
+            wx.clear();
+            wy.clear();
+            wz.clear();
+            for (_, w) in &block.coupling {
+                wx.push(w.x);
+                wy.push(w.y);
+                wz.push(w.z);
+            }
+            run_end.clear();
+            run_end.resize(k, k);
+            for p in (0..k.saturating_sub(1)).rev() {
+                run_end[p] = if block.coupling[p + 1].0 == block.coupling[p].0 + 1 {
+                    run_end[p + 1]
+                } else {
+                    p + 1
+                };
+            }
+            for (b, (ib, wb)) in block.coupling.iter().enumerate() {
                 rhs[*ib] += wb.dot(&inv_g);
+                let yb = inv * wb;
                 let column = &mut lower[ib * n..(ib + 1) * n];
-                for (ia, wa) in &block.coupling[b..] {
-                    column[*ia] -= wa.dot(yb);
+                let mut p = b;
+                while p < k {
+                    let e = run_end[p];
+                    let first = block.coupling[p].0;
+                    let dst = &mut column[first..first + (e - p)];
+                    for (((d, x), y), z) in
+                        dst.iter_mut().zip(&wx[p..e]).zip(&wy[p..e]).zip(&wz[p..e])
+                    {
+                        *d -= x * yb.x + y * yb.y + z * yb.z;
+                    }
+                    p = e;
                 }
             }
             v_inv.push(inv);
