@@ -18,19 +18,32 @@ struct PointBlock {
 }
 
 impl PointBlock {
-    /// The coupling to reduced parameter `index`, kept sorted by index: a binary search
-    /// instead of a scan per Jacobian column, and `SchurSystem::solve` walks the lower
-    /// triangle in index order without sorting. Observations usually arrive in camera
-    /// order, so the insertion is mostly at the end.
-    fn coupling_mut(&mut self, index: usize) -> &mut Vector3<f64> {
-        let p = match self.coupling.binary_search_by_key(&index, |(i, _)| *i) {
+    /// The position of the coupling to reduced parameter `index`, inserted if new; the
+    /// list is kept sorted by index, so `SchurSystem::solve` walks the lower triangle in
+    /// index order. `hint` is where the previous column's coupling went plus one: a
+    /// residual block's columns are consecutive indices (a camera's six parameters), so
+    /// the position is almost always the hint, checked in O(1), and a binary search
+    /// otherwise. Observations usually arrive in camera order, so insertions are mostly at
+    /// the end.
+    fn slot(&mut self, index: usize, hint: usize) -> usize {
+        let c = &self.coupling;
+        if c.get(hint).is_some_and(|(i, _)| *i == index) {
+            return hint;
+        }
+        let after_previous = hint == 0 || c.get(hint - 1).is_some_and(|(i, _)| *i < index);
+        let before_next = c.get(hint).is_none_or(|(i, _)| *i > index);
+        let p = if hint <= c.len() && after_previous && before_next {
+            Err(hint)
+        } else {
+            c.binary_search_by_key(&index, |(i, _)| *i)
+        };
+        match p {
             Ok(p) => p,
             Err(p) => {
                 self.coupling.insert(p, (index, Vector3::zeros()));
                 p
             }
-        };
-        &mut self.coupling[p].1
+        }
     }
 }
 
@@ -85,8 +98,11 @@ impl SchurSystem {
             let jpt = jp.transpose();
             block.v += jpt * jp * w;
             block.g += jpt * r * w;
+            let mut hint = 0;
             for (ja, &ia) in jr.iter().zip(idx) {
-                *block.coupling_mut(ia) += jpt * ja * w;
+                let p = block.slot(ia, hint);
+                block.coupling[p].1 += jpt * ja * w;
+                hint = p + 1;
             }
         }
     }
@@ -104,7 +120,7 @@ impl SchurSystem {
         }
         let mut rhs = -self.g.clone();
         let mut v_inv = Vec::with_capacity(self.points.len());
-        // Each point's couplings are sorted by index (`PointBlock::coupling_mut`); with
+        // Each point's couplings are sorted by index (`PointBlock::slot`); with
         // V^-1 w_b computed once, the lower triangle (a >= b) is a plain run over the list,
         // column by column of the column-major matrix, with no per-entry test (the test
         // and the bounds checks had been most of this loop).
