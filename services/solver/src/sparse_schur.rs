@@ -9,9 +9,41 @@
 use crate::schur::{solve_finite, SchurStep};
 use faer::sparse::{SparseColMat, Triplet};
 use nalgebra::{DVector, Matrix3, Matrix6, Matrix6x3, SMatrix, SVector, Vector3, Vector6};
-use std::collections::BTreeMap;
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 
 const BLOCK: usize = 6;
+
+/// Hashes the (camera block, camera block) keys of the reduced system's blocks with one
+/// multiply per word (as rustc's FxHash): the elimination looks up ~20 blocks per point
+/// (378,000 per solve on the global-BA bench), where an ordered map's comparisons and the
+/// default SipHash cost more than the 6x6 update they find. No key comes from outside, so
+/// nothing needs SipHash's resistance to chosen collisions. The triplets built from the map
+/// do not depend on its order (each position appears once), so the solve is unchanged.
+#[derive(Default)]
+struct BlockPairHasher(u64);
+
+impl Hasher for BlockPairHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.write_u64(u64::from(*b));
+        }
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_usize(&mut self, v: usize) {
+        self.write_u64(v as u64);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+type BlockMap = HashMap<(usize, usize), Matrix6<f64>, BuildHasherDefault<BlockPairHasher>>;
 
 #[derive(Debug, Clone, Default)]
 struct PointBlock {
@@ -82,7 +114,7 @@ impl SparseSchurSystem {
     /// system assembled as a sparse lower triangle and factored by sparse Cholesky.
     pub fn solve(&self, lambda: f64) -> Option<SchurStep> {
         let n = self.blocks * BLOCK;
-        let mut s: BTreeMap<(usize, usize), Matrix6<f64>> = BTreeMap::new();
+        let mut s = BlockMap::default();
         let mut rhs: Vec<Vector6<f64>> = self.g.iter().map(|g| -g).collect();
         for (b, d) in self.diagonal.iter().enumerate() {
             let mut m = *d;
