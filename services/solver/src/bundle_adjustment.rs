@@ -10,7 +10,7 @@
 
 use crate::huber;
 use crate::schur::{SchurStep, SchurSystem};
-use crate::sparse_schur::SparseSchurSystem;
+use crate::sparse_schur::{SparseSchurSystem, SymbolicCache};
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Matrix2x3, Point2, Rotation3, Vector2, Vector3};
@@ -140,10 +140,10 @@ impl NormalEquations {
         }
     }
 
-    fn solve(&self, lambda: f64) -> Option<SchurStep> {
+    fn solve(&self, lambda: f64, cache: &mut SymbolicCache) -> Option<SchurStep> {
         match self {
             Self::Dense(s) => s.solve(lambda),
-            Self::Sparse(s) => s.solve(lambda),
+            Self::Sparse(s) => s.solve_cached(lambda, cache),
         }
     }
 }
@@ -217,6 +217,7 @@ fn levenberg_marquardt(
     let reduced = 6 * (cams - fixed) + globals;
     let g0 = 6 * (cams - fixed);
     let mut lambda = 1e-4;
+    let mut symbolic = SymbolicCache::default();
     let mut current = cost(camera, st, obs, active, options.huber_px);
     for iteration in 0..options.max_iterations {
         let mut sys = NormalEquations::new(reduced, globals, st.points.len());
@@ -256,7 +257,7 @@ fn levenberg_marquardt(
         }
         let mut accepted = false;
         for _ in 0..8 {
-            let Some(step) = sys.solve(lambda) else {
+            let Some(step) = sys.solve(lambda, &mut symbolic) else {
                 lambda *= 10.0;
                 continue;
             };
