@@ -120,13 +120,12 @@ impl SchurSystem {
         }
         let mut rhs = -self.g.clone();
         let mut v_inv = Vec::with_capacity(self.points.len());
-        // Each point's couplings are sorted by index (`PointBlock::slot`); with
-        // V^-1 w_b computed once, the lower triangle (a >= b) is a plain run over the list,
-        // column by column of the column-major matrix, with no per-entry test (the test
-        // and the bounds checks had been most of this loop).
-        // Per point, the couplings as columns (x, y, z kept apart) and where each run of
-        // consecutive indices ends (a camera's six parameters): the update of one column
-        // of the lower triangle is then a contiguous slice per run, which vectorises.
+        // Each point's couplings are sorted by index (`PointBlock::slot`), so its part of
+        // the lower triangle (a >= b) is walked column b by column b of the column-major
+        // matrix with no per-entry test (that test and the bounds checks had been most of
+        // this loop). Copied out as x / y / z columns, with the end of each run of
+        // consecutive indices (a camera's six parameters) marked, each run's update is a
+        // contiguous slice, which vectorises.
         let (mut wx, mut wy, mut wz) = (Vec::new(), Vec::new(), Vec::new());
         let mut run_end: Vec<usize> = Vec::new();
         let lower = s.as_mut_slice();
