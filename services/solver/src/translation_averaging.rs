@@ -162,19 +162,25 @@ fn weighted_positions(
     // x_k = (r_k + sum w x_a) / D_k.
     let mut point_diag = vec![0.0; pts];
     let mut point_rhs = vec![Vector3::zeros(); pts];
+    // A point's links as (camera, weight, weighted target), gathered once: the pairwise
+    // update below reads them L^2 times per point. `h` is column-major m x m.
+    let mut links: Vec<(usize, f64, Vector3<f64>)> = Vec::new();
+    let hs = h.as_mut_slice();
     for k in 0..pts {
-        let links = by_point.of(k);
-        let dk: f64 = links.iter().map(|&n| weights[n]).sum();
-        let rk: Vector3<f64> = links.iter().map(|&n| target(n)).sum();
+        links.clear();
+        links.extend(by_point.of(k).iter().map(|&n| {
+            let (a, _) = endpoints_of(&constraints[n], cams);
+            (a, weights[n], target(n))
+        }));
+        let dk: f64 = links.iter().map(|l| l.1).sum();
+        let rk: Vector3<f64> = links.iter().map(|l| l.2).sum();
         point_diag[k] = dk;
         point_rhs[k] = rk;
-        for &n in links {
-            let (a, _) = endpoints_of(&constraints[n], cams);
+        for &(a, wa, ta) in &links {
             if a == 0 {
                 continue;
             }
-            let (wa, ta) = (weights[n], target(n));
-            h[(a - 1, a - 1)] += wa;
+            hs[(a - 1) * (m + 1)] += wa;
             for d in 0..3 {
                 rhs[(a - 1, d)] -= ta[d];
             }
@@ -184,10 +190,9 @@ fn weighted_positions(
             for d in 0..3 {
                 rhs[(a - 1, d)] += wa * rk[d] / dk;
             }
-            for &nb in links {
-                let (b, _) = endpoints_of(&constraints[nb], cams);
+            for &(b, wb, _) in &links {
                 if b != 0 {
-                    h[(a - 1, b - 1)] -= wa * weights[nb] / dk;
+                    hs[(a - 1) + (b - 1) * m] -= wa * wb / dk;
                 }
             }
         }
