@@ -32,7 +32,7 @@ impl PointBlock {
         }
         let after_previous = hint == 0 || c.get(hint - 1).is_some_and(|(i, _)| *i < index);
         let before_next = c.get(hint).is_none_or(|(i, _)| *i > index);
-        let p = if hint <= c.len() && after_previous && before_next {
+        let p = if after_previous && before_next {
             Err(hint)
         } else {
             c.binary_search_by_key(&index, |(i, _)| *i)
