@@ -6,10 +6,16 @@
 //!
 //! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
 //! REFINE_EDGES, LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
-//! MIN_TRACK_VIEWS. Output: EDGES (first edges' errors; EDGES=all every edge),
-//! PER_KEYFRAME (each posed keyframe's error and its mean angle to the two-view directions
-//! of its edges), with TAIL as well one line per window comparing its last five keyframes
-//! (the next window's overlap) with the rest.
+//! MIN_TRACK_VIEWS, REFINE_INTRINSICS. Input knobs (what the data contributes): FOCAL_SCALE
+//! (calibrated focal times this), REVERSE (keyframes in reverse order: does an effect
+//! follow the solver's order or the scene's?), MAX_SPAN (tracks cut into pieces of that many
+//! keyframes), MAX_Y / MAX_DX (only observations above that row / within that many pixels
+//! of the principal point's column), SKIP_FIRST. Output: EDGES (first edges' errors;
+//! EDGES=all every edge), PER_KEYFRAME (each posed keyframe's error and its mean angle to
+//! the two-view directions of its edges), with TAIL as well one line per window comparing
+//! its last five keyframes (the next window's overlap) with the rest; SCALE (aligned over
+//! true path length and chord of each half of the window and of its last five keyframes:
+//! a scale that changes along the window).
 
 use egoslam_geometry::{absolute_trajectory_error, PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
@@ -55,6 +61,9 @@ fn main() -> anyhow::Result<()> {
     if let Some(v) = env("REFINE_ITERS") {
         options.translation.refine_iterations = v as usize;
     }
+    if let Some(v) = env("REFINE_INTRINSICS") {
+        options.bundle_adjustment.refine_intrinsics = v != 0.0;
+    }
     if let Some(v) = env("MIN_TRACK_VIEWS") {
         options.min_track_views = v as usize;
     }
@@ -68,17 +77,37 @@ fn main() -> anyhow::Result<()> {
         if std::env::var_os("SKIP_FIRST").is_some() {
             kfs.remove(0);
         }
+        if std::env::var_os("REVERSE").is_some() {
+            kfs.reverse();
+        }
         let i = kfs[0].intrinsics.clone().unwrap_or_default();
-        let camera = PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5])?;
+        let fs = env("FOCAL_SCALE").unwrap_or(1.0);
+        let camera = PinholeRadtan::new(
+            i.width,
+            i.height,
+            [i.fx * fs, i.fy * fs, i.cx, i.cy],
+            [0.0; 5],
+        )?;
+        let span = env("MAX_SPAN").map(|v| v as u64);
         let obs: Vec<KeyframeObservations> = kfs
             .iter()
-            .map(|k| KeyframeObservations {
+            .enumerate()
+            .map(|(n, k)| KeyframeObservations {
                 id: k.keyframe_id,
                 timestamp: k.timestamp_s,
                 tracks: k
                     .tracks
                     .iter()
-                    .map(|t| (t.track_id, Point2::new(f64::from(t.x), f64::from(t.y))))
+                    .filter(|t| env("MAX_Y").is_none_or(|m| f64::from(t.y) < m))
+                    .filter(|t| env("MAX_DX").is_none_or(|m| (f64::from(t.x) - i.cx).abs() < m))
+                    .map(|t| {
+                        // MAX_SPAN: cut each track into pieces of that many keyframes
+                        // (staggered by track id), to see what long tracks contribute.
+                        let id = span.map_or(t.track_id, |s| {
+                            t.track_id * 1000 + (n as u64 + t.track_id % s) / s
+                        });
+                        (id, Point2::new(f64::from(t.x), f64::from(t.y)))
+                    })
                     .collect(),
             })
             .collect();
@@ -230,6 +259,41 @@ fn main() -> anyhow::Result<()> {
                 cuts.sort_unstable();
                 let median_cut = cuts.get(cuts.len() / 2).copied().unwrap_or(0);
                 println!("TAIL {} interior_d {med:.1} tail_d {tmean:.1} ratio {:.2} interior_err {ie:.4} tail_err {te:.4} err_ratio {:.2} tail_cut {tail_cut} median_cut {median_cut}", file.display(), tmean / med, te / ie.max(1e-9));
+            }
+        }
+        if let (Some(_), Ok(r)) = (std::env::var_os("SCALE"), &ate) {
+            // Scale along the window: aligned path length over true path length, per half.
+            let pairs: Vec<_> = est
+                .iter()
+                .filter_map(|e| {
+                    let g = gt.poses.iter().min_by(|a, b| {
+                        (a.timestamp - e.timestamp)
+                            .abs()
+                            .total_cmp(&(b.timestamp - e.timestamp).abs())
+                    })?;
+                    Some((r.alignment.apply(&e.position), g.position))
+                })
+                .collect();
+            let ratio = |range: std::ops::Range<usize>| {
+                let (mut a, mut b) = (0.0, 0.0);
+                for k in range.start + 1..range.end {
+                    a += (pairs[k].0 - pairs[k - 1].0).norm();
+                    b += (pairs[k].1 - pairs[k - 1].1).norm();
+                }
+                let (s, e) = (range.start, range.end - 1);
+                let chord = (pairs[e].0 - pairs[s].0).norm()
+                    / f64::max((pairs[e].1 - pairs[s].1).norm(), 1e-12);
+                format!("{:.4} (chord {chord:.4})", a / f64::max(b, 1e-12))
+            };
+            let n = pairs.len();
+            if n > 4 {
+                println!(
+                    "SCALE {} first {} second {} tail5 {}",
+                    file.display(),
+                    ratio(0..n / 2 + 1),
+                    ratio(n / 2..n),
+                    ratio(n.saturating_sub(5)..n)
+                );
             }
         }
         match ate {
