@@ -55,6 +55,17 @@ pub struct SchurSystem {
     points: Vec<PointBlock>,
 }
 
+/// The `x_b` end of a residual given to [`SchurSystem::add_difference`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DifferenceEnd {
+    /// Held fixed (no parameters).
+    Fixed,
+    /// Three reduced parameters starting at this index.
+    Reduced(usize),
+    /// This point.
+    Point(usize),
+}
+
 /// The step for reduced parameters and for each point.
 #[derive(Debug, Clone)]
 pub struct SchurStep {
@@ -103,6 +114,71 @@ impl SchurSystem {
                 let p = block.slot(ia, hint);
                 block.coupling[p].1 += jpt * ja * w;
                 hint = p + 1;
+            }
+        }
+    }
+
+    /// Adds a residual that depends on `x_b - x_a` only, two 3-vectors (translation
+    /// averaging's direction constraints): Jacobian `j` (symmetric) wrt `x_b`, `-j` wrt
+    /// `x_a`. Every block is then plus or minus the one `H = w j j`, so it is formed once
+    /// instead of per pair of columns as [`SchurSystem::add`] would (that was most of the
+    /// direction refinement's assembly). `a` is the first reduced index of `x_a`, `None`
+    /// when it is held fixed; likewise `b`, or a point.
+    pub fn add_difference(
+        &mut self,
+        a: Option<usize>,
+        b: DifferenceEnd,
+        j: &Matrix3<f64>,
+        r: &Vector3<f64>,
+        w: f64,
+    ) {
+        let h = j * j * w;
+        let gb = j * r * w;
+        if let Some(a) = a {
+            self.add_diagonal_block(a, &h);
+            for d in 0..3 {
+                self.g[a + d] -= gb[d];
+            }
+        }
+        match b {
+            DifferenceEnd::Fixed => {}
+            DifferenceEnd::Reduced(b) => {
+                self.add_diagonal_block(b, &h);
+                for d in 0..3 {
+                    self.g[b + d] += gb[d];
+                }
+                if let Some(a) = a {
+                    // Lower triangle: the block at (max, min) of the two, minus H (which is
+                    // symmetric, so its transpose is itself).
+                    let (row, col) = if b > a { (b, a) } else { (a, b) };
+                    for c in 0..3 {
+                        for r in 0..3 {
+                            self.h[(row + r, col + c)] -= h[(r, c)];
+                        }
+                    }
+                }
+            }
+            DifferenceEnd::Point(k) => {
+                let block = &mut self.points[k];
+                block.v += h;
+                block.g += gb;
+                if let Some(a) = a {
+                    let mut hint = 0;
+                    for d in 0..3 {
+                        let p = block.slot(a + d, hint);
+                        block.coupling[p].1 -= h.column(d);
+                        hint = p + 1;
+                    }
+                }
+            }
+        }
+    }
+
+    /// `h` into the lower triangle of the diagonal block starting at `at`.
+    fn add_diagonal_block(&mut self, at: usize, h: &Matrix3<f64>) {
+        for c in 0..3 {
+            for r in c..3 {
+                self.h[(at + r, at + c)] += h[(r, c)];
             }
         }
     }
@@ -257,5 +333,55 @@ mod tests {
                 assert!((step.points[k][d] - dense[2 + 3 * k + d]).abs() < 1e-9);
             }
         }
+    }
+
+    #[test]
+    fn add_difference_matches_the_general_accumulation() {
+        // Cameras 1 and 2 reduced (indices 0..6), camera 0 fixed, one point: every kind of
+        // end, with a symmetric Jacobian as translation averaging's direction residual has.
+        let mut seed = 11u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
+        };
+        let (mut fast, mut general) = (SchurSystem::new(6, 1), SchurSystem::new(6, 1));
+        let ends = [
+            (Some(0), DifferenceEnd::Reduced(3)),
+            (Some(3), DifferenceEnd::Reduced(0)),
+            (None, DifferenceEnd::Reduced(0)),
+            (Some(3), DifferenceEnd::Fixed),
+            (Some(0), DifferenceEnd::Point(0)),
+            (Some(3), DifferenceEnd::Point(0)),
+            (None, DifferenceEnd::Point(0)),
+        ];
+        for (a, b) in ends {
+            let m = Matrix3::from_fn(|_, _| next());
+            let j = m + m.transpose() + Matrix3::identity() * 2.0;
+            let r = Vector3::new(next(), next(), next());
+            let w = 1.0 + next();
+            fast.add_difference(a, b, &j, &r, w);
+            let (mut idx, mut cols) = (Vec::new(), Vec::new());
+            if let Some(a) = a {
+                idx.extend(a..a + 3);
+                cols.extend((0..3).map(|d| -j.column(d).into_owned()));
+            }
+            if let DifferenceEnd::Reduced(b) = b {
+                idx.extend(b..b + 3);
+                cols.extend((0..3).map(|d| j.column(d).into_owned()));
+            }
+            let point = match b {
+                DifferenceEnd::Point(k) => Some((k, &j)),
+                _ => None,
+            };
+            general.add(&idx, &cols, point, &r, w);
+        }
+        let (x, y) = (
+            fast.solve(0.1).expect("solvable"),
+            general.solve(0.1).expect("solvable"),
+        );
+        assert!((x.reduced - y.reduced).norm() < 1e-12);
+        assert!((x.points[0] - y.points[0]).norm() < 1e-12);
     }
 }

@@ -14,7 +14,7 @@
 //! no longer degenerate, because the points off that line fix the relative scales.
 
 use crate::huber;
-use crate::schur::SchurSystem;
+use crate::schur::{DifferenceEnd, SchurSystem};
 use nalgebra::{DMatrix, Matrix3, Vector3};
 
 /// What a direction constrains: `end - start` is parallel to `direction` (world frame).
@@ -294,28 +294,18 @@ fn refine(
     let mut current = cost(x);
     for _ in 0..options.refine_iterations {
         let mut sys = SchurSystem::new(3 * (cams - 1), pts);
-        let (mut idx, mut cols): (Vec<usize>, Vec<Vector3<f64>>) =
-            (Vec::with_capacity(6), Vec::with_capacity(6));
         for c in constraints {
             let (a, b) = endpoints_of(c, cams);
             let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
             let w = c.weight * huber::weight(r.norm(), options.huber);
-            idx.clear();
-            cols.clear();
-            if a != 0 {
-                idx.extend((0..3).map(|d| 3 * (a - 1) + d));
-                cols.extend((0..3).map(|d| -jb.column(d).into_owned()));
-            }
-            let point = if b < cams {
-                if b != 0 {
-                    idx.extend((0..3).map(|d| 3 * (b - 1) + d));
-                    cols.extend((0..3).map(|d| jb.column(d).into_owned()));
-                }
-                None
-            } else {
-                Some((b - cams, &jb))
+            // Camera 0 is the fixed origin; the others' centres are the reduced parameters.
+            let start = (a != 0).then(|| 3 * (a - 1));
+            let end = match b {
+                0 => DifferenceEnd::Fixed,
+                b if b < cams => DifferenceEnd::Reduced(3 * (b - 1)),
+                b => DifferenceEnd::Point(b - cams),
             };
-            sys.add(&idx, &cols, point, &r, w);
+            sys.add_difference(start, end, &jb, &r, w);
         }
         let Some(step) = sys.solve(lambda) else {
             lambda *= 10.0;
