@@ -288,6 +288,16 @@ pub(crate) fn solve_finite(
 mod tests {
     use super::*;
 
+    /// Deterministic values in [-0.5, 0.5) (a linear congruential generator).
+    fn pseudo_random(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
+        }
+    }
+
     #[test]
     fn matches_a_dense_solve() {
         // Two reduced parameters, two points, a few random-ish rows.
@@ -295,13 +305,7 @@ mod tests {
         let mut dense_h = DMatrix::<f64>::zeros(8, 8);
         let mut dense_g = DVector::<f64>::zeros(8);
         // Six rows per point (deterministic pseudo-random), so the full system has rank 8.
-        let mut seed = 7u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
-        };
+        let mut next = pseudo_random(7);
         let rows: Vec<(usize, [f64; 2], [f64; 3], f64)> = (0..12)
             .map(|n| (n / 6, [next(), next()], [next(), next(), next()], next()))
             .collect();
@@ -339,13 +343,7 @@ mod tests {
     fn add_difference_matches_the_general_accumulation() {
         // Cameras 1 and 2 reduced (indices 0..6), camera 0 fixed, one point: every kind of
         // end, with a symmetric Jacobian as translation averaging's direction residual has.
-        let mut seed = 11u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((seed >> 33) as f64 / (1u64 << 31) as f64) - 0.5
-        };
+        let mut next = pseudo_random(11);
         let (mut fast, mut general) = (SchurSystem::new(6, 1), SchurSystem::new(6, 1));
         let ends = [
             (Some(0), DifferenceEnd::Reduced(3)),
