@@ -159,7 +159,8 @@ fn weighted_positions(
         }
     }
     // Each point enters through its constraints x_k - x_a = s v, and is eliminated:
-    // x_k = (r_k + sum w x_a) / D_k.
+    // x_k = (r_k + sum w x_a) / D_k. `h`'s upper triangle is left incomplete: the Cholesky
+    // below reads the lower one only.
     let mut point_diag = vec![0.0; pts];
     let mut point_rhs = vec![Vector3::zeros(); pts];
     // A point's links as (camera, weight, weighted target), gathered once: the pairwise
@@ -190,8 +191,9 @@ fn weighted_positions(
             for d in 0..3 {
                 rhs[(a - 1, d)] += wa * rk[d] / dk;
             }
+            // Lower triangle only (b <= a): nalgebra's Cholesky reads nothing else.
             for &(b, wb, _) in &links {
-                if b != 0 {
+                if b != 0 && b <= a {
                     hs[(a - 1) + (b - 1) * m] -= wa * wb / dk;
                 }
             }
