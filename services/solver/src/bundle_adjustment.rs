@@ -126,6 +126,15 @@ impl NormalEquations {
         }
     }
 
+    /// Ready for the next iteration's accumulation (`SchurSystem::reset`; the sparse
+    /// system is rebuilt).
+    fn reset(&mut self, reduced: usize, points: usize) {
+        match self {
+            Self::Dense(s) => s.reset(),
+            Self::Sparse(s) => *s = SparseSchurSystem::new(reduced, points),
+        }
+    }
+
     fn add(
         &mut self,
         idx: &[usize],
@@ -219,10 +228,13 @@ fn levenberg_marquardt(
     let mut lambda = 1e-4;
     let mut symbolic = SymbolicCache::default();
     let mut current = cost(camera, st, obs, active, options.huber_px);
+    let mut sys = NormalEquations::new(reduced, globals, st.points.len());
+    let mut idx = Vec::with_capacity(8);
+    let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
     for iteration in 0..options.max_iterations {
-        let mut sys = NormalEquations::new(reduced, globals, st.points.len());
-        let mut idx = Vec::with_capacity(8);
-        let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
+        if iteration > 0 {
+            sys.reset(reduced, st.points.len());
+        }
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
             let pose = &st.poses[o.camera];
             let pc = pose.to_camera(&st.points[o.point]);

@@ -83,6 +83,22 @@ impl SchurSystem {
         }
     }
 
+    /// Zeroes every sum but keeps each point's list of couplings, so that accumulating
+    /// the same structure again (the next Levenberg-Marquardt iteration) finds each
+    /// coupling where it was and allocates nothing. A coupling the new accumulation does
+    /// not touch stays zero, which changes no result.
+    pub fn reset(&mut self) {
+        self.h.fill(0.0);
+        self.g.fill(0.0);
+        for block in &mut self.points {
+            block.v = Matrix3::zeros();
+            block.g = Vector3::zeros();
+            for (_, w) in &mut block.coupling {
+                *w = Vector3::zeros();
+            }
+        }
+    }
+
     /// Adds one residual block of `M` rows: Jacobian columns `jr` on the reduced parameters
     /// `idx` (one column per index), `jp` (M x 3) on `point` if any, residual `r`, scalar
     /// weight `w` (robust loss). Fixed-size and allocation-free: it runs once per

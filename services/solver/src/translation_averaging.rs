@@ -294,8 +294,11 @@ fn refine(
     let initial_spread = spread(x);
     let mut lambda = 1e-3;
     let mut current = cost(x);
-    for _ in 0..options.refine_iterations {
-        let mut sys = SchurSystem::new(3 * (cams - 1), pts);
+    let mut sys = SchurSystem::new(3 * (cams - 1), pts);
+    for iteration in 0..options.refine_iterations {
+        if iteration > 0 {
+            sys.reset();
+        }
         for c in constraints {
             let (a, b) = endpoints_of(c, cams);
             let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
