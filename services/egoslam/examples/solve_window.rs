@@ -7,7 +7,7 @@
 //! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
 //! REFINE_EDGES, LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
 //! MIN_TRACK_VIEWS, REFINE_INTRINSICS. Input knobs (what the data contributes): FOCAL_SCALE
-//! (calibrated focal times this), REVERSE (keyframes in reverse order: does an effect
+//! (calibrated focal times this), FY_SCALE, CX_SHIFT, CY_SHIFT (pixels), REVERSE (keyframes in reverse order: does an effect
 //! follow the solver's order or the scene's?), MAX_SPAN (tracks cut into pieces of that many
 //! keyframes), MAX_Y / MAX_DX (only observations above that row / within that many pixels
 //! of the principal point's column), SKIP_FIRST. Output: EDGES (first edges' errors;
@@ -85,7 +85,12 @@ fn main() -> anyhow::Result<()> {
         let camera = PinholeRadtan::new(
             i.width,
             i.height,
-            [i.fx * fs, i.fy * fs, i.cx, i.cy],
+            [
+                i.fx * fs,
+                i.fy * fs * env("FY_SCALE").unwrap_or(1.0),
+                i.cx + env("CX_SHIFT").unwrap_or(0.0),
+                i.cy + env("CY_SHIFT").unwrap_or(0.0),
+            ],
             [0.0; 5],
         )?;
         let span = env("MAX_SPAN").map(|v| v as u64);
