@@ -6,16 +6,19 @@
 //!
 //! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
 //! REFINE_EDGES, LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
-//! MIN_TRACK_VIEWS, REFINE_INTRINSICS. Input knobs (what the data contributes): FOCAL_SCALE
-//! (calibrated focal times this), FY_SCALE, CX_SHIFT, CY_SHIFT (pixels), REVERSE (keyframes in reverse order: does an effect
-//! follow the solver's order or the scene's?), MAX_SPAN (tracks cut into pieces of that many
-//! keyframes), MAX_Y / MAX_DX (only observations above that row / within that many pixels
-//! of the principal point's column), SKIP_FIRST. Output: EDGES (first edges' errors;
-//! EDGES=all every edge), PER_KEYFRAME (each posed keyframe's error and its mean angle to
-//! the two-view directions of its edges), with TAIL as well one line per window comparing
-//! its last five keyframes (the next window's overlap) with the rest; SCALE (aligned over
-//! true path length and chord of each half of the window and of its last five keyframes:
-//! a scale that changes along the window).
+//! MIN_TRACK_VIEWS, REFINE_INTRINSICS.
+//!
+//! Input knobs (what the data contributes): FOCAL_SCALE (calibrated focal times this),
+//! FY_SCALE, CX_SHIFT, CY_SHIFT (pixels), REVERSE (keyframes in reverse order: does an
+//! effect follow the solver's order or the scene's?), MAX_SPAN (tracks cut into pieces of
+//! that many keyframes), MAX_Y / MAX_DX (only observations above that row / within that
+//! many pixels of the principal point's column), SKIP_FIRST.
+//!
+//! Output: EDGES (first edges' errors; EDGES=all every edge), PER_KEYFRAME (each posed
+//! keyframe's error and its mean angle to the two-view directions of its edges), with TAIL
+//! as well one line per window comparing its last five keyframes (the next window's
+//! overlap) with the rest; SCALE (aligned over true path length and chord of each half of
+//! the window and of its last five keyframes: a scale that changes along the window).
 
 use egoslam_geometry::{absolute_trajectory_error, PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
