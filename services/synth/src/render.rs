@@ -3,6 +3,7 @@
 //! exposure drift and sensor noise; depth along the optical axis.
 
 use crate::scene::{Plane, Scene};
+use crate::texture::{fast_floor, SampleCache};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use nalgebra::Vector3;
 
@@ -89,6 +90,39 @@ impl<'a> PlaneInView<'a> {
         }
     }
 
+    /// The pixel box (x0, x1, y0, y1) outside which no ray can meet the rectangle, when all
+    /// four corners are in front of the camera (a convex quad projects inside the box of
+    /// its corners' projections; one pixel of margin for rounding); `None` otherwise, and
+    /// the plane is tested at every pixel. Skipping a plane outside its box changes no
+    /// pixel, and most of a room's box faces cover a small part of the image.
+    fn image_box(&self, pose: &StampedPose, camera: &PinholeRadtan) -> Option<[f64; 4]> {
+        let p = self.plane;
+        let rt = pose.rotation.inverse();
+        let mut b = [
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        for (a, c) in [
+            (0.0, 0.0),
+            (p.width, 0.0),
+            (0.0, p.height),
+            (p.width, p.height),
+        ] {
+            let corner = rt * (p.origin + p.u_axis * a + p.v_axis * c - pose.position);
+            if corner.z <= 0.05 {
+                return None;
+            }
+            let (x, y) = (
+                camera.fx * corner.x / corner.z + camera.cx,
+                camera.fy * corner.y / corner.z + camera.cy,
+            );
+            b = [b[0].min(x), b[1].max(x), b[2].min(y), b[3].max(y)];
+        }
+        Some([b[0] - 1.0, b[1] + 1.0, b[2] - 1.0, b[3] + 1.0])
+    }
+
     /// `(t, u, v, n . d)` of the hit, if the ray meets the rectangle in front (> 1 cm).
     fn intersect(&self, d: &Vector3<f64>) -> Option<(f64, f64, f64, f64)> {
         let n_d = self.n_c.dot(d);
@@ -108,6 +142,17 @@ impl<'a> PlaneInView<'a> {
     }
 }
 
+/// Rows per band of work handed to a rendering thread.
+const BAND_ROWS: usize = 8;
+
+/// One band of rows of the output buffers.
+struct Band<'a> {
+    first_row: usize,
+    radiance: &'a mut [f64],
+    depth: &'a mut [f32],
+    grey: &'a mut [u8],
+}
+
 /// Renders `poses` (one, or the sub-frame poses of a blurred frame) averaged, for frame
 /// number `index` (noise and exposure depend on it).
 pub fn render_frame(
@@ -120,68 +165,118 @@ pub fn render_frame(
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut radiance = vec![0f64; w * h];
     let mut depth = vec![0f32; w * h];
+    let mut grey = vec![0u8; w * h];
     let threads = options.threads.clamp(1, 16);
-    let rows_per = h.div_ceil(threads);
     let centre = poses.len() / 2;
-    std::thread::scope(|s| {
-        for (chunk, (rad, dep)) in radiance
-            .chunks_mut(rows_per * w)
-            .zip(depth.chunks_mut(rows_per * w))
+    // Each (sub-frame) pose's planes, as seen from it.
+    let views: Vec<Vec<(PlaneInView, Option<[f64; 4]>)>> = poses
+        .iter()
+        .map(|pose| {
+            let r = pose.rotation.to_rotation_matrix();
+            scene
+                .facing(&pose.position, &(r * Vector3::z()))
+                .into_iter()
+                .map(|p| {
+                    let view = PlaneInView::new(p, pose);
+                    let image_box = view.image_box(pose, camera);
+                    (view, image_box)
+                })
+                .collect()
+        })
+        .collect();
+    let n = poses.len().max(1) as f64;
+    let gain =
+        options.exposure_scale * (1.0 + options.exposure_drift * (index as f64 * 0.02).sin());
+    // Bands of rows taken by whichever thread is free: a room's ceiling, walls and floor
+    // cost differently, and the PNG writer shares the cores, so fixed halves of the image
+    // left a core idle a third of the time.
+    let bands = std::sync::Mutex::new(
+        radiance
+            .chunks_mut(BAND_ROWS * w)
+            .zip(depth.chunks_mut(BAND_ROWS * w))
+            .zip(grey.chunks_mut(BAND_ROWS * w))
             .enumerate()
-        {
+            .map(|(b, ((radiance, depth), grey))| Band {
+                first_row: b * BAND_ROWS,
+                radiance,
+                depth,
+                grey,
+            }),
+    );
+    let next_band = || bands.lock().ok().and_then(|mut it| it.next());
+    std::thread::scope(|s| {
+        for _ in 0..threads {
+            let (views, next_band) = (&views, &next_band);
             s.spawn(move || {
-                let y0 = chunk * rows_per;
-                for (k, pose) in poses.iter().enumerate() {
-                    let r = pose.rotation.to_rotation_matrix();
-                    let planes: Vec<PlaneInView> = scene
-                        .facing(&pose.position, &(r * Vector3::z()))
-                        .into_iter()
-                        .map(|p| PlaneInView::new(p, pose))
-                        .collect();
-                    for (i, (value, z)) in rad.iter_mut().zip(dep.iter_mut()).enumerate() {
-                        let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
-                        let d = Vector3::new(
-                            (x - camera.cx) / camera.fx,
-                            (y - camera.cy) / camera.fy,
-                            1.0,
-                        );
-                        let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
-                        for p in &planes {
-                            if let Some((t, u, v, n_d)) = p.intersect(&d) {
-                                if best.is_none_or(|b| t < b.0) {
-                                    best = Some((t, u, v, n_d, p));
+                let mut cache = SampleCache::default();
+                while let Some(band) = next_band() {
+                    let y0 = band.first_row;
+                    for (k, planes) in views.iter().enumerate() {
+                        // The planes a row can meet, in scene order (ties resolve as before).
+                        let mut row_planes: Vec<(&PlaneInView, f64, f64)> = Vec::new();
+                        let mut row = usize::MAX;
+                        for (i, (value, z)) in band
+                            .radiance
+                            .iter_mut()
+                            .zip(band.depth.iter_mut())
+                            .enumerate()
+                        {
+                            let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
+                            if i / w != row {
+                                row = i / w;
+                                row_planes.clear();
+                                row_planes.extend(planes.iter().filter_map(|(p, b)| match b {
+                                    None => Some((p, f64::NEG_INFINITY, f64::INFINITY)),
+                                    Some([x0, x1, y0, y1]) => {
+                                        (y >= *y0 && y <= *y1).then_some((p, *x0, *x1))
+                                    }
+                                }));
+                            }
+                            let d = Vector3::new(
+                                (x - camera.cx) / camera.fx,
+                                (y - camera.cy) / camera.fy,
+                                1.0,
+                            );
+                            let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
+                            for &(p, x0, x1) in &row_planes {
+                                if x < x0 || x > x1 {
+                                    continue;
+                                }
+                                if let Some((t, u, v, n_d)) = p.intersect(&d) {
+                                    if best.is_none_or(|b| t < b.0) {
+                                        best = Some((t, u, v, n_d, p));
+                                    }
                                 }
                             }
+                            let Some((t, u, v, n_d, p)) = best else {
+                                *value += 0.5;
+                                continue;
+                            };
+                            // Metres per pixel on the plane: distance over focal, stretched
+                            // by the slant of the surface (|cos| = |n.d| / |d|).
+                            let norm = d.norm();
+                            let cos = (n_d.abs() / norm).max(0.15);
+                            let footprint = t * norm / (camera.fx * cos);
+                            *value += p.plane.texture.sample_cached(u, v, footprint, &mut cache);
+                            if k == centre {
+                                *z = t as f32; // d has z = 1: t is the z-depth
+                            }
                         }
-                        let Some((t, u, v, n_d, p)) = best else {
-                            *value += 0.5;
-                            continue;
-                        };
-                        // Metres per pixel on the plane: distance over focal, stretched by
-                        // the slant of the surface (|cos| = |n.d| / |d|).
-                        let norm = d.norm();
-                        let cos = (n_d.abs() / norm).max(0.15);
-                        let footprint = t * norm / (camera.fx * cos);
-                        *value += p.plane.texture.sample(u, v, footprint);
-                        if k == centre {
-                            *z = t as f32; // d has z = 1: t is the z-depth
-                        }
+                    }
+                    let first = y0 * w;
+                    for (i, (g, r)) in band.grey.iter_mut().zip(band.radiance.iter()).enumerate() {
+                        let v = 255.0 * gain * r / n
+                            + options.noise_sigma * gaussian(index, (first + i) as u64);
+                        // Rounded half away from zero as `f64::round`, without its library
+                        // call; the same for every value the clamp keeps.
+                        let floor = fast_floor(v);
+                        let rounded = if v - floor >= 0.5 { floor + 1.0 } else { floor };
+                        *g = rounded.clamp(0.0, 255.0) as u8;
                     }
                 }
             });
         }
     });
-    let n = poses.len().max(1) as f64;
-    let gain =
-        options.exposure_scale * (1.0 + options.exposure_drift * (index as f64 * 0.02).sin());
-    let grey = radiance
-        .iter()
-        .enumerate()
-        .map(|(i, r)| {
-            let v = 255.0 * gain * r / n + options.noise_sigma * gaussian(index, i as u64);
-            v.round().clamp(0.0, 255.0) as u8
-        })
-        .collect();
     Frame {
         width: camera.width,
         height: camera.height,
