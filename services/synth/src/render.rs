@@ -184,6 +184,10 @@ pub fn render_frame(
                 .collect()
         })
         .collect();
+    // Each column's ray slope, once per frame instead of per pixel (the same division).
+    let ray_x: Vec<f64> = (0..w)
+        .map(|c| (c as f64 + 0.5 - camera.cx) / camera.fx)
+        .collect();
     let n = poses.len().max(1) as f64;
     let gain =
         options.exposure_scale * (1.0 + options.exposure_drift * (index as f64 * 0.02).sin());
@@ -206,7 +210,7 @@ pub fn render_frame(
     let next_band = || bands.lock().ok().and_then(|mut it| it.next());
     std::thread::scope(|s| {
         for _ in 0..threads {
-            let (views, next_band) = (&views, &next_band);
+            let (views, next_band, ray_x) = (&views, &next_band, &ray_x);
             s.spawn(move || {
                 let mut cache = SampleCache::default();
                 while let Some(band) = next_band() {
@@ -215,6 +219,7 @@ pub fn render_frame(
                         // The planes a row can meet, in scene order (ties resolve as before).
                         let mut row_planes: Vec<(&PlaneInView, f64, f64)> = Vec::new();
                         let mut row = usize::MAX;
+                        let mut ray_y = 0.0;
                         for (i, (value, z)) in band
                             .radiance
                             .iter_mut()
@@ -224,6 +229,7 @@ pub fn render_frame(
                             let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
                             if i / w != row {
                                 row = i / w;
+                                ray_y = (y - camera.cy) / camera.fy;
                                 row_planes.clear();
                                 row_planes.extend(planes.iter().filter_map(|(p, b)| match b {
                                     None => Some((p, f64::NEG_INFINITY, f64::INFINITY)),
@@ -232,11 +238,7 @@ pub fn render_frame(
                                     }
                                 }));
                             }
-                            let d = Vector3::new(
-                                (x - camera.cx) / camera.fx,
-                                (y - camera.cy) / camera.fy,
-                                1.0,
-                            );
+                            let d = Vector3::new(ray_x[i % w], ray_y, 1.0);
                             let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
                             for &(p, x0, x1) in &row_planes {
                                 if x < x0 || x > x1 {

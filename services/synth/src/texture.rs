@@ -90,7 +90,11 @@ fn value_noise(u: f64, v: f64, seed: u64, slot: &mut Option<CachedCell<4>>) -> f
 /// How much of a feature of `wavelength` survives at `footprint` (both metres): 1 when it
 /// spans many pixels, 0 below two pixels (Nyquist), smooth in between.
 fn keep(wavelength: f64, footprint: f64) -> f64 {
-    let r = wavelength / (2.0 * footprint.max(1e-9));
+    keep_ratio(wavelength / (2.0 * footprint.max(1e-9)))
+}
+
+/// [`keep`] from the ratio of wavelength to twice the footprint.
+fn keep_ratio(r: f64) -> f64 {
     ((r - 1.0) / 1.0).clamp(0.0, 1.0)
 }
 
@@ -114,14 +118,19 @@ impl Texture {
     /// [`Texture::sample`] with the lattice values of the previous sample at hand.
     pub fn sample_cached(&self, u: f64, v: f64, footprint: f64, cache: &mut SampleCache) -> f64 {
         // Noise: 5 octaves, each half the wavelength and amplitude of the previous.
+        // Octave k's wavelength is scale_m / 2^k, so its lattice coordinates are u / scale_m
+        // times 2^k and its `keep` ratio the coarsest one's over 2^k: scaling by a power of
+        // two is exact, so one division each gives the values five gave.
+        let (lu, lv) = (u / self.scale_m, v / self.scale_m);
+        let mut ratio = self.scale_m / (2.0 * footprint.max(1e-9));
         let (mut sum, mut norm) = (0.0, 0.0);
-        let (mut wavelength, mut amplitude) = (self.scale_m, 0.5);
+        let (mut lattice, mut amplitude) = (1.0, 0.5);
         for (octave, slot) in cache.octaves.iter_mut().enumerate() {
-            let k = keep(wavelength, footprint);
+            let k = keep_ratio(ratio);
             let n = if k > 0.0 {
                 value_noise(
-                    u / wavelength,
-                    v / wavelength,
+                    lu * lattice,
+                    lv * lattice,
                     self.seed.wrapping_add(octave as u64),
                     slot,
                 )
@@ -130,14 +139,15 @@ impl Texture {
             };
             sum += amplitude * (k * n + (1.0 - k) * 0.5);
             norm += amplitude;
-            wavelength *= 0.5;
+            ratio *= 0.5;
+            lattice *= 2.0;
             amplitude *= 0.5;
         }
         let noise = sum / norm;
         // Posters: in each cell of the poster lattice, with probability 0.6, a rectangle
         // of random size and grey level, edges softened over one footprint.
         let cell = self.scale_m;
-        let (cx, cy) = (fast_floor(u / cell), fast_floor(v / cell));
+        let (cx, cy) = (fast_floor(lu), fast_floor(lv));
         let (ix, iy) = (cx as i64, cy as i64);
         let salt = self.seed.wrapping_mul(31).wrapping_add(7);
         let mut value = self.base + 0.45 * (noise - 0.5);
@@ -149,7 +159,6 @@ impl Texture {
             let h = 0.25 + 0.5 * poster[2];
             let x0 = cx + (1.0 - w) * poster[3];
             let y0 = cy + (1.0 - h) * poster[4];
-            let (lu, lv) = (u / cell, v / cell);
             let soft = (footprint / cell).max(1e-6);
             let inside_u = ((lu - x0).min(x0 + w - lu) / soft).clamp(-0.5, 0.5) + 0.5;
             let inside_v = ((lv - y0).min(y0 + h - lv) / soft).clamp(-0.5, 0.5) + 0.5;
