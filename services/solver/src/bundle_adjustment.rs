@@ -9,8 +9,8 @@
 //! removed, reported, and the problem is solved again without them.
 
 use crate::huber;
-use crate::schur::{SchurStep, SchurSystem};
-use crate::sparse_schur::{SparseSchurSystem, SymbolicCache};
+use crate::normal_equations::NormalEquations;
+use crate::sparse_schur::SymbolicCache;
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
 use nalgebra::{Matrix2x3, Point2, Rotation3, Vector2, Vector3};
@@ -105,56 +105,6 @@ struct State {
     points: Vec<Vector3<f64>>,
     focal_scale: f64,
     radial_k: f64,
-}
-
-/// Cameras above which the reduced system is kept sparse (a window's 20 cameras factor
-/// faster dense; the merger's hundreds of keyframes couple only through shared points).
-const SPARSE_ABOVE_CAMERAS: usize = 60;
-
-/// Dense or sparse normal equations, chosen by size.
-enum NormalEquations {
-    Dense(SchurSystem),
-    Sparse(SparseSchurSystem),
-}
-
-impl NormalEquations {
-    fn new(reduced: usize, globals: usize, points: usize) -> Self {
-        if globals == 0 && reduced > 6 * SPARSE_ABOVE_CAMERAS {
-            Self::Sparse(SparseSchurSystem::new(reduced, points))
-        } else {
-            Self::Dense(SchurSystem::new(reduced, points))
-        }
-    }
-
-    /// Ready for the next iteration's accumulation (`SchurSystem::reset`; the sparse
-    /// system is rebuilt).
-    fn reset(&mut self, reduced: usize, points: usize) {
-        match self {
-            Self::Dense(s) => s.reset(),
-            Self::Sparse(s) => *s = SparseSchurSystem::new(reduced, points),
-        }
-    }
-
-    fn add(
-        &mut self,
-        idx: &[usize],
-        jr: &[Vector2<f64>],
-        point: Option<(usize, &Matrix2x3<f64>)>,
-        r: &Vector2<f64>,
-        w: f64,
-    ) {
-        match self {
-            Self::Dense(s) => s.add(idx, jr, point, r, w),
-            Self::Sparse(s) => s.add(idx, jr, point, r, w),
-        }
-    }
-
-    fn solve(&self, lambda: f64, cache: &mut SymbolicCache) -> Option<SchurStep> {
-        match self {
-            Self::Dense(s) => s.solve(lambda),
-            Self::Sparse(s) => s.solve_cached(lambda, cache),
-        }
-    }
 }
 
 /// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
