@@ -134,6 +134,9 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
     rendered("synth_left_right", "left-right", 150, &[]);
     rendered("synth_egomotion", "egomotion", 150, &[]);
     rendered("synth_walker_300", "walker", 300, &[]);
+    // The same walk indoors between near walls, and outdoors with far facades and sky.
+    rendered("synth_corridor", "walker", 300, &["--scene", "corridor"]);
+    rendered("synth_street", "walker", 300, &["--scene", "street"]);
     // Long enough for stops and sharp turns to hand scale from window to window: the
     // chaining regressions a 300-frame walk does not show (docs/benchmarks.md, "Longer
     // rendered walks").

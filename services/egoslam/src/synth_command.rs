@@ -53,6 +53,10 @@ pub enum SceneKind {
     Planes,
     /// A 16 x 16 m room with a central block and boxes.
     Room,
+    /// A 2.2 m wide indoor corridor in a ring around an 8 x 8 m core.
+    Corridor,
+    /// An outdoor street around a 12 m high block: facades across, parked cars, sky.
+    Street,
 }
 
 #[derive(Args, Debug)]
@@ -162,6 +166,8 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     let scene = match scene_kind {
         SceneKind::Planes => Scene::paper_planes(args.seed),
         SceneKind::Room => Scene::room(args.seed),
+        SceneKind::Corridor => Scene::corridor(args.seed),
+        SceneKind::Street => Scene::street(args.seed),
     };
     let options = RenderOptions {
         noise_sigma: args.noise,

@@ -242,9 +242,118 @@ impl Scene {
     }
 }
 
+impl Scene {
+    /// A wall from `a` to `b` (on the floor, y = 1.6) rising `height` m, textured with
+    /// feature size `scale_m`; its front is either side (planes are two-sided).
+    fn add_wall(&mut self, seed: u64, a: (f64, f64), b: (f64, f64), height: f64, scale_m: f64) {
+        let n = self.planes.len() as u64;
+        self.planes.push(Plane::new(
+            Vector3::new(a.0, 1.6 - height, a.1),
+            Vector3::new(b.0 - a.0, 0.0, b.1 - a.1),
+            Vector3::new(0.0, height, 0.0),
+            Self::texture(seed, n, scale_m),
+        ));
+    }
+
+    /// A horizontal square of side `2 half` centred on the vertical axis at height `y`.
+    fn add_slab(&mut self, seed: u64, half: f64, y: f64, scale_m: f64) {
+        let n = self.planes.len() as u64;
+        self.planes.push(Plane::new(
+            Vector3::new(-half, y, -half),
+            Vector3::new(2.0 * half, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, 2.0 * half),
+            Self::texture(seed, n, scale_m),
+        ));
+    }
+
+    /// An indoor corridor: a 2.2 m wide, 2.6 m high ring around an 8 x 8 m core, the
+    /// walker's 10 m loop in it 1 m from the core and 1.2 m from the outer wall, with a
+    /// cabinet in each side's middle. Near walls on both sides and a ceiling: large,
+    /// fast flow during head scans, and the far end of each straight 12 m away.
+    pub fn corridor(seed: u64) -> Self {
+        let mut s = Scene::default();
+        let (h, outer) = (2.6, 6.2);
+        s.add_box(seed, 0.0, 0.0, 8.0, h);
+        let corners = [
+            (-outer, -outer),
+            (outer, -outer),
+            (outer, outer),
+            (-outer, outer),
+        ];
+        for k in 0..4 {
+            s.add_wall(seed, corners[k], corners[(k + 1) % 4], h, 0.5);
+        }
+        s.add_slab(seed, outer, 1.6, 0.4);
+        s.add_slab(seed, outer, 1.6 - h, 0.5);
+        for (x, z) in [(0.0, -5.9), (5.9, 0.0), (0.0, 5.9), (-5.9, 0.0)] {
+            s.add_box(seed, x, z, 0.6, 1.0);
+        }
+        s
+    }
+
+    /// An outdoor street: the walker's 10 m loop on the pavement 1 m around a 12 m high
+    /// 8 x 8 m block, facades of 8-16 m across the 7 m street, lamp posts, parked cars as
+    /// boxes, ground, and open sky above (nothing hit: flat grey, no corners). Depths from
+    /// 1 m to beyond 30 m down each street.
+    pub fn street(seed: u64) -> Self {
+        let mut s = Scene::default();
+        s.add_box(seed, 0.0, 0.0, 8.0, 12.0);
+        let far = 12.0;
+        let heights = [9.0, 16.0, 12.0, 8.0, 14.0, 11.0, 10.0, 15.0];
+        // Each side of the street across: two facades of 20 m, of different heights.
+        let corners = [(-far, -far), (far, -far), (far, far), (-far, far)];
+        for k in 0..4 {
+            let (a, b) = (corners[k], corners[(k + 1) % 4]);
+            let mid = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
+            s.add_wall(seed, a, mid, heights[2 * k], 1.0);
+            s.add_wall(seed, mid, b, heights[2 * k + 1], 1.0);
+        }
+        s.add_slab(seed, far + 8.0, 1.6, 0.6);
+        for (x, z) in [(-6.0, -2.0), (6.0, 2.5), (2.0, 6.0), (-2.5, -6.0)] {
+            s.add_box(seed, x, z, 0.2, 5.0); // lamp posts, 1 m from the path
+        }
+        for (x, z) in [(8.5, -3.0), (-8.5, 4.0), (3.5, 8.5), (-4.0, -8.5)] {
+            s.add_box(seed, x, z, 1.8, 1.5); // parked cars
+        }
+        s
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_walker_loop_fits_the_corridor_and_the_street() {
+        // The loop's corners and side midpoints (half side 5 m) keep clear of every surface,
+        // and the corridor is closed while the street is open to the sky.
+        let points: Vec<Vector3<f64>> = [
+            (-5.0, -5.0),
+            (0.0, -5.0),
+            (5.0, 0.0),
+            (5.0, 5.0),
+            (-5.0, 0.0),
+        ]
+        .into_iter()
+        .map(|(x, z)| Vector3::new(x, 0.0, z))
+        .collect();
+        for (scene, least) in [(Scene::corridor(1), 0.6), (Scene::street(1), 0.5)] {
+            for p in &points {
+                assert!(scene.clearance(p) >= least, "{p:?}: {}", scene.clearance(p));
+            }
+        }
+        let up = -Vector3::y();
+        assert!(
+            Scene::corridor(1).cast(&points[1], &up).is_some(),
+            "ceiling"
+        );
+        assert!(Scene::street(1).cast(&points[1], &up).is_none(), "sky");
+        // Looking down the street from a loop corner, the facades across are ~7 m away.
+        let (hit, _) = Scene::street(1)
+            .cast(&points[0], &Vector3::new(0.0, 0.0, -1.0))
+            .expect("facade");
+        assert!((hit.distance - 7.0).abs() < 1e-9, "{hit:?}");
+    }
 
     #[test]
     fn rays_hit_the_nearest_plane() {
