@@ -9,7 +9,7 @@ use egoslam_geometry::PinholeRadtan;
 use egoslam_synth::paths::aria_head_trajectory;
 use egoslam_synth::placement::place_in_free_space;
 use egoslam_synth::{
-    render_frame, CameraPath, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
+    render_frame, CameraPath, Photo, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
 };
 use opencv::core::{Mat, Vector, CV_16UC1};
 use opencv::prelude::*;
@@ -100,6 +100,39 @@ pub struct SynthArgs {
     pub seed: u64,
 }
 
+/// The photographs hung in the corridor and street scenes: frames of the TUM RGB-D
+/// benchmark (CC BY 4.0, services/synth/photos/LICENSE.txt), built into the binary.
+const PHOTOS: [(&str, &[u8]); 2] = [
+    (
+        "tum_fr1_rpy_frame000.jpg",
+        include_bytes!("../../synth/photos/tum_fr1_rpy_frame000.jpg"),
+    ),
+    (
+        "tum_fr1_rpy_frame059.jpg",
+        include_bytes!("../../synth/photos/tum_fr1_rpy_frame059.jpg"),
+    ),
+];
+
+/// Decodes [`PHOTOS`] (grey).
+fn photos() -> anyhow::Result<Vec<std::sync::Arc<Photo>>> {
+    PHOTOS
+        .iter()
+        .map(|(name, bytes)| {
+            let image = opencv::imgcodecs::imdecode(
+                &Vector::<u8>::from_slice(bytes),
+                opencv::imgcodecs::IMREAD_GRAYSCALE,
+            )
+            .with_context(|| format!("decoding the built-in photograph {name}"))?;
+            let (w, h) = (image.cols() as usize, image.rows() as usize);
+            let pixels = image.data_bytes()?.to_vec();
+            Ok(std::sync::Arc::new(
+                Photo::from_grey(w, h, &pixels)
+                    .with_context(|| format!("the built-in photograph {name}"))?,
+            ))
+        })
+        .collect()
+}
+
 fn write_png(path: &std::path::Path, mat: &Mat) -> anyhow::Result<()> {
     let name = path.to_str().context("non-UTF-8 output path")?;
     // Fast PNG compression (level 1): rendering 12,000 frames must not wait on zlib.
@@ -166,8 +199,8 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     let scene = match scene_kind {
         SceneKind::Planes => Scene::paper_planes(args.seed),
         SceneKind::Room => Scene::room(args.seed),
-        SceneKind::Corridor => Scene::corridor(args.seed),
-        SceneKind::Street => Scene::street(args.seed),
+        SceneKind::Corridor => Scene::corridor(args.seed, &photos()?),
+        SceneKind::Street => Scene::street(args.seed, &photos()?),
     };
     let options = RenderOptions {
         noise_sigma: args.noise,

@@ -5,11 +5,13 @@
 //! and depth. Pure computation: writing files is the `egoslam synth` command's job.
 
 pub mod paths;
+pub mod photo;
 pub mod placement;
 pub mod render;
 pub mod scene;
 pub mod texture;
 
 pub use paths::{CameraPath, PathError, RobustnessEvent, WalkerOptions};
+pub use photo::{Photo, PhotoError};
 pub use render::{render_frame, Frame, RenderOptions};
-pub use scene::{Plane, Scene};
+pub use scene::{Picture, Plane, Scene};

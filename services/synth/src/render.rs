@@ -259,7 +259,14 @@ pub fn render_frame(
                             let norm = d.norm();
                             let cos = (n_d.abs() / norm).max(0.15);
                             let footprint = t * norm / (camera.fx * cos);
-                            *value += p.plane.texture.sample_cached(u, v, footprint, &mut cache);
+                            let mut here =
+                                p.plane.texture.sample_cached(u, v, footprint, &mut cache);
+                            for picture in &p.plane.pictures {
+                                if let Some((coverage, bright)) = picture.sample(u, v, footprint) {
+                                    here = here * (1.0 - coverage) + bright * coverage;
+                                }
+                            }
+                            *value += here;
                             if k == centre {
                                 *z = t as f32; // d has z = 1: t is the z-depth
                             }

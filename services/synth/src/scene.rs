@@ -1,8 +1,39 @@
 //! Scenes: textured rectangles in a world frame with the camera convention (x right,
 //! y down, z forward; gravity +y, the eye at y = 0 and the floor at y = +1.6 m).
 
+use crate::photo::Photo;
 use crate::texture::Texture;
 use nalgebra::Vector3;
+use std::sync::Arc;
+
+/// A photograph hung on a plane: it covers the rectangle `[u0, u0 + width] x [v0, v0 +
+/// height]` of the plane's coordinates (metres), the photo's top row at `v0`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Picture {
+    pub photo: Arc<Photo>,
+    pub u0: f64,
+    pub v0: f64,
+    pub width: f64,
+    pub height: f64,
+}
+
+impl Picture {
+    /// How much of the picture a pixel at (u, v) with `footprint` metres sees, in [0, 1]
+    /// (its edges softened over one footprint, as the posters' are), and the picture's
+    /// brightness there; `None` when the pixel is off the picture.
+    pub fn sample(&self, u: f64, v: f64, footprint: f64) -> Option<(f64, f64)> {
+        let soft = footprint.max(1e-9);
+        let inside_u = ((u - self.u0).min(self.u0 + self.width - u) / soft).clamp(-0.5, 0.5) + 0.5;
+        let inside_v = ((v - self.v0).min(self.v0 + self.height - v) / soft).clamp(-0.5, 0.5) + 0.5;
+        let coverage = inside_u * inside_v;
+        if coverage <= 0.0 {
+            return None;
+        }
+        let (s, t) = ((u - self.u0) / self.width, (v - self.v0) / self.height);
+        let texels = footprint * self.photo.width() as f64 / self.width;
+        Some((coverage, self.photo.sample(s, t, texels)))
+    }
+}
 
 /// A textured rectangle: `origin + a u_axis + b v_axis` for a in [0, width], b in [0, height].
 #[derive(Debug, Clone, PartialEq)]
@@ -13,6 +44,8 @@ pub struct Plane {
     pub width: f64,
     pub height: f64,
     pub texture: Texture,
+    /// Photographs hung on it, drawn over the texture.
+    pub pictures: Vec<Picture>,
     pub(crate) normal: Vector3<f64>,
 }
 
@@ -45,6 +78,7 @@ impl Plane {
             width,
             height,
             texture,
+            pictures: Vec::new(),
             normal: u_axis.cross(&v_axis).normalize(),
         }
     }
@@ -255,6 +289,28 @@ impl Scene {
         ));
     }
 
+    /// Hangs `photos` in turn on the last plane added (a wall): pictures `size` m wide and
+    /// high whose tops are `top` m below the wall's top, one every `spacing` m from
+    /// `spacing / 2` along it.
+    fn hang_pictures(&mut self, photos: &[Arc<Photo>], size: (f64, f64), top: f64, spacing: f64) {
+        let Some(wall) = self.planes.last_mut() else {
+            return;
+        };
+        let mut u0 = spacing / 2.0 - size.0 / 2.0;
+        let mut next = wall.texture.seed as usize;
+        while !photos.is_empty() && u0 + size.0 <= wall.width {
+            wall.pictures.push(Picture {
+                photo: photos[next % photos.len()].clone(),
+                u0,
+                v0: top,
+                width: size.0,
+                height: size.1,
+            });
+            next += 1;
+            u0 += spacing;
+        }
+    }
+
     /// A horizontal square of side `2 half` centred on the vertical axis at height `y`.
     fn add_slab(&mut self, seed: u64, half: f64, y: f64, scale_m: f64) {
         let n = self.planes.len() as u64;
@@ -270,7 +326,9 @@ impl Scene {
     /// walker's 10 m loop in it 1 m from the core and 1.2 m from the outer wall, with a
     /// cabinet in each side's middle. Near walls on both sides and a ceiling: large,
     /// fast flow during head scans, and the far end of each straight 12 m away.
-    pub fn corridor(seed: u64) -> Self {
+    /// `photos` are hung as 1.2 x 0.9 m pictures at eye level along the outer walls, one
+    /// every 3 m (none when empty).
+    pub fn corridor(seed: u64, photos: &[Arc<Photo>]) -> Self {
         let mut s = Scene::default();
         let (h, outer) = (2.6, 6.2);
         s.add_box(seed, 0.0, 0.0, 8.0, h);
@@ -282,6 +340,7 @@ impl Scene {
         ];
         for k in 0..4 {
             s.add_wall(seed, corners[k], corners[(k + 1) % 4], h, 0.5);
+            s.hang_pictures(photos, (1.2, 0.9), 0.55, 3.0);
         }
         s.add_slab(seed, outer, 1.6, 0.4);
         s.add_slab(seed, outer, 1.6 - h, 0.5);
@@ -295,7 +354,9 @@ impl Scene {
     /// 8 x 8 m block, facades of 8-16 m across the 7 m street, lamp posts, parked cars as
     /// boxes, ground, and open sky above (nothing hit: flat grey, no corners). Depths from
     /// 1 m to beyond 30 m down each street.
-    pub fn street(seed: u64) -> Self {
+    /// `photos` are hung as 4 x 3 m billboards 2 m above the pavement on the facades across,
+    /// one every 10 m (none when empty).
+    pub fn street(seed: u64, photos: &[Arc<Photo>]) -> Self {
         let mut s = Scene::default();
         s.add_box(seed, 0.0, 0.0, 8.0, 12.0);
         let far = 12.0;
@@ -306,7 +367,9 @@ impl Scene {
             let (a, b) = (corners[k], corners[(k + 1) % 4]);
             let mid = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
             s.add_wall(seed, a, mid, heights[2 * k], 1.0);
+            s.hang_pictures(photos, (4.0, 3.0), heights[2 * k] - 5.0, 10.0);
             s.add_wall(seed, mid, b, heights[2 * k + 1], 1.0);
+            s.hang_pictures(photos, (4.0, 3.0), heights[2 * k + 1] - 5.0, 10.0);
         }
         s.add_slab(seed, far + 8.0, 1.6, 0.6);
         for (x, z) in [(-6.0, -2.0), (6.0, 2.5), (2.0, 6.0), (-2.5, -6.0)] {
@@ -324,6 +387,44 @@ mod tests {
     use super::*;
 
     #[test]
+    fn pictures_cover_their_rectangle_with_soft_edges() {
+        // A 2 x 2 photo: left column black, right column white, on a 1.2 x 0.9 m picture.
+        let photo = Arc::new(Photo::from_grey(2, 2, &[0, 255, 0, 255]).expect("photo"));
+        let picture = Picture {
+            photo: photo.clone(),
+            u0: 1.0,
+            v0: 0.5,
+            width: 1.2,
+            height: 0.9,
+        };
+        let fine = 0.001; // 1 mm per pixel: well resolved
+        let (c, left) = picture.sample(1.05, 0.95, fine).expect("on it");
+        assert!((c - 1.0).abs() < 1e-12 && left < 1e-6, "{c} {left}");
+        let (_, right) = picture.sample(2.15, 0.95, fine).expect("on it");
+        assert!(right > 1.0 - 1e-6, "{right}");
+        let (edge, _) = picture.sample(1.0, 0.95, fine).expect("edge");
+        assert!(
+            (edge - 0.5).abs() < 1e-9,
+            "half covered at the edge: {edge}"
+        );
+        assert!(picture.sample(0.9, 0.95, fine).is_none());
+        assert!(picture.sample(1.5, 1.5, fine).is_none());
+        // Hung along every outer corridor wall, alternating photographs, within the wall.
+        let corridor = Scene::corridor(1, &[photo.clone(), photo]);
+        let hung: Vec<&Picture> = corridor.planes.iter().flat_map(|p| &p.pictures).collect();
+        assert_eq!(
+            hung.len(),
+            16,
+            "four 3 m spaced pictures on each 12.4 m wall"
+        );
+        for p in corridor.planes.iter().filter(|p| !p.pictures.is_empty()) {
+            for q in &p.pictures {
+                assert!(q.u0 >= 0.0 && q.u0 + q.width <= p.width && q.v0 + q.height <= p.height);
+            }
+        }
+    }
+
+    #[test]
     fn the_walker_loop_fits_the_corridor_and_the_street() {
         // The loop's corners and side midpoints (half side 5 m) keep clear of every surface,
         // and the corridor is closed while the street is open to the sky.
@@ -337,19 +438,19 @@ mod tests {
         .into_iter()
         .map(|(x, z)| Vector3::new(x, 0.0, z))
         .collect();
-        for (scene, least) in [(Scene::corridor(1), 0.6), (Scene::street(1), 0.5)] {
+        for (scene, least) in [(Scene::corridor(1, &[]), 0.6), (Scene::street(1, &[]), 0.5)] {
             for p in &points {
                 assert!(scene.clearance(p) >= least, "{p:?}: {}", scene.clearance(p));
             }
         }
         let up = -Vector3::y();
         assert!(
-            Scene::corridor(1).cast(&points[1], &up).is_some(),
+            Scene::corridor(1, &[]).cast(&points[1], &up).is_some(),
             "ceiling"
         );
-        assert!(Scene::street(1).cast(&points[1], &up).is_none(), "sky");
+        assert!(Scene::street(1, &[]).cast(&points[1], &up).is_none(), "sky");
         // Looking down the street from a loop corner, the facades across are ~7 m away.
-        let (hit, _) = Scene::street(1)
+        let (hit, _) = Scene::street(1, &[])
             .cast(&points[0], &Vector3::new(0.0, 0.0, -1.0))
             .expect("facade");
         assert!((hit.distance - 7.0).abs() < 1e-9, "{hit:?}");
