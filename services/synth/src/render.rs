@@ -153,6 +153,72 @@ struct Band<'a> {
     grey: &'a mut [u8],
 }
 
+/// Adds one pose's radiance to every pixel of `band` (and its z-depth when `depth_too`):
+/// each pixel's ray against the planes its row can meet, the nearest hit's texture and
+/// pictures at the pixel's footprint, 0.5 where nothing is hit.
+fn trace_band(
+    band: &mut Band,
+    planes: &[(PlaneInView, Option<[f64; 4]>)],
+    camera: &PinholeRadtan,
+    ray_x: &[f64],
+    depth_too: bool,
+    cache: &mut SampleCache,
+) {
+    let w = ray_x.len();
+    // The planes a row can meet, in scene order (ties resolve as without the boxes).
+    let mut row_planes: Vec<(&PlaneInView, f64, f64)> = Vec::new();
+    let mut row = usize::MAX;
+    let mut ray_y = 0.0;
+    for (i, (value, z)) in band
+        .radiance
+        .iter_mut()
+        .zip(band.depth.iter_mut())
+        .enumerate()
+    {
+        let (x, y) = ((i % w) as f64 + 0.5, (band.first_row + i / w) as f64 + 0.5);
+        if i / w != row {
+            row = i / w;
+            ray_y = (y - camera.cy) / camera.fy;
+            row_planes.clear();
+            row_planes.extend(planes.iter().filter_map(|(p, b)| match b {
+                None => Some((p, f64::NEG_INFINITY, f64::INFINITY)),
+                Some([x0, x1, y0, y1]) => (y >= *y0 && y <= *y1).then_some((p, *x0, *x1)),
+            }));
+        }
+        let d = Vector3::new(ray_x[i % w], ray_y, 1.0);
+        let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
+        for &(p, x0, x1) in &row_planes {
+            if x < x0 || x > x1 {
+                continue;
+            }
+            if let Some((t, u, v, n_d)) = p.intersect(&d) {
+                if best.is_none_or(|b| t < b.0) {
+                    best = Some((t, u, v, n_d, p));
+                }
+            }
+        }
+        let Some((t, u, v, n_d, p)) = best else {
+            *value += 0.5;
+            continue;
+        };
+        // Metres per pixel on the plane: distance over focal, stretched by the slant of the
+        // surface (|cos| = |n.d| / |d|).
+        let norm = d.norm();
+        let cos = (n_d.abs() / norm).max(0.15);
+        let footprint = t * norm / (camera.fx * cos);
+        let mut here = p.plane.texture.sample_cached(u, v, footprint, cache);
+        for picture in &p.plane.pictures {
+            if let Some((coverage, bright)) = picture.sample(u, v, footprint) {
+                here = here * (1.0 - coverage) + bright * coverage;
+            }
+        }
+        *value += here;
+        if depth_too {
+            *z = t as f32; // d has z = 1: t is the z-depth
+        }
+    }
+}
+
 /// Renders `poses` (one, or the sub-frame poses of a blurred frame) averaged, for frame
 /// number `index` (noise and exposure depend on it).
 pub fn render_frame(
@@ -213,66 +279,12 @@ pub fn render_frame(
             let (views, next_band, ray_x) = (&views, &next_band, &ray_x);
             s.spawn(move || {
                 let mut cache = SampleCache::default();
-                while let Some(band) = next_band() {
-                    let y0 = band.first_row;
+                while let Some(mut band) = next_band() {
                     for (k, planes) in views.iter().enumerate() {
-                        // The planes a row can meet, in scene order (ties resolve as before).
-                        let mut row_planes: Vec<(&PlaneInView, f64, f64)> = Vec::new();
-                        let mut row = usize::MAX;
-                        let mut ray_y = 0.0;
-                        for (i, (value, z)) in band
-                            .radiance
-                            .iter_mut()
-                            .zip(band.depth.iter_mut())
-                            .enumerate()
-                        {
-                            let (x, y) = ((i % w) as f64 + 0.5, (y0 + i / w) as f64 + 0.5);
-                            if i / w != row {
-                                row = i / w;
-                                ray_y = (y - camera.cy) / camera.fy;
-                                row_planes.clear();
-                                row_planes.extend(planes.iter().filter_map(|(p, b)| match b {
-                                    None => Some((p, f64::NEG_INFINITY, f64::INFINITY)),
-                                    Some([x0, x1, y0, y1]) => {
-                                        (y >= *y0 && y <= *y1).then_some((p, *x0, *x1))
-                                    }
-                                }));
-                            }
-                            let d = Vector3::new(ray_x[i % w], ray_y, 1.0);
-                            let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
-                            for &(p, x0, x1) in &row_planes {
-                                if x < x0 || x > x1 {
-                                    continue;
-                                }
-                                if let Some((t, u, v, n_d)) = p.intersect(&d) {
-                                    if best.is_none_or(|b| t < b.0) {
-                                        best = Some((t, u, v, n_d, p));
-                                    }
-                                }
-                            }
-                            let Some((t, u, v, n_d, p)) = best else {
-                                *value += 0.5;
-                                continue;
-                            };
-                            // Metres per pixel on the plane: distance over focal, stretched
-                            // by the slant of the surface (|cos| = |n.d| / |d|).
-                            let norm = d.norm();
-                            let cos = (n_d.abs() / norm).max(0.15);
-                            let footprint = t * norm / (camera.fx * cos);
-                            let mut here =
-                                p.plane.texture.sample_cached(u, v, footprint, &mut cache);
-                            for picture in &p.plane.pictures {
-                                if let Some((coverage, bright)) = picture.sample(u, v, footprint) {
-                                    here = here * (1.0 - coverage) + bright * coverage;
-                                }
-                            }
-                            *value += here;
-                            if k == centre {
-                                *z = t as f32; // d has z = 1: t is the z-depth
-                            }
-                        }
+                        let depth_too = k == centre;
+                        trace_band(&mut band, planes, camera, ray_x, depth_too, &mut cache);
                     }
-                    let first = y0 * w;
+                    let first = band.first_row * w;
                     for (i, (g, r)) in band.grey.iter_mut().zip(band.radiance.iter()).enumerate() {
                         let v = 255.0 * gain * r / n
                             + options.noise_sigma * gaussian(index, (first + i) as u64);
