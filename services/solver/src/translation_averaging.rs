@@ -295,22 +295,27 @@ fn refine(
     let mut lambda = 1e-3;
     let mut current = cost(x);
     let mut sys = SchurSystem::new(3 * (cams - 1), pts);
-    for iteration in 0..options.refine_iterations {
-        if iteration > 0 {
+    // The equations depend on the positions only: after a rejected step or a failed solve
+    // they are the same, and only the damping changes.
+    let mut built = false;
+    for _ in 0..options.refine_iterations {
+        if !built {
             sys.reset();
-        }
-        for c in constraints {
-            let (a, b) = endpoints_of(c, cams);
-            let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
-            let w = c.weight * huber::weight(r.norm(), options.huber);
-            // Camera 0 is the fixed origin; the others' centres are the reduced parameters.
-            let start = (a != 0).then(|| 3 * (a - 1));
-            let end = match b {
-                0 => DifferenceEnd::Fixed,
-                b if b < cams => DifferenceEnd::Reduced(3 * (b - 1)),
-                b => DifferenceEnd::Point(b - cams),
-            };
-            sys.add_difference(start, end, &jb, &r, w);
+            for c in constraints {
+                let (a, b) = endpoints_of(c, cams);
+                let (r, jb) = direction_residual(&c.direction, &(x[b] - x[a]));
+                let w = c.weight * huber::weight(r.norm(), options.huber);
+                // Camera 0 is the fixed origin; the others' centres are the reduced
+                // parameters.
+                let start = (a != 0).then(|| 3 * (a - 1));
+                let end = match b {
+                    0 => DifferenceEnd::Fixed,
+                    b if b < cams => DifferenceEnd::Reduced(3 * (b - 1)),
+                    b => DifferenceEnd::Point(b - cams),
+                };
+                sys.add_difference(start, end, &jb, &r, w);
+            }
+            built = true;
         }
         let Some(step) = sys.solve(lambda) else {
             lambda *= 10.0;
@@ -333,6 +338,7 @@ fn refine(
         let new_cost = cost(&trial);
         if new_cost < current {
             x.copy_from_slice(&trial);
+            built = false;
             let improvement = (current - new_cost) / current.max(1e-18);
             current = new_cost;
             lambda = (lambda * 0.3).max(1e-9);
