@@ -313,8 +313,16 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         .windows(2)
         .map(|w| (w[1].position - w[0].position).norm())
         .sum();
+    let licence = match scene_kind {
+        SceneKind::Corridor | SceneKind::Street => {
+            "Licence: Apache-2.0, as egoslam, except the pictures seen in it: frames of the TUM RGB-D benchmark (fr1_rpy; J. Sturm et al., IROS 2012, https://cvg.cit.tum.de/data/datasets/rgbd-dataset), CC BY 4.0 (services/synth/photos/LICENSE.txt)."
+        }
+        SceneKind::Planes | SceneKind::Room => {
+            "Licence: Apache-2.0, as egoslam (no third-party content)."
+        }
+    };
     let about = format!(
-        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}; path length {:.2} m.\nLicence: Apache-2.0, as egoslam (no third-party content).\n",
+        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}; path length {:.2} m.\n{licence}\n",
         args.path, scene_kind, poses.len(), args.fps, args.width, args.height, args.focal, args.noise, sub, args.exposure_drift, args.seed, length
     );
     write_atomically(&out.join("SOURCE.txt"), about.as_bytes())?;
