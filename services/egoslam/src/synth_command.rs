@@ -89,6 +89,10 @@ pub struct SynthArgs {
     /// Sub-frame poses per frame for motion blur (1: none).
     #[arg(long, default_value_t = 1)]
     pub blur_samples: usize,
+    /// Rolling shutter: milliseconds from the first row's exposure to the last's (0: a
+    /// global shutter). Head-mounted RGB cameras read out in 10-30 ms. Not with blur.
+    #[arg(long, default_value_t = 0.0)]
+    pub rolling_shutter_ms: f64,
     /// Relative exposure drift amplitude (0.2 = +-20 %).
     #[arg(long, default_value_t = 0.0)]
     pub exposure_drift: f64,
@@ -99,6 +103,9 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }
+
+/// Path samples per frame interval with a rolling shutter.
+const ROLLING_SHUTTER_SUBSAMPLES: usize = 32;
 
 /// The photographs hung in the corridor and street scenes: frames of the TUM RGB-D
 /// benchmark (CC BY 4.0, services/synth/photos/LICENSE.txt), built into the binary.
@@ -202,14 +209,34 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         SceneKind::Corridor => Scene::corridor(args.seed, &photos()?),
         SceneKind::Street => Scene::street(args.seed, &photos()?),
     };
+    let rolling = args.rolling_shutter_ms > 0.0;
+    if !args.rolling_shutter_ms.is_finite()
+        || args.rolling_shutter_ms < 0.0
+        || args.rolling_shutter_ms > 1000.0 / args.fps
+    {
+        bail!(
+            "--rolling-shutter-ms {}: must be between 0 and the frame interval ({:.1} ms)",
+            args.rolling_shutter_ms,
+            1000.0 / args.fps
+        );
+    }
+    if rolling && args.blur_samples > 1 {
+        bail!("--rolling-shutter-ms and --blur-samples cannot be combined yet");
+    }
     let options = RenderOptions {
         noise_sigma: args.noise,
         blur_samples: args.blur_samples.max(1),
         exposure_drift: args.exposure_drift,
+        rolling_shutter: rolling,
         ..RenderOptions::default()
     };
-    // Sub-frame poses: the path sampled `blur_samples` times finer.
-    let sub = options.blur_samples;
+    // Sub-frame poses: the path sampled `blur_samples` times finer (a rolling shutter:
+    // 32 times, so that a 30 ms readout at 30 fps spans ~29 poses to interpolate rows in).
+    let sub = if rolling {
+        ROLLING_SHUTTER_SUBSAMPLES
+    } else {
+        options.blur_samples
+    };
     let mut fine = path.poses((args.frames - 1) * sub + 1, args.fps * sub as f64);
     if matches!(args.path, PathKind::Replay) {
         // A recorded trajectory is turned to keep clear of the rendered room's surfaces
@@ -265,7 +292,14 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         Ok(())
     });
     for (i, pose) in poses.iter().enumerate() {
-        let shutter: Vec<_> = if sub > 1 {
+        let shutter: Vec<_> = if rolling {
+            // The readout, centred on the frame time (the ground-truth pose is the middle
+            // row's); clipped at the ends of the sequence.
+            let half =
+                (args.rolling_shutter_ms / 1000.0 * args.fps * sub as f64 / 2.0).round() as usize;
+            let centre = i * sub;
+            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec()
+        } else if sub > 1 {
             let half = ((sub as f64 * options.shutter) / 2.0).round() as usize;
             let centre = i * sub;
             fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec()
@@ -322,8 +356,8 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         }
     };
     let about = format!(
-        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}; path length {:.2} m.\n{licence}\n",
-        args.path, scene_kind, poses.len(), args.fps, args.width, args.height, args.focal, args.noise, sub, args.exposure_drift, args.seed, length
+        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}, rolling shutter {} ms; path length {:.2} m.\n{licence}\n",
+        args.path, scene_kind, poses.len(), args.fps, args.width, args.height, args.focal, args.noise, options.blur_samples, args.exposure_drift, args.seed, args.rolling_shutter_ms, length
     );
     write_atomically(&out.join("SOURCE.txt"), about.as_bytes())?;
     tracing::info!(

@@ -24,6 +24,11 @@ pub struct RenderOptions {
     /// Exposure of this frame relative to normal (default 1; ~0 renders a dark frame:
     /// lens covered, lights off).
     pub exposure_scale: f64,
+    /// Rows exposed one after the other (default false: a global shutter). When set, the
+    /// poses given to [`render_frame`] run from the first row's exposure to the last
+    /// row's, each row is rendered from the pose interpolated at its place, and nothing is
+    /// averaged (no motion blur).
+    pub rolling_shutter: bool,
 }
 
 impl Default for RenderOptions {
@@ -35,6 +40,7 @@ impl Default for RenderOptions {
             exposure_drift: 0.0,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             exposure_scale: 1.0,
+            rolling_shutter: false,
         }
     }
 }
@@ -148,9 +154,62 @@ const BAND_ROWS: usize = 8;
 /// One band of rows of the output buffers.
 struct Band<'a> {
     first_row: usize,
+    /// Pixels per row.
+    row_width: usize,
     radiance: &'a mut [f64],
     depth: &'a mut [f32],
     grey: &'a mut [u8],
+}
+
+impl<'a> Band<'a> {
+    /// The band's rows, one band each.
+    fn rows(&mut self) -> impl Iterator<Item = Band<'_>> {
+        let first = self.first_row;
+        self.radiance
+            .chunks_mut(self.row_width)
+            .zip(self.depth.chunks_mut(self.row_width))
+            .zip(self.grey.chunks_mut(self.row_width))
+            .enumerate()
+            .map(move |(r, ((radiance, depth), grey))| Band {
+                first_row: first + r,
+                row_width: radiance.len(),
+                radiance,
+                depth,
+                grey,
+            })
+    }
+}
+
+/// The planes `pose` can see, each with its pixel box ([`PlaneInView::image_box`]).
+fn planes_seen<'s>(
+    scene: &'s Scene,
+    pose: &StampedPose,
+    camera: &PinholeRadtan,
+) -> Vec<(PlaneInView<'s>, Option<[f64; 4]>)> {
+    let r = pose.rotation.to_rotation_matrix();
+    scene
+        .facing(&pose.position, &(r * Vector3::z()))
+        .into_iter()
+        .map(|p| {
+            let view = PlaneInView::new(p, pose);
+            let image_box = view.image_box(pose, camera);
+            (view, image_box)
+        })
+        .collect()
+}
+
+/// The pose a fraction `at` in [0, 1] along `poses` (equally spaced in time): centres
+/// interpolated linearly, orientations by slerp.
+fn interpolate(poses: &[StampedPose], at: f64) -> StampedPose {
+    let x = at.clamp(0.0, 1.0) * (poses.len() - 1) as f64;
+    let k = (x.floor() as usize).min(poses.len().saturating_sub(2));
+    let (a, b) = (&poses[k], &poses[(k + 1).min(poses.len() - 1)]);
+    let f = x - k as f64;
+    StampedPose {
+        timestamp: a.timestamp + (b.timestamp - a.timestamp) * f,
+        position: a.position + (b.position - a.position) * f,
+        rotation: a.rotation.slerp(&b.rotation, f),
+    }
 }
 
 /// Adds one pose's radiance to every pixel of `band` (and its z-depth when `depth_too`):
@@ -234,27 +293,26 @@ pub fn render_frame(
     let mut grey = vec![0u8; w * h];
     let threads = options.threads.clamp(1, 16);
     let centre = poses.len() / 2;
-    // Each (sub-frame) pose's planes, as seen from it.
-    let views: Vec<Vec<(PlaneInView, Option<[f64; 4]>)>> = poses
-        .iter()
-        .map(|pose| {
-            let r = pose.rotation.to_rotation_matrix();
-            scene
-                .facing(&pose.position, &(r * Vector3::z()))
-                .into_iter()
-                .map(|p| {
-                    let view = PlaneInView::new(p, pose);
-                    let image_box = view.image_box(pose, camera);
-                    (view, image_box)
-                })
-                .collect()
-        })
-        .collect();
+    let rolling = options.rolling_shutter && poses.len() > 1;
+    // Each (sub-frame) pose's planes, as seen from it; with a rolling shutter each row
+    // gets its own below, and the frame is one exposure.
+    let views: Vec<Vec<(PlaneInView, Option<[f64; 4]>)>> = if rolling {
+        Vec::new()
+    } else {
+        poses
+            .iter()
+            .map(|pose| planes_seen(scene, pose, camera))
+            .collect()
+    };
+    let (n, centre) = if rolling {
+        (1.0, 0)
+    } else {
+        (poses.len().max(1) as f64, centre)
+    };
     // Each column's ray slope, once per frame instead of per pixel (the same division).
     let ray_x: Vec<f64> = (0..w)
         .map(|c| (c as f64 + 0.5 - camera.cx) / camera.fx)
         .collect();
-    let n = poses.len().max(1) as f64;
     let gain =
         options.exposure_scale * (1.0 + options.exposure_drift * (index as f64 * 0.02).sin());
     // Bands of rows taken by whichever thread is free: a room's ceiling, walls and floor
@@ -268,6 +326,7 @@ pub fn render_frame(
             .enumerate()
             .map(|(b, ((radiance, depth), grey))| Band {
                 first_row: b * BAND_ROWS,
+                row_width: w,
                 radiance,
                 depth,
                 grey,
@@ -280,6 +339,15 @@ pub fn render_frame(
             s.spawn(move || {
                 let mut cache = SampleCache::default();
                 while let Some(mut band) = next_band() {
+                    if rolling {
+                        for row in band.rows() {
+                            let at = (row.first_row as f64 + 0.5) / h as f64;
+                            let pose = interpolate(poses, at);
+                            let planes = planes_seen(scene, &pose, camera);
+                            let mut row = row;
+                            trace_band(&mut row, &planes, camera, ray_x, true, &mut cache);
+                        }
+                    }
                     for (k, planes) in views.iter().enumerate() {
                         let depth_too = k == centre;
                         trace_band(&mut band, planes, camera, ray_x, depth_too, &mut cache);
@@ -310,6 +378,45 @@ pub fn render_frame(
 mod tests {
     use super::*;
     use crate::paths::CameraPath;
+
+    #[test]
+    fn a_rolling_shutter_renders_each_row_from_its_own_pose() {
+        // Odd height: the middle row sits exactly at the middle of the readout.
+        let camera =
+            PinholeRadtan::new(160, 121, [120.0, 120.0, 80.0, 60.5], [0.0; 5]).expect("camera");
+        let scene = Scene::room(3);
+        let walk = CameraPath::Walker(Default::default()).poses(30, 30.0);
+        let readout = &walk[10..13]; // three poses a frame interval apart: a fast readout
+        let rolling = RenderOptions {
+            rolling_shutter: true,
+            ..RenderOptions::default()
+        };
+        let global = RenderOptions::default();
+        let frame = render_frame(&scene, &camera, readout, 7, &rolling);
+        let w = 160;
+        let row = |f: &Frame, r: usize| f.grey[r * w..(r + 1) * w].to_vec();
+        // The middle row is the middle pose's, the first and last rows the end poses'.
+        let middle = render_frame(&scene, &camera, &readout[1..2], 7, &global);
+        assert_eq!(row(&frame, 60), row(&middle, 60));
+        assert_ne!(row(&frame, 0), row(&middle, 0));
+        let first = render_frame(&scene, &camera, &readout[..1], 7, &global);
+        let (r0, f0) = (row(&frame, 0), row(&first, 0));
+        let close = r0
+            .iter()
+            .zip(&f0)
+            .filter(|(a, b)| a.abs_diff(**b) <= 8)
+            .count();
+        assert!(
+            close > w * 9 / 10,
+            "first row near the first pose's: {close}/{w}"
+        );
+        // A still camera: a rolling shutter changes nothing.
+        let still = [readout[1], readout[1], readout[1]];
+        assert_eq!(
+            render_frame(&scene, &camera, &still, 7, &rolling),
+            render_frame(&scene, &camera, &still[..1], 7, &global)
+        );
+    }
 
     #[test]
     fn frames_have_texture_depth_and_follow_the_camera() {
