@@ -71,6 +71,10 @@ pub struct PipelineArgs {
     /// trade-off measured).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
+    /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
+    /// global shutter); observations are moved to the middle row's time (docs/config.md).
+    #[arg(long, default_value_t = 0.0, value_parser = readout_ms)]
+    pub rolling_shutter_ms: f64,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,
@@ -293,4 +297,14 @@ pub struct ServiceArgs {
     pub egress: EgressArgs,
     #[command(flatten)]
     pub map: MapArgs,
+}
+
+/// `--rolling-shutter-ms`: a readout between 0 and 100 ms.
+fn readout_ms(text: &str) -> Result<f64, String> {
+    let v: f64 = text.parse().map_err(|e| format!("{text}: {e}"))?;
+    if (0.0..=100.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v}: must be between 0 and 100 ms"))
+    }
 }

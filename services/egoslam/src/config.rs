@@ -37,6 +37,7 @@ pub struct FrontendSection {
     pub tracks: Option<usize>,
     pub lk_window: Option<i32>,
     pub predict_motion: Option<bool>,
+    pub rolling_shutter_ms: Option<f64>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -151,6 +152,12 @@ impl Config {
         )?;
         check("frontend.tracks", self.frontend.tracks, 50, 20_000)?;
         check("frontend.lk_window", self.frontend.lk_window, 3, 51)?;
+        check(
+            "frontend.rolling_shutter_ms",
+            self.frontend.rolling_shutter_ms,
+            0.0,
+            100.0,
+        )?;
         if self.frontend.lk_window.is_some_and(|w| w % 2 == 0) {
             bail!("frontend.lk_window must be odd");
         }
@@ -225,6 +232,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "predict_motion",
         &mut p.predict_motion,
         &c.frontend.predict_motion,
+    );
+    fill(
+        m,
+        "rolling_shutter_ms",
+        &mut p.rolling_shutter_ms,
+        &c.frontend.rolling_shutter_ms,
     );
     fill(m, "window", &mut p.window, &c.solver.window);
     fill(m, "overlap", &mut p.overlap, &c.solver.overlap);

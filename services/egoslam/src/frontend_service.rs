@@ -222,10 +222,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         cy: camera.cy,
         distortion: camera.distortion.to_vec(),
     };
+    let readout_ms = args.pipeline.rolling_shutter_ms;
+    if !(0.0..=100.0).contains(&readout_ms) {
+        bail!("--rolling-shutter-ms {readout_ms}: must be between 0 and 100");
+    }
     let options = TrackerOptions {
         target_tracks: args.pipeline.tracks,
         lk_window_px: args.pipeline.lk_window,
         predict_motion: args.pipeline.predict_motion,
+        rolling_shutter_s: readout_ms / 1000.0,
         keyframes: KeyframePolicy {
             max_frames_between: args.pipeline.keyframe_every,
             max_mean_flow_px: args.pipeline.keyframe_flow_px,
@@ -290,7 +295,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let image =
             Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
                 .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
-        let outcome = match stats.time("track", || tracker.process(meta.frame_id, &image)) {
+        let outcome = match stats.time("track", || {
+            tracker.process_timed(meta.frame_id, meta.timestamp, &image)
+        }) {
             Ok(o) => o,
             // A frame that does not fit the stream is skipped, not fatal (docs/bus.md).
             Err(e @ (TrackerError::SizeMismatch { .. } | TrackerError::NotGrey { .. })) => {

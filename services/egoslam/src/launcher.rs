@@ -36,6 +36,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--global-ba-px={}", p.global_ba_px),
         format!("--max-point-std={}", p.max_point_std),
         format!("--predict-motion={}", p.predict_motion),
+        format!("--rolling-shutter-ms={}", p.rolling_shutter_ms),
     ];
     flags
 }

@@ -81,6 +81,13 @@ pub struct TrackerOptions {
     /// forward-backward check stays independent of it; tracks that passed the first time
     /// are never moved by it.
     pub predict_motion: bool,
+    /// Rolling-shutter readout, seconds from the first row to the last (default 0: a
+    /// global shutter). With a readout, each published observation is moved to where the
+    /// track was at the middle row's time, along its own image velocity over the last frame
+    /// (first order: constant velocity over the readout), so that the solver, which models
+    /// a global shutter, sees one instant per frame. Needs the frames' timestamps
+    /// ([`Tracker::process_timed`]).
+    pub rolling_shutter_s: f64,
     /// Keyframe rule (P, m).
     pub keyframes: KeyframePolicy,
 }
@@ -98,6 +105,7 @@ impl Default for TrackerOptions {
             replenish_below_fraction: 0.7,
             min_contrast: 4.0,
             predict_motion: true,
+            rolling_shutter_s: 0.0,
             keyframes: KeyframePolicy::default(),
         }
     }
@@ -162,6 +170,8 @@ pub struct Tracker {
     last_mean_flow: f64,
     /// Median motion of the tracks over the last frame (the prediction for new tracks).
     image_velocity: Point2f,
+    /// Timestamps of the last two frames processed, seconds (NaN: not given).
+    last_times: (f64, f64),
 }
 
 fn cv_err(frame_id: u64) -> impl Fn(opencv::Error) -> TrackerError {
@@ -186,6 +196,7 @@ impl Tracker {
             last_frame_id: None,
             last_mean_flow: 0.0,
             image_velocity: Point2f::new(0.0, 0.0),
+            last_times: (f64::NAN, f64::NAN),
         }
     }
 
@@ -208,6 +219,19 @@ impl Tracker {
         frame_id: u64,
         image: &(impl MatTraitConst + ToInputArray),
     ) -> Result<FrameOutcome, TrackerError> {
+        self.process_timed(frame_id, f64::NAN, image)
+    }
+
+    /// [`Tracker::process`] for a frame captured at `timestamp_s`: what a rolling-shutter
+    /// correction needs (`TrackerOptions::rolling_shutter_s`) to turn image motion per
+    /// frame into motion per second.
+    pub fn process_timed(
+        &mut self,
+        frame_id: u64,
+        timestamp_s: f64,
+        image: &(impl MatTraitConst + ToInputArray),
+    ) -> Result<FrameOutcome, TrackerError> {
+        self.last_times = (self.last_times.1, timestamp_s);
         let _span = tracing::trace_span!("track_frame", frame_id).entered();
         if image.typ() != CV_8UC1 {
             return Err(TrackerError::NotGrey {
@@ -310,11 +334,12 @@ impl Tracker {
         old.iter()
             .step_by(step)
             .map(|t| {
-                let raw = Point2::new(f64::from(t.pos.x), f64::from(t.pos.y));
+                let p = self.published_raw(t);
+                let raw = Point2::new(f64::from(p.x), f64::from(p.y));
                 let und = self.camera.undistort_pixel(raw);
                 TrackPoint {
                     track_id: t.id,
-                    raw: Point2::new(t.pos.x, t.pos.y),
+                    raw: Point2::new(p.x, p.y),
                     undistorted: Point2::new(und.x as f32, und.y as f32),
                 }
             })
@@ -544,6 +569,22 @@ impl Tracker {
         Ok(())
     }
 
+    /// A track's published raw position: with a rolling shutter, moved along its velocity
+    /// over the last frame (or the median one, for a track born on this frame) from its
+    /// row's capture time to the middle row's. Its row is read `(y - h/2) / h` of the
+    /// readout after the middle row.
+    fn published_raw(&self, t: &Track) -> Point2f {
+        let readout = self.options.rolling_shutter_s;
+        let step = self.last_times.1 - self.last_times.0;
+        if !(readout > 0.0 && step > 0.0) {
+            return t.pos;
+        }
+        let v = t.velocity.unwrap_or(self.image_velocity);
+        let h = self.camera.height as f64;
+        let shift = ((f64::from(t.pos.y) - h / 2.0) / h * readout / step) as f32;
+        Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)
+    }
+
     fn make_keyframe(
         &mut self,
         frame_id: u64,
@@ -551,16 +592,18 @@ impl Tracker {
         mean_flow_px: f64,
     ) -> KeyframeTracks {
         let camera = self.camera;
+        let published: Vec<Point2f> = self.tracks.iter().map(|t| self.published_raw(t)).collect();
         let tracks = self
             .tracks
             .iter_mut()
-            .map(|t| {
+            .zip(published)
+            .map(|(t, p)| {
                 t.at_keyframe = Some(t.pos);
-                let raw = Point2::new(f64::from(t.pos.x), f64::from(t.pos.y));
+                let raw = Point2::new(f64::from(p.x), f64::from(p.y));
                 let und = camera.undistort_pixel(raw);
                 TrackPoint {
                     track_id: t.id,
-                    raw: Point2::new(t.pos.x, t.pos.y),
+                    raw: Point2::new(p.x, p.y),
                     undistorted: Point2::new(und.x as f32, und.y as f32),
                 }
             })

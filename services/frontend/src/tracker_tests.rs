@@ -258,3 +258,59 @@ fn predicted_motion_keeps_tracks_through_a_whip_pan() {
     );
     assert!((speed + 80.0).abs() < 1.0, "image velocity {speed}");
 }
+
+#[test]
+fn a_rolling_shutter_readout_moves_observations_to_the_middle_row_time() {
+    // The same pan (content 3 px left per frame, frames 1/30 s apart) through two trackers,
+    // one told of a 20 ms readout. A track on row y was read (y - h/2) / h x 20 ms after
+    // the middle row; by the middle row's time it was 3 px x 30 x that further right.
+    let big = texture(600, 300);
+    let (w, h) = (320, 240);
+    let rolling = TrackerOptions {
+        rolling_shutter_s: 0.020,
+        ..TrackerOptions::default()
+    };
+    let mut global = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let mut shutter = Tracker::new(camera(w as u32, h as u32), rolling);
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for i in 0..20u64 {
+        let frame = crop(&big, 3 * i as i32, 30, w, h);
+        let t = i as f64 / 30.0;
+        a.extend(global.process_timed(i, t, &frame).expect("global").keyframe);
+        b.extend(
+            shutter
+                .process_timed(i, t, &frame)
+                .expect("rolling")
+                .keyframe,
+        );
+    }
+    assert!(a.len() >= 2 && a.len() == b.len());
+    let (ka, kb) = (&a[1], &b[1]);
+    let mut checked = 0;
+    for (ta, tb) in ka.tracks.iter().zip(&kb.tracks) {
+        assert_eq!(ta.track_id, tb.track_id);
+        let dt_row = (f64::from(ta.raw.y) - h as f64 / 2.0) / h as f64 * 0.020;
+        let expected = -(-3.0 * 30.0) * dt_row; // velocity -90 px/s, moved back by dt_row
+        assert!(
+            (f64::from(tb.raw.x - ta.raw.x) - expected).abs() < 0.05,
+            "row {}: moved {} instead of {expected}",
+            ta.raw.y,
+            tb.raw.x - ta.raw.x
+        );
+        assert!((tb.raw.y - ta.raw.y).abs() < 0.05);
+        checked += 1;
+    }
+    assert!(checked > 100, "{checked}");
+    // Without timestamps nothing is corrected.
+    let mut untimed = Tracker::new(camera(w as u32, h as u32), rolling);
+    let mut c = Vec::new();
+    for i in 0..20u64 {
+        c.extend(
+            untimed
+                .process(i, &crop(&big, 3 * i as i32, 30, w, h))
+                .expect("untimed")
+                .keyframe,
+        );
+    }
+    assert_eq!(c[1].tracks, ka.tracks);
+}
