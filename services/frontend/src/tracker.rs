@@ -82,8 +82,9 @@ pub struct TrackerOptions {
     /// are never moved by it.
     pub predict_motion: bool,
     /// Rolling-shutter readout, seconds from the first row to the last (default 0: a
-    /// global shutter). With a readout, each published observation is moved to where the
-    /// track was at the middle row's time, along its own image velocity over the last frame
+    /// global shutter). With a readout, each published observation's undistorted position
+    /// (what geometry uses; the raw one stays in the image) is moved to where the track was
+    /// at the middle row's time, along its own image velocity over the last frame
     /// (first order: constant velocity over the readout), so that the solver, which models
     /// a global shutter, sees one instant per frame. Needs the frames' timestamps
     /// ([`Tracker::process_timed`]).
@@ -335,11 +336,12 @@ impl Tracker {
             .step_by(step)
             .map(|t| {
                 let p = self.published_raw(t);
-                let raw = Point2::new(f64::from(p.x), f64::from(p.y));
-                let und = self.camera.undistort_pixel(raw);
+                let und = self
+                    .camera
+                    .undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
                 TrackPoint {
                     track_id: t.id,
-                    raw: Point2::new(p.x, p.y),
+                    raw: Point2::new(t.pos.x, t.pos.y),
                     undistorted: Point2::new(und.x as f32, und.y as f32),
                 }
             })
@@ -569,10 +571,11 @@ impl Tracker {
         Ok(())
     }
 
-    /// A track's published raw position: with a rolling shutter, moved along its velocity
-    /// over the last frame (or the median one, for a track born on this frame) from its
-    /// row's capture time to the middle row's. Its row is read `(y - h/2) / h` of the
-    /// readout after the middle row.
+    /// The raw position a track's geometry is computed from (its undistorted pixel): with
+    /// a rolling shutter, moved along its velocity over the last frame (or the median one,
+    /// for a track born on this frame) from its row's capture time to the middle row's; its
+    /// row is read `(y - h/2) / h` of the readout after the middle row. The published raw
+    /// position stays where the track is in the image, for descriptors and patches.
     fn published_raw(&self, t: &Track) -> Point2f {
         let readout = self.options.rolling_shutter_s;
         let step = self.last_times.1 - self.last_times.0;
@@ -599,11 +602,10 @@ impl Tracker {
             .zip(published)
             .map(|(t, p)| {
                 t.at_keyframe = Some(t.pos);
-                let raw = Point2::new(f64::from(p.x), f64::from(p.y));
-                let und = camera.undistort_pixel(raw);
+                let und = camera.undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
                 TrackPoint {
                     track_id: t.id,
-                    raw: Point2::new(p.x, p.y),
+                    raw: Point2::new(t.pos.x, t.pos.y),
                     undistorted: Point2::new(und.x as f32, und.y as f32),
                 }
             })
