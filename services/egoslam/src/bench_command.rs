@@ -48,6 +48,8 @@ struct Entry {
     name: String,
     input: PathBuf,
     synth: Option<Vec<String>>,
+    /// Extra `egoslam run` arguments (what a user of that camera would give).
+    run: Vec<String>,
 }
 
 /// Where a suite's table goes in the markdown file: between two marker lines, under a
@@ -98,6 +100,7 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
                     .map(String::from)
                     .to_vec(),
                 ),
+                run: Vec::new(),
             });
         }
         return entries;
@@ -113,10 +116,11 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
                 name: name.into(),
                 input,
                 synth: None,
+                run: Vec::new(),
             });
         }
     }
-    let mut rendered = |name: &str, path: &str, frames: usize, extra: &[&str]| {
+    let mut rendered = |name: &str, path: &str, frames: usize, extra: &[&str], run: &[&str]| {
         let mut synth = vec![
             "--path".to_string(),
             path.to_string(),
@@ -128,19 +132,30 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
             name: name.into(),
             input: args.data.join(name),
             synth: Some(synth),
+            run: run.iter().map(|s| s.to_string()).collect(),
         });
     };
-    rendered("synth_frontal", "frontal", 150, &[]);
-    rendered("synth_left_right", "left-right", 150, &[]);
-    rendered("synth_egomotion", "egomotion", 150, &[]);
-    rendered("synth_walker_300", "walker", 300, &[]);
+    rendered("synth_frontal", "frontal", 150, &[], &[]);
+    rendered("synth_left_right", "left-right", 150, &[], &[]);
+    rendered("synth_egomotion", "egomotion", 150, &[], &[]);
+    rendered("synth_walker_300", "walker", 300, &[], &[]);
     // The same walk indoors between near walls, and outdoors with far facades and sky.
-    rendered("synth_corridor", "walker", 300, &["--scene", "corridor"]);
-    rendered("synth_street", "walker", 300, &["--scene", "street"]);
+    rendered(
+        "synth_corridor",
+        "walker",
+        300,
+        &["--scene", "corridor"],
+        &[],
+    );
+    rendered("synth_street", "walker", 300, &["--scene", "street"], &[]);
+    // A camera with a 30 ms rolling-shutter readout, run with that readout given
+    // (docs/config.md, "rolling_shutter_ms").
+    let readout = ["--rolling-shutter-ms", "30"];
+    rendered("synth_walker_300_rs30", "walker", 300, &readout, &readout);
     // Long enough for stops and sharp turns to hand scale from window to window: the
     // chaining regressions a 300-frame walk does not show (docs/benchmarks.md, "Longer
     // rendered walks").
-    rendered("synth_walker_1500", "walker", 1500, &["--seed", "7"]);
+    rendered("synth_walker_1500", "walker", 1500, &["--seed", "7"], &[]);
     for case in [
         "pure-rotation",
         "spin",
@@ -149,17 +164,29 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
         "dark",
         "blackout",
     ] {
-        rendered(&format!("synth_{}", case.replace('-', "_")), case, 330, &[]);
+        rendered(
+            &format!("synth_{}", case.replace('-', "_")),
+            case,
+            330,
+            &[],
+            &[],
+        );
     }
     let aria = args.shared.join(
         "trajectories/aria_head_mounted/projectaria_tools_mps_sample_closed_loop_trajectory.csv",
     );
     if aria.exists() {
         let t = aria.display().to_string();
-        rendered("synth_aria_replay", "replay", 300, &["--trajectory", &t]);
+        rendered(
+            "synth_aria_replay",
+            "replay",
+            300,
+            &["--trajectory", &t],
+            &[],
+        );
     }
     if args.suite == Suite::Full {
-        rendered("synth_walker_12000", "walker", 12_000, &[]);
+        rendered("synth_walker_12000", "walker", 12_000, &[], &[]);
     }
     entries
 }
@@ -194,6 +221,7 @@ fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
         .arg(&entry.input)
         .arg("--out")
         .arg(out)
+        .args(&entry.run)
         .stdout(std::process::Stdio::null())
         .status()?;
     let wall = start.elapsed().as_secs_f64();
