@@ -6,6 +6,7 @@
 
 pub mod keyframe_policy;
 pub mod tracker;
+pub mod tracker_options;
 
 pub use keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
 pub use tracker::{
