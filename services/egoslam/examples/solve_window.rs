@@ -37,6 +37,13 @@ fn main() -> anyhow::Result<()> {
         .collect();
     files.sort();
     let mut cache = EdgeCache::new();
+    // The ground-truth pose nearest in time to `t`.
+    let near = |t: f64| {
+        gt.poses
+            .iter()
+            .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))
+            .copied()
+    };
     // Tuning knobs (environment), so estimator defaults can be compared on dumped windows.
     let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
     let mut options = WindowSolverOptions::default();
@@ -120,12 +127,6 @@ fn main() -> anyhow::Result<()> {
             })
             .collect();
         if std::env::var_os("EDGES").is_some() {
-            let near = |t: f64| {
-                gt.poses
-                    .iter()
-                    .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))
-                    .copied()
-            };
             let (edges, _) = egoslam_solver::view_graph::build_view_graph(
                 &camera,
                 &obs,
@@ -208,12 +209,7 @@ fn main() -> anyhow::Result<()> {
             let mut tail_rows: Vec<(f64, f64)> = Vec::new();
             if let Ok(r) = &ate {
                 for (k, e) in est.iter().enumerate() {
-                    let g = gt.poses.iter().min_by(|a, b| {
-                        (a.timestamp - e.timestamp)
-                            .abs()
-                            .total_cmp(&(b.timestamp - e.timestamp).abs())
-                    });
-                    if let Some(g) = g {
+                    if let Some(g) = near(e.timestamp) {
                         let err = (r.alignment.apply(&e.position) - g.position).norm();
                         if std::env::var_os("TAIL").is_some() {
                             tail_rows.push((err, disagreement(s.keyframes[k]).unwrap_or(f64::NAN)));
@@ -274,12 +270,7 @@ fn main() -> anyhow::Result<()> {
             let pairs: Vec<_> = est
                 .iter()
                 .filter_map(|e| {
-                    let g = gt.poses.iter().min_by(|a, b| {
-                        (a.timestamp - e.timestamp)
-                            .abs()
-                            .total_cmp(&(b.timestamp - e.timestamp).abs())
-                    })?;
-                    Some((r.alignment.apply(&e.position), g.position))
+                    near(e.timestamp).map(|g| (r.alignment.apply(&e.position), g.position))
                 })
                 .collect();
             let ratio = |range: std::ops::Range<usize>| {

@@ -222,15 +222,12 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         cy: camera.cy,
         distortion: camera.distortion.to_vec(),
     };
-    let readout_ms = args.pipeline.rolling_shutter_ms;
-    if !(0.0..=100.0).contains(&readout_ms) {
-        bail!("--rolling-shutter-ms {readout_ms}: must be between 0 and 100");
-    }
     let options = TrackerOptions {
         target_tracks: args.pipeline.tracks,
         lk_window_px: args.pipeline.lk_window,
         predict_motion: args.pipeline.predict_motion,
-        rolling_shutter_s: readout_ms / 1000.0,
+        // In range: checked where it is parsed (cli.rs) or read (config.rs).
+        rolling_shutter_s: args.pipeline.rolling_shutter_ms / 1000.0,
         keyframes: KeyframePolicy {
             max_frames_between: args.pipeline.keyframe_every,
             max_mean_flow_px: args.pipeline.keyframe_flow_px,

@@ -156,7 +156,6 @@ impl Tracker {
         timestamp_s: f64,
         image: &(impl MatTraitConst + ToInputArray),
     ) -> Result<FrameOutcome, TrackerError> {
-        self.last_times = (self.last_times.1, timestamp_s);
         let _span = tracing::trace_span!("track_frame", frame_id).entered();
         if image.typ() != CV_8UC1 {
             return Err(TrackerError::NotGrey {
@@ -173,6 +172,9 @@ impl Tracker {
                 camera_height: self.camera.height,
             });
         }
+        // Only a frame that is tracked sets the time step its velocities span (a refused
+        // frame in between would otherwise shorten it).
+        self.last_times = (self.last_times.1, timestamp_s);
         let err = cv_err(frame_id);
         let (mut mean, mut deviation) = (Mat::default(), Mat::default());
         if self.options.min_contrast > 0.0 {
@@ -496,8 +498,9 @@ impl Tracker {
     }
 
     /// The raw position a track's geometry is computed from (its undistorted pixel): with
-    /// a rolling shutter, moved along its velocity over the last frame (or the median one,
-    /// for a track born on this frame) from its row's capture time to the middle row's; its
+    /// a rolling shutter, moved along its velocity over the last frame (for a track born on
+    /// this frame, the median one, which is only measured when `predict_motion` is on, else
+    /// none) from its row's capture time to the middle row's; its
     /// row is read `(y - h/2) / h` of the readout after the middle row. The published raw
     /// position stays where the track is in the image, for descriptors and patches.
     fn published_raw(&self, t: &Track) -> Point2f {

@@ -292,7 +292,6 @@ pub fn render_frame(
     let mut depth = vec![0f32; w * h];
     let mut grey = vec![0u8; w * h];
     let threads = options.threads.clamp(1, 16);
-    let centre = poses.len() / 2;
     let rolling = options.rolling_shutter && poses.len() > 1;
     // Each (sub-frame) pose's planes, as seen from it; with a rolling shutter each row
     // gets its own below, and the frame is one exposure.
@@ -304,10 +303,11 @@ pub fn render_frame(
             .map(|pose| planes_seen(scene, pose, camera))
             .collect()
     };
+    // Poses averaged, and the one whose depth is kept.
     let (n, centre) = if rolling {
         (1.0, 0)
     } else {
-        (poses.len().max(1) as f64, centre)
+        (poses.len().max(1) as f64, poses.len() / 2)
     };
     // Each column's ray slope, once per frame instead of per pixel (the same division).
     let ray_x: Vec<f64> = (0..w)
@@ -340,11 +340,10 @@ pub fn render_frame(
                 let mut cache = SampleCache::default();
                 while let Some(mut band) = next_band() {
                     if rolling {
-                        for row in band.rows() {
+                        for mut row in band.rows() {
                             let at = (row.first_row as f64 + 0.5) / h as f64;
                             let pose = interpolate(poses, at);
                             let planes = planes_seen(scene, &pose, camera);
-                            let mut row = row;
                             trace_band(&mut row, &planes, camera, ray_x, true, &mut cache);
                         }
                     }

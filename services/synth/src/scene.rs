@@ -22,10 +22,8 @@ impl Picture {
     /// (its edges softened over one footprint, as the posters' are), and the picture's
     /// brightness there; `None` when the pixel is off the picture.
     pub fn sample(&self, u: f64, v: f64, footprint: f64) -> Option<(f64, f64)> {
-        let soft = footprint.max(1e-9);
-        let inside_u = ((u - self.u0).min(self.u0 + self.width - u) / soft).clamp(-0.5, 0.5) + 0.5;
-        let inside_v = ((v - self.v0).min(self.v0 + self.height - v) / soft).clamp(-0.5, 0.5) + 0.5;
-        let coverage = inside_u * inside_v;
+        let rect = [self.u0, self.v0, self.width, self.height];
+        let coverage = crate::texture::soft_coverage(u, v, rect, footprint.max(1e-9));
         if coverage <= 0.0 {
             return None;
         }

@@ -87,6 +87,16 @@ fn value_noise(u: f64, v: f64, seed: u64, slot: &mut Option<CachedCell<4>>) -> f
     top + (bottom - top) * fy
 }
 
+/// How much of a rectangle `[u0, u0 + width] x [v0, v0 + height]` a pixel at (u, v) covers,
+/// in [0, 1], its edges softened over `soft` (the pixel's footprint, same units): the
+/// posters' and the photographs' edges, band-limited alike.
+pub(crate) fn soft_coverage(u: f64, v: f64, rect: [f64; 4], soft: f64) -> f64 {
+    let [u0, v0, width, height] = rect;
+    let inside_u = ((u - u0).min(u0 + width - u) / soft).clamp(-0.5, 0.5) + 0.5;
+    let inside_v = ((v - v0).min(v0 + height - v) / soft).clamp(-0.5, 0.5) + 0.5;
+    inside_u * inside_v
+}
+
 /// How much of a feature of `wavelength` survives at `footprint` (both metres): 1 when it
 /// spans many pixels, 0 below two pixels (Nyquist), smooth in between.
 fn keep(wavelength: f64, footprint: f64) -> f64 {
@@ -160,9 +170,7 @@ impl Texture {
             let x0 = cx + (1.0 - w) * poster[3];
             let y0 = cy + (1.0 - h) * poster[4];
             let soft = (footprint / cell).max(1e-6);
-            let inside_u = ((lu - x0).min(x0 + w - lu) / soft).clamp(-0.5, 0.5) + 0.5;
-            let inside_v = ((lv - y0).min(y0 + h - lv) / soft).clamp(-0.5, 0.5) + 0.5;
-            let coverage = inside_u * inside_v;
+            let coverage = soft_coverage(lu, lv, [x0, y0, w, h], soft);
             // Posters too small to resolve fade to their mean.
             let k = keep(cell * w.min(h), footprint);
             let grey = 0.1 + 0.8 * poster[5];
