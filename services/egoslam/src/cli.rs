@@ -30,6 +30,9 @@ pub enum Command {
     Bench(crate::bench_command::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).
     Synth(crate::synth_command::SynthArgs),
+    /// Estimate a camera's rolling-shutter readout from a recording (for
+    /// `--rolling-shutter-ms` / `frontend.rolling_shutter_ms` when it is used live).
+    CalibrateReadout(crate::readout::CalibrateReadoutArgs),
     /// Localize every frame of a sequence in a saved map (`run --map-out`).
     Localize(crate::relocalization_commands::LocalizeArgs),
     /// Vocabulary tree for relocalization.
@@ -72,9 +75,10 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
-    /// global shutter); observations are moved to the middle row's time (docs/config.md).
-    #[arg(long, default_value_t = 0.0, value_parser = readout_ms)]
-    pub rolling_shutter_ms: f64,
+    /// global shutter), or `auto`: estimated by `egoslam run` from the first frames of a
+    /// recorded input; observations are moved to the middle row's time (docs/config.md).
+    #[arg(long, default_value = "0")]
+    pub rolling_shutter_ms: crate::readout::Readout,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,
@@ -297,14 +301,4 @@ pub struct ServiceArgs {
     pub egress: EgressArgs,
     #[command(flatten)]
     pub map: MapArgs,
-}
-
-/// `--rolling-shutter-ms`: a readout between 0 and 100 ms.
-fn readout_ms(text: &str) -> Result<f64, String> {
-    let v: f64 = text.parse().map_err(|e| format!("{text}: {e}"))?;
-    if (0.0..=100.0).contains(&v) {
-        Ok(v)
-    } else {
-        Err(format!("{v}: must be between 0 and 100 ms"))
-    }
 }

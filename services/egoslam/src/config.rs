@@ -37,7 +37,7 @@ pub struct FrontendSection {
     pub tracks: Option<usize>,
     pub lk_window: Option<i32>,
     pub predict_motion: Option<bool>,
-    pub rolling_shutter_ms: Option<f64>,
+    pub rolling_shutter_ms: Option<crate::readout::Readout>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -152,12 +152,7 @@ impl Config {
         )?;
         check("frontend.tracks", self.frontend.tracks, 50, 20_000)?;
         check("frontend.lk_window", self.frontend.lk_window, 3, 51)?;
-        check(
-            "frontend.rolling_shutter_ms",
-            self.frontend.rolling_shutter_ms,
-            0.0,
-            100.0,
-        )?;
+        // frontend.rolling_shutter_ms: its range is checked as it is read (readout.rs).
         if self.frontend.lk_window.is_some_and(|w| w % 2 == 0) {
             bail!("frontend.lk_window must be odd");
         }
@@ -338,6 +333,11 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill(m, "out", &mut a.service.out, &c.output.dir);
             fill_pipeline(c, m, &mut a.service.pipeline);
             fill_egress(c, m, &mut a.service.egress);
+        }
+        Command::CalibrateReadout(a) => {
+            fill(m, "fps", &mut a.fps, &c.input.fps);
+            fill_optional(m, "calib", &mut a.calib, &c.input.calibration);
+            fill_pipeline(c, m, &mut a.pipeline);
         }
         Command::Frontend(a) | Command::Solver(a) | Command::Merger(a) => {
             fill(m, "namespace", &mut a.namespace, &c.bus.namespace);

@@ -6,10 +6,7 @@ use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
-use egoslam_frontend::{
-    KeyframePolicy, KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError,
-    TrackerOptions,
-};
+use egoslam_frontend::{KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_relocalization::patch_alignment::extract_patch;
@@ -222,19 +219,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         cy: camera.cy,
         distortion: camera.distortion.to_vec(),
     };
-    let options = TrackerOptions {
-        target_tracks: args.pipeline.tracks,
-        lk_window_px: args.pipeline.lk_window,
-        predict_motion: args.pipeline.predict_motion,
-        // In range: checked where it is parsed (cli.rs) or read (config.rs).
-        rolling_shutter_s: args.pipeline.rolling_shutter_ms / 1000.0,
-        keyframes: KeyframePolicy {
-            max_frames_between: args.pipeline.keyframe_every,
-            max_mean_flow_px: args.pipeline.keyframe_flow_px,
-            ..KeyframePolicy::default()
-        },
-        ..TrackerOptions::default()
-    };
+    // The readout is in range: checked where it is parsed (readout.rs).
+    let options = crate::readout::tracker_options(
+        &args.pipeline,
+        args.pipeline.rolling_shutter_ms.seconds()?,
+    );
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.

@@ -41,6 +41,50 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
     flags
 }
 
+/// Replaces `--rolling-shutter-ms auto` by the readout estimated from the input's first
+/// frames (0 when no estimate can be made: too short or too still an input), and says
+/// what was used, for the report.
+fn resolve_readout(args: &mut RunArgs, input: &Path) -> serde_json::Value {
+    use crate::readout::{estimate_from_input, Readout, AUTO_FRAMES};
+    let given = args.pipeline.rolling_shutter_ms;
+    if given != Readout::Auto {
+        return json!({ "setting": given.to_string(), "readout_ms": given.seconds().ok().map(|s| s * 1e3) });
+    }
+    let started = Instant::now();
+    let estimate = estimate_from_input(
+        input,
+        args.fps,
+        args.calib.as_deref(),
+        &args.pipeline,
+        AUTO_FRAMES,
+    );
+    let (readout_ms, details) = match estimate {
+        Ok(e) => (
+            e.readout_s * 1e3,
+            json!({
+                "best_ms": e.best_s * 1e3,
+                "significant": e.significant,
+                "residual_px": e.residual_px,
+                "residual_at_zero_px": e.residual_at_zero_px,
+                "frame_pairs": e.pairs,
+            }),
+        ),
+        Err(e) => {
+            tracing::warn!(
+                "no rolling-shutter readout estimate ({e:#}): a global shutter is assumed"
+            );
+            (0.0, json!({ "error": format!("{e:#}") }))
+        }
+    };
+    args.pipeline.rolling_shutter_ms = Readout::Millis(readout_ms);
+    json!({
+        "setting": "auto",
+        "readout_ms": readout_ms,
+        "estimate": details,
+        "estimation_ms": started.elapsed().as_secs_f64() * 1e3,
+    })
+}
+
 /// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
 /// Image folders and videos carry no clock of their own (their timestamps are frame index /
 /// fps), so nothing found near them could be associated: they need `--gt` and real stamps.
@@ -203,7 +247,7 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
     serde_json::Value::Object(m)
 }
 
-pub fn run(args: RunArgs) -> anyhow::Result<()> {
+pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let input = args.input.clone().unwrap_or_else(default_input);
     let layout = detect_layout(&input)?;
@@ -217,6 +261,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
     drop(source);
+    let readout_report = resolve_readout(&mut args, &input);
 
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
@@ -340,6 +385,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         "localized_frames": counter(merger, "localized_frames"),
         "interpolated_frames": counter(merger, "interpolated_frames"),
         "timings_ms": timings,
+        "rolling_shutter": readout_report,
         "accuracy": accuracy,
     });
     write_atomically(

@@ -21,6 +21,7 @@ mod map_file;
 mod map_state;
 mod merger_service;
 mod output;
+mod readout;
 mod record_log;
 mod relocalization_commands;
 mod replay;
@@ -57,6 +58,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),
         cli::Command::Synth(args) => synth_command::run(args),
+        cli::Command::CalibrateReadout(args) => readout::calibrate(args),
         cli::Command::Bench(args) => bench_command::run(args),
         cli::Command::Localize(args) => relocalization_commands::localize(args),
         cli::Command::Vocab(cli::VocabCommand::Train(args)) => {

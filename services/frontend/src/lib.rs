@@ -5,10 +5,15 @@
 //! is made every P frames or when the mean flow since the last keyframe exceeds m pixels.
 
 pub mod keyframe_policy;
+pub mod readout_estimation;
 pub mod tracker;
 pub mod tracker_options;
 
 pub use keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
+pub use readout_estimation::{
+    estimate_readout, FrameTracks, ReadoutEstimate, ReadoutEstimationError,
+    ReadoutEstimationOptions,
+};
 pub use tracker::{
     FrameOutcome, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions,
 };

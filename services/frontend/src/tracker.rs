@@ -125,6 +125,11 @@ impl Tracker {
         }
     }
 
+    /// The camera the tracks are undistorted with.
+    pub fn camera(&self) -> PinholeRadtan {
+        self.camera
+    }
+
     /// The ids the next keyframe and the next new track will get.
     pub fn next_ids(&self) -> (u64, u64) {
         (self.next_keyframe_id, self.next_track_id)

@@ -1,0 +1,246 @@
+//! The rolling-shutter readout setting (`--rolling-shutter-ms`, `frontend.rolling_shutter_ms`):
+//! a time in milliseconds, or `auto`, which `egoslam run` resolves before the services start
+//! by tracking the first frames of a recorded input and estimating the readout from them
+//! (`egoslam_frontend::readout_estimation`); `egoslam calibrate-readout` prints the same
+//! estimate for a recording, for cameras used live.
+
+use crate::cli::PipelineArgs;
+use anyhow::{bail, Context};
+use egoslam_frontend::{
+    estimate_readout, FrameTracks, KeyframePolicy, ReadoutEstimate, ReadoutEstimationOptions,
+    Tracker, TrackerOptions,
+};
+use egoslam_sources::{detect_layout, load_calibration, open_source, Layout};
+use opencv::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Longest readout that can be given, ms (a frame interval at 10 fps).
+pub const MAX_READOUT_MS: f64 = 100.0;
+
+/// Frames `auto` tracks before the run (default 300: 10 s at 30 fps, ~1 s of tracking;
+/// tum_fr1_rpy's 120 frames gave 22 ms, the rendered 150- and 300-frame walks alike).
+pub const AUTO_FRAMES: usize = 300;
+
+/// The readout the frontend corrects for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Readout {
+    /// Estimated from the video (recorded inputs; see the module doc).
+    Auto,
+    /// Given, ms from the first row to the last (0: a global shutter).
+    Millis(f64),
+}
+
+impl Readout {
+    /// The readout in seconds; `auto` must have been resolved by then.
+    pub fn seconds(self) -> anyhow::Result<f64> {
+        match self {
+            Readout::Millis(ms) => Ok(ms / 1000.0),
+            Readout::Auto => bail!(
+                "--rolling-shutter-ms auto is resolved by `egoslam run` from a recorded \
+                 input; a service needs the readout in ms (`egoslam calibrate-readout \
+                 --input RECORDING` estimates it)"
+            ),
+        }
+    }
+}
+
+impl std::str::FromStr for Readout {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        if text.eq_ignore_ascii_case("auto") {
+            return Ok(Readout::Auto);
+        }
+        let v: f64 = text
+            .parse()
+            .map_err(|e| format!("{text}: {e} (a time in ms, or auto)"))?;
+        millis(v)
+    }
+}
+
+fn millis(v: f64) -> Result<Readout, String> {
+    if (0.0..=MAX_READOUT_MS).contains(&v) {
+        Ok(Readout::Millis(v))
+    } else {
+        Err(format!(
+            "{v}: must be between 0 and {MAX_READOUT_MS} ms, or auto"
+        ))
+    }
+}
+
+impl std::fmt::Display for Readout {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Readout::Auto => write!(f, "auto"),
+            Readout::Millis(ms) => write!(f, "{ms}"),
+        }
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Readout {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(serde::Deserialize)]
+        #[serde(untagged)]
+        enum Value {
+            Number(f64),
+            Word(String),
+        }
+        match Value::deserialize(d)? {
+            Value::Number(v) => millis(v),
+            Value::Word(w) => w.parse(),
+        }
+        .map_err(|e| serde::de::Error::custom(format!("rolling_shutter_ms = {e}")))
+    }
+}
+
+/// Tracks up to `max_frames` frames of `input` with no readout correction and estimates
+/// the readout from them. Stops early at a frame that cannot be read (the run itself
+/// reports it).
+pub fn estimate_from_input(
+    input: &Path,
+    fps: f64,
+    calibration: Option<&Path>,
+    pipeline: &PipelineArgs,
+    max_frames: usize,
+) -> anyhow::Result<ReadoutEstimate> {
+    let layout = detect_layout(input)?;
+    if matches!(layout, Layout::Camera { .. }) {
+        bail!("--rolling-shutter-ms auto needs a recorded input, not a live camera: record a few seconds of turning the head and run `egoslam calibrate-readout` on it");
+    }
+    let mut source = open_source(input, fps)?;
+    let calibration = load_calibration(&layout, calibration)?;
+    let mut tracker: Option<Tracker> = None;
+    let mut frames = Vec::new();
+    while frames.len() < max_frames {
+        let frame = match source.next_frame() {
+            Some(Ok(frame)) => frame,
+            Some(Err(e)) => {
+                tracing::warn!(%e, "readout estimation stops at a frame it cannot read");
+                break;
+            }
+            None => break,
+        };
+        let tracker = match &mut tracker {
+            Some(t) => t,
+            None => {
+                let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
+                tracker.insert(Tracker::new(
+                    calibration.camera_for(w, h)?,
+                    tracker_options(pipeline, 0.0),
+                ))
+            }
+        };
+        // A frame the tracker refuses (another size) ends the estimation likewise.
+        if let Err(e) = tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
+            tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
+            break;
+        }
+        frames.push(FrameTracks {
+            timestamp_s: frame.timestamp,
+            tracks: tracker.sample_tracks(usize::MAX),
+        });
+    }
+    let camera = tracker
+        .as_ref()
+        .map(Tracker::camera)
+        .with_context(|| format!("{}: no frames", input.display()))?;
+    let estimate = estimate_readout(&frames, &camera, &ReadoutEstimationOptions::default())
+        .with_context(|| format!("estimating the readout of {}", input.display()))?;
+    tracing::info!(
+        readout_ms = estimate.readout_s * 1e3,
+        best_ms = estimate.best_s * 1e3,
+        residual_px = estimate.residual_px,
+        residual_at_zero_px = estimate.residual_at_zero_px,
+        pairs = estimate.pairs,
+        "rolling-shutter readout estimated"
+    );
+    Ok(estimate)
+}
+
+/// The tracker's options from the pipeline's, with the readout given in seconds.
+pub fn tracker_options(pipeline: &PipelineArgs, rolling_shutter_s: f64) -> TrackerOptions {
+    TrackerOptions {
+        target_tracks: pipeline.tracks,
+        lk_window_px: pipeline.lk_window,
+        predict_motion: pipeline.predict_motion,
+        rolling_shutter_s,
+        keyframes: KeyframePolicy {
+            max_frames_between: pipeline.keyframe_every,
+            max_mean_flow_px: pipeline.keyframe_flow_px,
+            ..KeyframePolicy::default()
+        },
+        ..TrackerOptions::default()
+    }
+}
+
+/// `egoslam calibrate-readout`: estimate a recording's readout and print it.
+#[derive(clap::Args, Debug)]
+pub struct CalibrateReadoutArgs {
+    /// The recording (any input `run` takes, not a live camera): a few seconds of turning
+    /// the head, up and down as well as sideways.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Frame rate of image folders and videos without one.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Calibration file (default: found next to the input, docs/config.md).
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// Frames tracked.
+    #[arg(long, default_value_t = AUTO_FRAMES)]
+    pub frames: usize,
+    #[command(flatten)]
+    pub pipeline: PipelineArgs,
+}
+
+/// Prints the estimate as the configuration line to use.
+pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
+    let e = estimate_from_input(
+        &args.input,
+        args.fps,
+        args.calib.as_deref(),
+        &args.pipeline,
+        args.frames,
+    )?;
+    println!(
+        "readout {:.0} ms ({} frame pairs; rotation-only residual {:.3} px, {:.3} px at a global shutter, best at {:.0} ms{})",
+        e.readout_s * 1e3,
+        e.pairs,
+        e.residual_px,
+        e.residual_at_zero_px,
+        e.best_s * 1e3,
+        if e.significant {
+            ""
+        } else {
+            ": not a clear gain, so a global shutter"
+        }
+    );
+    println!("[frontend]\nrolling_shutter_ms = {:.0}", e.readout_s * 1e3);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_times_and_auto_and_refuses_the_rest() {
+        assert_eq!("auto".parse::<Readout>(), Ok(Readout::Auto));
+        assert_eq!("AUTO".parse::<Readout>(), Ok(Readout::Auto));
+        assert_eq!("25".parse::<Readout>(), Ok(Readout::Millis(25.0)));
+        assert!("-1".parse::<Readout>().is_err());
+        assert!("101".parse::<Readout>().is_err());
+        assert!("fast".parse::<Readout>().is_err());
+        assert_eq!(Readout::Millis(12.5).to_string(), "12.5");
+        assert!(Readout::Auto.seconds().is_err());
+        #[derive(serde::Deserialize)]
+        struct Section {
+            rolling_shutter_ms: Readout,
+        }
+        let s: Section = toml::from_str("rolling_shutter_ms = 20").expect("number");
+        assert_eq!(s.rolling_shutter_ms, Readout::Millis(20.0));
+        let s: Section = toml::from_str("rolling_shutter_ms = \"auto\"").expect("auto");
+        assert_eq!(s.rolling_shutter_ms, Readout::Auto);
+        assert!(toml::from_str::<Section>("rolling_shutter_ms = 500").is_err());
+    }
+}
