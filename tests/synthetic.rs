@@ -126,7 +126,8 @@ fn walker_in_the_corridor_and_the_street() {
 fn a_rolling_shutter_walk_holds_with_the_readout_given() {
     // The walker rendered with a 30 ms rolling-shutter readout (docs/synth.md). Measured
     // (150 frames, 3.7 m): 0.85 m keyframe ATE when the pipeline assumes a global shutter,
-    // 1.45 cm (0.39 %) with --rolling-shutter-ms 30 (docs/config.md).
+    // 1.45 cm (0.39 %) with --rolling-shutter-ms 30 (docs/config.md), and the same with
+    // the readout estimated (the default, `auto`: 30 ms).
     let dir = tempfile::tempdir().expect("tempdir");
     let seq = dir.path().join("seq");
     synth_with(&seq, "walker", 150, &["--rolling-shutter-ms", "30"]);
@@ -136,16 +137,26 @@ fn a_rolling_shutter_walk_holds_with_the_readout_given() {
         let est = read_tum_file(&out.join("keyframes.tum")).expect("keyframes");
         let gt = read_tum_file(&seq.join("groundtruth.txt")).expect("ground truth");
         let ate = absolute_trajectory_error(&est, &gt, 0.001).expect("aligned");
-        (ate.rmse, ate.gt_path_length)
+        (ate.rmse, ate.gt_path_length, report)
     };
-    let (corrected, path) = ate_with(&["--rolling-shutter-ms", "30"], &dir.path().join("a"));
+    let (corrected, path, _) = ate_with(&["--rolling-shutter-ms", "30"], &dir.path().join("a"));
     assert!(
         corrected < 0.01 * path,
         "corrected: {corrected} m over {path} m"
     );
-    let (assumed_global, _) = ate_with(&[], &dir.path().join("b"));
+    let (assumed_global, _, _) = ate_with(&["--rolling-shutter-ms", "0"], &dir.path().join("b"));
     assert!(
         assumed_global > 5.0 * corrected,
         "the rendered shutter must matter: {assumed_global} vs {corrected} m"
+    );
+    // The default, `auto`: the readout estimated from the frames (30 ms measured).
+    let (estimated, _, report) = ate_with(&[], &dir.path().join("c"));
+    let readout = report["rolling_shutter"]["readout_ms"]
+        .as_f64()
+        .expect("readout");
+    assert!((25.0..=35.0).contains(&readout), "estimated {readout} ms");
+    assert!(
+        estimated < 0.01 * path,
+        "estimated readout: {estimated} m over {path} m"
     );
 }

@@ -77,7 +77,7 @@ pub struct PipelineArgs {
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
     /// global shutter), or `auto`: estimated by `egoslam run` from the first frames of a
     /// recorded input; observations are moved to the middle row's time (docs/config.md).
-    #[arg(long, default_value = "0")]
+    #[arg(long, default_value = "auto", env = "EGOSLAM_ROLLING_SHUTTER_MS")]
     pub rolling_shutter_ms: crate::readout::Readout,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]

@@ -219,11 +219,22 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         cy: camera.cy,
         distortion: camera.distortion.to_vec(),
     };
-    // The readout is in range: checked where it is parsed (readout.rs).
-    let options = crate::readout::tracker_options(
-        &args.pipeline,
-        args.pipeline.rolling_shutter_ms.seconds()?,
-    );
+    // The readout is in range: checked where it is parsed (readout.rs). `auto` is resolved
+    // by `egoslam run` before it starts this service; started on its own (systemd, a live
+    // camera) the service cannot look ahead in the stream, so it assumes a global shutter.
+    let readout_s = args
+        .pipeline
+        .rolling_shutter_ms
+        .seconds()
+        .unwrap_or_else(|_| {
+            tracing::warn!(
+                "rolling_shutter_ms = auto is resolved only by `egoslam run` on a recorded input: \
+             a global shutter is assumed; `egoslam calibrate-readout --input RECORDING` \
+             estimates the value to configure"
+            );
+            0.0
+        });
+    let options = crate::readout::tracker_options(&args.pipeline, readout_s);
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.

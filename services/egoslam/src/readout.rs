@@ -144,6 +144,7 @@ pub fn estimate_from_input(
         .as_ref()
         .map(Tracker::camera)
         .with_context(|| format!("{}: no frames", input.display()))?;
+    let fit_started = std::time::Instant::now();
     let estimate = estimate_readout(&frames, &camera, &ReadoutEstimationOptions::default())
         .with_context(|| format!("estimating the readout of {}", input.display()))?;
     tracing::info!(
@@ -152,6 +153,7 @@ pub fn estimate_from_input(
         residual_px = estimate.residual_px,
         residual_at_zero_px = estimate.residual_at_zero_px,
         pairs = estimate.pairs,
+        fit_ms = fit_started.elapsed().as_secs_f64() * 1e3,
         "rolling-shutter readout estimated"
     );
     Ok(estimate)
