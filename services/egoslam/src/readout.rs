@@ -17,9 +17,11 @@ use std::path::{Path, PathBuf};
 /// Longest readout that can be given, ms (a frame interval at 10 fps).
 pub const MAX_READOUT_MS: f64 = 100.0;
 
-/// Frames `auto` tracks before the run (default 300: 10 s at 30 fps, ~1 s of tracking;
-/// tum_fr1_rpy's 120 frames gave 22 ms, the rendered 150- and 300-frame walks alike).
-pub const AUTO_FRAMES: usize = 300;
+/// Frames `auto` tracks before the run (150: 5 s at 30 fps, ~1.3 s of tracking, which is
+/// most of the pre-pass). 300 gave the same estimates on every sequence here (rendered
+/// 30 ms walks 29-30 ms, the 15 ms shake 16 ms, tum_fr1_rpy's 120 frames 22 ms, 0 on the
+/// global-shutter ones) at twice the cost.
+pub const AUTO_FRAMES: usize = 150;
 
 /// The readout the frontend corrects for.
 #[derive(Debug, Clone, Copy, PartialEq)]

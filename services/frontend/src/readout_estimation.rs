@@ -19,7 +19,7 @@
 //! calibrate-readout`): rendered walks with a 30 ms readout 30 ms (150 and 300 frames), a
 //! head shake rendered at 15 ms 16 ms, tum_fr1_rpy 22 ms (its pipeline ATE is lowest told
 //! 20-30 ms), and 0 on every global-shutter sequence here (rendered walks, turns, shake,
-//! Aria replay, KITTI, EuRoC), whose best gains were 0.0-0.2 % against 7-20 % with a
+//! dark, Aria replay, KITTI, EuRoC), whose best gains were 0.0-0.9 % against 7-33 % with a
 //! rolling shutter.
 
 use crate::tracker::TrackPoint;
@@ -37,8 +37,8 @@ pub struct ReadoutEstimationOptions {
     /// of the right readout, e.g. tum_fr1_rpy 1.69 / 1.75 cm told 20 / 30 ms).
     pub step_s: f64,
     /// The best readout's residual must be this fraction below the residual at 0, else 0
-    /// is returned (default 0.02: rolling-shutter sequences gained 7-20 %, global-shutter
-    /// ones at most 0.2 %).
+    /// is returned (default 0.02: rolling-shutter sequences gained 7-33 %, global-shutter
+    /// ones at most 0.9 %).
     pub min_relative_gain: f64,
     /// Fewest usable frame pairs (default 20: about a second of video at 30 fps with turns).
     pub min_pairs: usize,
