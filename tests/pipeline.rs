@@ -11,6 +11,21 @@ use std::time::Duration;
 
 /// Runs replay + frontend as processes and collects the keyframe stream in this process.
 fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
+    let (keyframes, frames, _) = keyframe_stream_with(input, test, &[]);
+    (keyframes, frames)
+}
+
+/// [`keyframe_stream`] with extra frontend arguments; also returns the camera and the
+/// readout the frontend estimated online (`frontend.readout`, ms), if it did.
+fn keyframe_stream_with(
+    input: &Path,
+    test: &str,
+    frontend_args: &[&str],
+) -> (
+    Vec<pb::Keyframe>,
+    usize,
+    (egoslam_geometry::PinholeRadtan, Option<f64>),
+) {
     let ns = namespace(test);
     let out = tempfile::tempdir().expect("tempdir");
     // Resolve the calibration the way the launcher does, through `run`'s checks, by writing
@@ -52,6 +67,7 @@ fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
     let mut frontend = egoslam()
         .arg("frontend")
         .args(&common_args)
+        .args(frontend_args)
         .spawn()
         .expect("frontend");
     let mut replay = egoslam()
@@ -74,7 +90,10 @@ fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
     assert!(replay.wait().expect("replay exit").success());
     assert!(frontend.wait().expect("frontend exit").success());
     std::thread::sleep(Duration::from_millis(10));
-    (keyframes, frames)
+    let readout = std::fs::read_to_string(out.path().join("frontend.readout"))
+        .ok()
+        .and_then(|t| t.trim().parse().ok());
+    (keyframes, frames, (camera, readout))
 }
 
 /// Checks a keyframe stream: ids strictly increasing without gaps, tracks inside the image,
@@ -156,6 +175,50 @@ fn tum_fixture_keyframe_stream_through_real_processes() {
     assert_eq!(frames, 120);
     // fr1_rpy turns fast (20-95 deg/s): the flow rule fires often.
     check_stream(&kfs, frames, 20, 110);
+}
+
+/// A frontend started on its own (as systemd does) with the default `auto` readout
+/// estimates it from the stream's first frames and corrects from then on (docs/config.md).
+#[test]
+fn a_frontend_on_its_own_estimates_the_readout_online() {
+    let (kfs, frames, (camera, readout)) = keyframe_stream_with(
+        &tum_fixture(),
+        "tum_readout",
+        &["--rolling-shutter-ms=auto", "--readout-frames=60"],
+    );
+    check_stream(&kfs, frames, 20, 110);
+    // Measured on the clip's first 60 frames: 18 ms (21 from all 120).
+    let readout = readout.expect("frontend.readout written");
+    assert!((12.0..=30.0).contains(&readout), "{readout} ms");
+    // Observations are the undistorted raw positions until the estimate, then moved.
+    let shift = |k: &pb::Keyframe| {
+        let total: f64 = k
+            .tracks
+            .iter()
+            .map(|t| {
+                let u = camera.undistort_pixel(nalgebra::Point2::new(
+                    f64::from(t.raw_x),
+                    f64::from(t.raw_y),
+                ));
+                ((u.x - f64::from(t.x)).powi(2) + (u.y - f64::from(t.y)).powi(2)).sqrt()
+            })
+            .sum();
+        total / k.tracks.len().max(1) as f64
+    };
+    let (before, after): (Vec<_>, Vec<_>) = kfs
+        .iter()
+        .filter(|k| !k.end_of_stream)
+        .partition(|k| k.frame_id < 59);
+    assert!(
+        before.iter().all(|k| shift(k) < 0.01),
+        "corrected too early"
+    );
+    let moved = after.iter().filter(|k| shift(k) > 0.2).count();
+    assert!(
+        moved * 2 > after.len(),
+        "{moved} of {} keyframes corrected",
+        after.len()
+    );
 }
 
 #[test]

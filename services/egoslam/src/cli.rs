@@ -79,6 +79,11 @@ pub struct PipelineArgs {
     /// recorded input; observations are moved to the middle row's time (docs/config.md).
     #[arg(long, default_value = "auto", env = "EGOSLAM_ROLLING_SHUTTER_MS")]
     pub rolling_shutter_ms: crate::readout::Readout,
+    /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
+    /// frames of a recorded input, read before the run, or of a live stream, which is
+    /// corrected from then on.
+    #[arg(long, default_value_t = crate::readout::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
+    pub readout_frames: u32,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,

@@ -38,6 +38,7 @@ pub struct FrontendSection {
     pub lk_window: Option<i32>,
     pub predict_motion: Option<bool>,
     pub rolling_shutter_ms: Option<crate::readout::Readout>,
+    pub readout_frames: Option<u32>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -153,6 +154,12 @@ impl Config {
         check("frontend.tracks", self.frontend.tracks, 50, 20_000)?;
         check("frontend.lk_window", self.frontend.lk_window, 3, 51)?;
         // frontend.rolling_shutter_ms: its range is checked as it is read (readout.rs).
+        check(
+            "frontend.readout_frames",
+            self.frontend.readout_frames,
+            23,
+            10_000,
+        )?;
         if self.frontend.lk_window.is_some_and(|w| w % 2 == 0) {
             bail!("frontend.lk_window must be odd");
         }
@@ -233,6 +240,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "rolling_shutter_ms",
         &mut p.rolling_shutter_ms,
         &c.frontend.rolling_shutter_ms,
+    );
+    fill(
+        m,
+        "readout_frames",
+        &mut p.readout_frames,
+        &c.frontend.readout_frames,
     );
     fill(m, "window", &mut p.window, &c.solver.window);
     fill(m, "overlap", &mut p.overlap, &c.solver.overlap);

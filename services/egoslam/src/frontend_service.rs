@@ -219,21 +219,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         cy: camera.cy,
         distortion: camera.distortion.to_vec(),
     };
-    // The readout is in range: checked where it is parsed (readout.rs). `auto` is resolved
-    // by `egoslam run` before it starts this service; started on its own (systemd, a live
-    // camera) the service cannot look ahead in the stream, so it assumes a global shutter.
-    let readout_s = args
-        .pipeline
-        .rolling_shutter_ms
-        .seconds()
-        .unwrap_or_else(|_| {
-            tracing::warn!(
-                "rolling_shutter_ms = auto is resolved only by `egoslam run` on a recorded input: \
-             a global shutter is assumed; `egoslam calibrate-readout --input RECORDING` \
-             estimates the value to configure"
-            );
-            0.0
-        });
+    // The readout is in range: checked where it is parsed (readout.rs). `auto` reaches this
+    // service only for a live stream: it is estimated from the first frames (readout.rs).
+    let (readout_s, mut online_readout) =
+        crate::readout::service_readout(&args.pipeline, &args.out);
     let options = crate::readout::tracker_options(&args.pipeline, readout_s);
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
@@ -317,6 +306,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         drop(image);
         drop(frame);
         stats.frames += 1;
+        if let Some(online) = &mut online_readout {
+            if crate::readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)? {
+                online_readout = None;
+            }
+        }
         if outcome.blind {
             stats.count("blind_frames", 1);
         }

@@ -37,6 +37,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--max-point-std={}", p.max_point_std),
         format!("--predict-motion={}", p.predict_motion),
         format!("--rolling-shutter-ms={}", p.rolling_shutter_ms),
+        format!("--readout-frames={}", p.readout_frames),
     ];
     flags
 }
@@ -45,10 +46,15 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
 /// frames (0 when no estimate can be made: too short or too still an input), and says
 /// what was used, for the report.
 fn resolve_readout(args: &mut RunArgs, input: &Path) -> serde_json::Value {
-    use crate::readout::{estimate_from_input, Readout, AUTO_FRAMES};
+    use crate::readout::{estimate_from_input, Readout};
     let given = args.pipeline.rolling_shutter_ms;
-    if given != Readout::Auto {
-        return json!({ "setting": given.to_string(), "readout_ms": given.seconds().ok().map(|s| s * 1e3) });
+    if let Readout::Millis(ms) = given {
+        return json!({ "setting": given.to_string(), "readout_ms": ms });
+    }
+    if matches!(detect_layout(input), Ok(Layout::Camera { .. })) {
+        // A live camera cannot be read ahead: the frontend estimates it from its first
+        // frames (readout.rs) and logs the value.
+        return json!({ "setting": "auto", "estimated_by": "the frontend, online" });
     }
     let started = Instant::now();
     let estimate = estimate_from_input(
@@ -56,7 +62,7 @@ fn resolve_readout(args: &mut RunArgs, input: &Path) -> serde_json::Value {
         args.fps,
         args.calib.as_deref(),
         &args.pipeline,
-        AUTO_FRAMES,
+        args.pipeline.readout_frames as usize,
     );
     let (readout_ms, details) = match estimate {
         Ok(e) => (
@@ -275,6 +281,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         crate::features_log::FILE_NAME,
         crate::frontend_service::KEYFRAME_LOG,
         crate::frontend_service::ID_STATE_FILE,
+        crate::readout::READOUT_STATE_FILE,
         crate::log_compaction::MERGER_MARK,
         crate::log_compaction::SOLVER_MARK,
     ] {

@@ -1,14 +1,15 @@
 //! The rolling-shutter readout setting (`--rolling-shutter-ms`, `frontend.rolling_shutter_ms`):
-//! a time in milliseconds, or `auto`, which `egoslam run` resolves before the services start
-//! by tracking the first frames of a recorded input and estimating the readout from them
-//! (`egoslam_frontend::readout_estimation`); `egoslam calibrate-readout` prints the same
-//! estimate for a recording, for cameras used live.
+//! a time in milliseconds, or `auto`, estimated from the video
+//! (`egoslam_frontend::readout_estimation`). `egoslam run` resolves it before the services
+//! start by tracking the first frames of a recorded input; a frontend service given `auto`
+//! (a live stream, which cannot be read ahead) estimates it from its first frames and
+//! corrects from then on. `egoslam calibrate-readout` prints the estimate for a recording.
 
 use crate::cli::PipelineArgs;
 use anyhow::{bail, Context};
 use egoslam_frontend::{
-    estimate_readout, FrameTracks, KeyframePolicy, ReadoutEstimate, ReadoutEstimationOptions,
-    Tracker, TrackerOptions,
+    estimate_readout, FrameTracks, KeyframePolicy, OnlineReadout, OnlineReadoutEstimator,
+    ReadoutEstimate, ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
 use egoslam_sources::{detect_layout, load_calibration, open_source, Layout};
 use opencv::prelude::*;
@@ -21,7 +22,94 @@ pub const MAX_READOUT_MS: f64 = 100.0;
 /// most of the pre-pass). 300 gave the same estimates on every sequence here (rendered
 /// 30 ms walks 29-30 ms, the 15 ms shake 16 ms, tum_fr1_rpy's 120 frames 22 ms, 0 on the
 /// global-shutter ones) at twice the cost.
-pub const AUTO_FRAMES: usize = 150;
+pub const AUTO_FRAMES: u32 = 150;
+
+/// File (in the output folder) with the readout a frontend estimated online, so that a
+/// restarted one goes on with it instead of estimating again.
+pub const READOUT_STATE_FILE: &str = "frontend.readout";
+
+/// Attempts of the online estimation (150 frames each) before a global shutter is assumed:
+/// 20 s of a still or blind start at 30 fps.
+const ONLINE_ATTEMPTS: u32 = 4;
+
+/// The readout a frontend service starts with, and the online estimator when `auto`
+/// reaches it (a live stream: `egoslam run` resolves it for recorded inputs) and no
+/// earlier estimate of this run is in `out`.
+pub fn service_readout(
+    pipeline: &PipelineArgs,
+    out: &Path,
+) -> (f64, Option<OnlineReadoutEstimator>) {
+    match pipeline.rolling_shutter_ms {
+        Readout::Millis(ms) => (ms / 1000.0, None),
+        Readout::Auto => {
+            let saved = std::fs::read_to_string(out.join(READOUT_STATE_FILE))
+                .ok()
+                .and_then(|t| t.trim().parse::<f64>().ok())
+                .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms));
+            match saved {
+                Some(ms) => {
+                    tracing::info!(
+                        readout_ms = ms,
+                        "rolling-shutter readout of this run, estimated before a restart"
+                    );
+                    (ms / 1000.0, None)
+                }
+                None => {
+                    tracing::info!(
+                        frames = pipeline.readout_frames,
+                        "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
+                    );
+                    let estimator = OnlineReadoutEstimator::new(
+                        ReadoutEstimationOptions::default(),
+                        pipeline.readout_frames as usize,
+                        ONLINE_ATTEMPTS,
+                    );
+                    (0.0, Some(estimator))
+                }
+            }
+        }
+    }
+}
+
+/// Feeds the frame just tracked to the online estimator; once it decides, sets the
+/// tracker's readout, saves it for a restart and returns true.
+pub fn observe_online(
+    online: &mut OnlineReadoutEstimator,
+    tracker: &mut Tracker,
+    timestamp_s: f64,
+    out: &Path,
+) -> anyhow::Result<bool> {
+    let frame = FrameTracks {
+        timestamp_s,
+        tracks: tracker.sample_tracks(usize::MAX),
+    };
+    let readout_s = match online.push(frame, &tracker.camera()) {
+        OnlineReadout::Collecting => return Ok(false),
+        OnlineReadout::Estimated(e) => {
+            tracing::info!(
+                readout_ms = e.readout_s * 1e3,
+                best_ms = e.best_s * 1e3,
+                residual_px = e.residual_px,
+                residual_at_zero_px = e.residual_at_zero_px,
+                pairs = e.pairs,
+                "rolling-shutter readout estimated online; corrected from now on"
+            );
+            e.readout_s
+        }
+        OnlineReadout::GaveUp(e) => {
+            tracing::warn!(
+                "no rolling-shutter readout estimate ({e}): a global shutter is assumed"
+            );
+            0.0
+        }
+    };
+    tracker.set_rolling_shutter_s(readout_s);
+    crate::output::write_atomically(
+        &out.join(READOUT_STATE_FILE),
+        format!("{:.3}\n", readout_s * 1e3).as_bytes(),
+    )?;
+    Ok(true)
+}
 
 /// The readout the frontend corrects for.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,20 +118,6 @@ pub enum Readout {
     Auto,
     /// Given, ms from the first row to the last (0: a global shutter).
     Millis(f64),
-}
-
-impl Readout {
-    /// The readout in seconds; `auto` must have been resolved by then.
-    pub fn seconds(self) -> anyhow::Result<f64> {
-        match self {
-            Readout::Millis(ms) => Ok(ms / 1000.0),
-            Readout::Auto => bail!(
-                "--rolling-shutter-ms auto is resolved by `egoslam run` from a recorded \
-                 input; a service needs the readout in ms (`egoslam calibrate-readout \
-                 --input RECORDING` estimates it)"
-            ),
-        }
-    }
 }
 
 impl std::str::FromStr for Readout {
@@ -190,9 +264,6 @@ pub struct CalibrateReadoutArgs {
     /// Calibration file (default: found next to the input, docs/config.md).
     #[arg(long)]
     pub calib: Option<PathBuf>,
-    /// Frames tracked.
-    #[arg(long, default_value_t = AUTO_FRAMES)]
-    pub frames: usize,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
 }
@@ -204,7 +275,7 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
         args.fps,
         args.calib.as_deref(),
         &args.pipeline,
-        args.frames,
+        args.pipeline.readout_frames as usize,
     )?;
     println!(
         "readout {:.0} ms ({} frame pairs; rotation-only residual {:.3} px, {:.3} px at a global shutter, best at {:.0} ms{})",
@@ -236,7 +307,6 @@ mod tests {
         assert!("101".parse::<Readout>().is_err());
         assert!("fast".parse::<Readout>().is_err());
         assert_eq!(Readout::Millis(12.5).to_string(), "12.5");
-        assert!(Readout::Auto.seconds().is_err());
         #[derive(serde::Deserialize)]
         struct Section {
             rolling_shutter_ms: Readout,

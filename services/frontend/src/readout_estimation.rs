@@ -301,6 +301,57 @@ pub fn estimate_readout(
     })
 }
 
+/// The estimation on a live stream, where nothing can be read ahead: frames are collected
+/// as they are tracked (with no correction) and the readout is estimated once `frames`
+/// are in; an input that gives no estimate (still, blind) is retried on the next `frames`,
+/// `attempts` times in all, and then taken as a global shutter.
+#[derive(Debug, Clone)]
+pub struct OnlineReadoutEstimator {
+    options: ReadoutEstimationOptions,
+    frames: usize,
+    attempts_left: u32,
+    collected: Vec<FrameTracks>,
+}
+
+/// What [`OnlineReadoutEstimator::push`] decided.
+#[derive(Debug, Clone, PartialEq)]
+pub enum OnlineReadout {
+    /// Still collecting frames.
+    Collecting,
+    /// Estimated: correct with `readout_s` from now on.
+    Estimated(ReadoutEstimate),
+    /// No estimate after every attempt (the last error): a global shutter is assumed.
+    GaveUp(ReadoutEstimationError),
+}
+
+impl OnlineReadoutEstimator {
+    /// Collects `frames` frames per attempt, `attempts` times at most.
+    pub fn new(options: ReadoutEstimationOptions, frames: usize, attempts: u32) -> Self {
+        Self {
+            options,
+            frames: frames.max(options.min_pairs + 3),
+            attempts_left: attempts.max(1),
+            collected: Vec::new(),
+        }
+    }
+
+    /// Adds the next frame's tracks (as the tracker reports them without correction).
+    pub fn push(&mut self, frame: FrameTracks, camera: &PinholeRadtan) -> OnlineReadout {
+        self.collected.push(frame);
+        if self.collected.len() < self.frames {
+            return OnlineReadout::Collecting;
+        }
+        let result = estimate_readout(&self.collected, camera, &self.options);
+        self.collected.clear();
+        self.attempts_left = self.attempts_left.saturating_sub(1);
+        match result {
+            Ok(estimate) => OnlineReadout::Estimated(estimate),
+            Err(e) if self.attempts_left == 0 => OnlineReadout::GaveUp(e),
+            Err(_) => OnlineReadout::Collecting,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -378,6 +429,49 @@ mod tests {
             .expect("estimate");
         assert_eq!(e.readout_s, 0.0, "{e:?}");
         assert!(!e.significant || e.best_s <= 0.002, "{e:?}");
+    }
+
+    #[test]
+    fn online_estimation_decides_after_its_frames_and_gives_up_on_a_still_camera() {
+        let (camera, frames) = turning_camera(0.025);
+        let mut online = OnlineReadoutEstimator::new(ReadoutEstimationOptions::default(), 40, 2);
+        let mut decided = None;
+        for (k, f) in frames.iter().enumerate() {
+            match online.push(f.clone(), &camera) {
+                OnlineReadout::Collecting => assert!(k < 39, "frame {k}"),
+                other => decided = Some((k, other)),
+            }
+        }
+        match decided {
+            Some((39, OnlineReadout::Estimated(e))) => {
+                assert!((e.readout_s - 0.025).abs() <= 0.002, "{e:?}")
+            }
+            other => panic!("{other:?}"),
+        }
+        // A camera that does not move: two attempts, then a global shutter.
+        let still = FrameTracks {
+            timestamp_s: 0.0,
+            tracks: frames[0].tracks.clone(),
+        };
+        let mut online = OnlineReadoutEstimator::new(ReadoutEstimationOptions::default(), 30, 2);
+        let outcomes: Vec<OnlineReadout> = (0..60)
+            .map(|k| {
+                let mut f = still.clone();
+                f.timestamp_s = k as f64 / 30.0;
+                online.push(f, &camera)
+            })
+            .collect();
+        assert!(outcomes[..59]
+            .iter()
+            .all(|o| *o == OnlineReadout::Collecting));
+        assert!(
+            matches!(
+                outcomes[59],
+                OnlineReadout::GaveUp(ReadoutEstimationError::TooFewPairs { .. })
+            ),
+            "{:?}",
+            outcomes[59]
+        );
     }
 
     #[test]

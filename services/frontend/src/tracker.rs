@@ -125,6 +125,12 @@ impl Tracker {
         }
     }
 
+    /// Sets the rolling-shutter readout from now on (seconds; `auto` on a live stream
+    /// decides it after the first frames). Keyframes already made keep their positions.
+    pub fn set_rolling_shutter_s(&mut self, readout_s: f64) {
+        self.options.rolling_shutter_s = readout_s;
+    }
+
     /// The camera the tracks are undistorted with.
     pub fn camera(&self) -> PinholeRadtan {
         self.camera
