@@ -27,7 +27,7 @@ fn localize(map: &Path, input: &Path, out: &Path, extra: &[&str]) -> Output {
 /// returns the localization report. The map is built assuming a global shutter: the
 /// queries are single frames, which relocalization cannot correct for a rolling shutter,
 /// and against a map corrected for one (`auto` finds 21 ms on the TUM clip) fewer of
-/// them relocalize (docs/relocalization.md: 112 of 120, 18 of 25 non-keyframes, against
+/// them relocalize (docs/relocalization.md: 112 of 120, 21 of 25 non-keyframes, against
 /// 114 and 23). The other sequences here are global-shutter, where `auto` gives 0.
 fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
     let map = dir.join("map.egomap");

@@ -79,6 +79,8 @@ struct Track {
     at_keyframe: Option<Point2f>,
     /// Motion over the last frame, pixels (`None` for a track born on the last frame).
     velocity: Option<Point2f>,
+    /// Motion over the frame before (`None` for a track younger than two frames).
+    previous_velocity: Option<Point2f>,
 }
 
 /// Stateful tracker of one stream.
@@ -399,6 +401,7 @@ impl Tracker {
                 Ok(b) => kept.push(Track {
                     pos: *b,
                     velocity: Some(Point2f::new(b.x - track.pos.x, b.y - track.pos.y)),
+                    previous_velocity: track.velocity,
                     ..*track
                 }),
                 Err(true) => rejected += 1,
@@ -502,6 +505,7 @@ impl Tracker {
                 pos,
                 at_keyframe: None,
                 velocity: None,
+                previous_velocity: None,
             });
             self.next_track_id += 1;
         }
@@ -509,9 +513,10 @@ impl Tracker {
     }
 
     /// The raw position a track's geometry is computed from (its undistorted pixel): with
-    /// a rolling shutter, moved along its velocity over the last frame (for a track born on
-    /// this frame, the median one, which is only measured when `predict_motion` is on, else
-    /// none) from its row's capture time to the middle row's; its
+    /// a rolling shutter, moved along its velocity at this frame (the motion over the last
+    /// frame extrapolated by the change from the frame before, when the track is that old;
+    /// for a track born on this frame, the median motion, which is only measured when
+    /// `predict_motion` is on, else none) from its row's capture time to the middle row's; its
     /// row is read `(y - h/2) / h` of the readout after the middle row. The published raw
     /// position stays where the track is in the image, for descriptors and patches.
     fn published_raw(&self, t: &Track) -> Point2f {
@@ -520,7 +525,13 @@ impl Tracker {
         if !(readout > 0.0 && step > 0.0) {
             return t.pos;
         }
-        let v = t.velocity.unwrap_or(self.image_velocity);
+        // The motion over the last frame is the velocity half a frame ago; with the frame
+        // before, it is carried to this frame's time (second order).
+        let v = match (t.velocity, t.previous_velocity) {
+            (Some(a), Some(b)) => Point2f::new(a.x + 0.5 * (a.x - b.x), a.y + 0.5 * (a.y - b.y)),
+            (Some(a), None) => a,
+            _ => self.image_velocity,
+        };
         let h = self.camera.height as f64;
         let shift = ((f64::from(t.pos.y) - h / 2.0) / h * readout / step) as f32;
         Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)

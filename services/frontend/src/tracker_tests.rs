@@ -317,3 +317,59 @@ fn a_rolling_shutter_readout_moves_observations_to_the_middle_row_time() {
     }
     assert_eq!(c[1].tracks, ka.tracks);
 }
+
+#[test]
+fn a_rolling_shutter_correction_uses_the_velocity_at_the_frame_time() {
+    // An accelerating pan: the content is i^2 px left at frame i, so its velocity at frame
+    // i is 2i px per frame, while the motion over the last frame is 2i - 1 (the velocity
+    // half a frame earlier). The correction must follow the former: on rows read over 10 ms
+    // from the middle one the two differ by >= 0.3 px.
+    let big = texture(1000, 300);
+    let (w, h) = (320, 240);
+    let rolling = TrackerOptions {
+        rolling_shutter_s: 0.030,
+        ..TrackerOptions::default()
+    };
+    let offset = |i: u64| (i * i) as f64;
+    let mut global = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let mut shutter = Tracker::new(camera(w as u32, h as u32), rolling);
+    let mut pairs = Vec::new();
+    for i in 0..24u64 {
+        let frame = crop(&big, offset(i) as i32, 30, w, h);
+        let t = i as f64 / 30.0;
+        let a = global.process_timed(i, t, &frame).expect("global").keyframe;
+        let b = shutter
+            .process_timed(i, t, &frame)
+            .expect("rolling")
+            .keyframe;
+        if let (Some(a), Some(b)) = (a, b) {
+            pairs.push((i, a, b));
+        }
+    }
+    let (i, ka, kb) = pairs
+        .iter()
+        .find(|(i, _, _)| *i >= 10)
+        .expect("a keyframe after frame 10");
+    let velocity = 2.0 * *i as f64 * 30.0; // px/s, leftwards
+    let (mut far_rows, mut right) = (0, 0);
+    for (ta, tb) in ka.tracks.iter().zip(&kb.tracks) {
+        let dt_row = (f64::from(ta.raw.y) - h as f64 / 2.0) / h as f64 * 0.030;
+        if dt_row.abs() < 0.010 {
+            continue;
+        }
+        far_rows += 1;
+        let moved = f64::from(tb.undistorted.x - ta.undistorted.x);
+        if (moved - velocity * dt_row).abs() < 0.1 {
+            right += 1;
+        }
+    }
+    // Tracks born lately use the median motion instead; most are old enough.
+    assert!(
+        far_rows > 30,
+        "{far_rows} tracks on far rows (keyframe at frame {i})"
+    );
+    assert!(
+        right * 10 > far_rows * 8,
+        "{right} of {far_rows} tracks moved by the velocity at the frame time"
+    );
+}
