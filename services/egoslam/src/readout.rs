@@ -86,14 +86,7 @@ pub fn observe_online(
     let readout_s = match online.push(frame, &tracker.camera()) {
         OnlineReadout::Collecting => return Ok(false),
         OnlineReadout::Estimated(e) => {
-            tracing::info!(
-                readout_ms = e.readout_s * 1e3,
-                best_ms = e.best_s * 1e3,
-                residual_px = e.residual_px,
-                residual_at_zero_px = e.residual_at_zero_px,
-                pairs = e.pairs,
-                "rolling-shutter readout estimated online; corrected from now on"
-            );
+            log_estimate(&e, "online; corrected from now on");
             e.readout_s
         }
         OnlineReadout::GaveUp(e) => {
@@ -223,16 +216,24 @@ pub fn estimate_from_input(
     let fit_started = std::time::Instant::now();
     let estimate = estimate_readout(&frames, &camera, &ReadoutEstimationOptions::default())
         .with_context(|| format!("estimating the readout of {}", input.display()))?;
-    tracing::info!(
-        readout_ms = estimate.readout_s * 1e3,
-        best_ms = estimate.best_s * 1e3,
-        residual_px = estimate.residual_px,
-        residual_at_zero_px = estimate.residual_at_zero_px,
-        pairs = estimate.pairs,
+    tracing::debug!(
         fit_ms = fit_started.elapsed().as_secs_f64() * 1e3,
-        "rolling-shutter readout estimated"
+        "readout fit"
     );
+    log_estimate(&estimate, "from the input's first frames");
     Ok(estimate)
+}
+
+/// Logs an estimate with the residuals it rests on.
+fn log_estimate(e: &ReadoutEstimate, how: &str) {
+    tracing::info!(
+        readout_ms = e.readout_s * 1e3,
+        best_ms = e.best_s * 1e3,
+        residual_px = e.residual_px,
+        residual_at_zero_px = e.residual_at_zero_px,
+        pairs = e.pairs,
+        "rolling-shutter readout estimated {how}"
+    );
 }
 
 /// The tracker's options from the pipeline's, with the readout given in seconds.

@@ -23,7 +23,7 @@
 //! rolling shutter.
 
 use crate::tracker::TrackPoint;
-use egoslam_geometry::{rotation_aligning, PinholeRadtan};
+use egoslam_geometry::{rotation_aligning_trimmed, PinholeRadtan};
 use nalgebra::{Point2, Vector2, Vector3};
 use std::collections::HashMap;
 
@@ -180,24 +180,13 @@ fn samples(
         .collect()
 }
 
-/// Mean-square residual (pixels) of the best rotation between the pairs' bearings, after
-/// trimming twice to 3x the median residual.
+/// Root-mean-square residual (pixels) of the best rotation between the pairs' bearings,
+/// after trimming twice to 3x the median residual; NaN when trimming leaves under 3 pairs.
 fn rotation_only_rms(pairs: &[(Vector3<f64>, Vector3<f64>)], focal_px: f64) -> f64 {
-    let mut kept = pairs.to_vec();
-    let mut r = rotation_aligning(&kept);
-    for _ in 0..2 {
-        let res: Vec<f64> = pairs.iter().map(|(a, b)| (r * a - b).norm()).collect();
-        let cut = 3.0 * median(res.clone()).max(1e-12);
-        kept = pairs
-            .iter()
-            .zip(&res)
-            .filter(|(_, e)| **e <= cut)
-            .map(|(p, _)| *p)
-            .collect();
-        if kept.len() < 3 {
-            return f64::NAN;
-        }
-        r = rotation_aligning(&kept);
+    let (r, kept, complete) =
+        rotation_aligning_trimmed(pairs, |r, (a, b)| (r * a - b).norm(), 1e-12);
+    if !complete {
+        return f64::NAN;
     }
     let sq: f64 = kept.iter().map(|(a, b)| (r * a - b).norm_squared()).sum();
     (sq / kept.len() as f64).sqrt() * focal_px

@@ -75,6 +75,45 @@ pub fn rotation_aligning(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Rotation3<f6
     )
 }
 
+/// A bearing pair `(a, b)`: the same point seen from two views.
+pub type BearingPair = (Vector3<f64>, Vector3<f64>);
+
+/// [`rotation_aligning`] made robust to the pairs no rotation explains (moving objects,
+/// mismatches, parallax): fitted, then twice refitted on the pairs whose `residual` is
+/// within 3x the median (at least `floor`). Returns the rotation and the pairs of the last
+/// trimming; when that left fewer than 3 pairs the rotation is the one before it and the
+/// flag is false. Used by the solver's rotation-only edge model and the readout estimate.
+pub fn rotation_aligning_trimmed(
+    pairs: &[BearingPair],
+    residual: impl Fn(&Rotation3<f64>, &BearingPair) -> f64,
+    floor: f64,
+) -> (Rotation3<f64>, Vec<BearingPair>, bool) {
+    let mut kept = pairs.to_vec();
+    let mut r = rotation_aligning(&kept);
+    for _ in 0..2 {
+        let res: Vec<f64> = pairs.iter().map(|p| residual(&r, p)).collect();
+        let mut sorted = res.clone();
+        let mid = sorted.len() / 2;
+        let median = if sorted.is_empty() {
+            0.0
+        } else {
+            *sorted.select_nth_unstable_by(mid, f64::total_cmp).1
+        };
+        let cut = 3.0 * median.max(floor);
+        kept = pairs
+            .iter()
+            .zip(&res)
+            .filter(|(_, e)| **e <= cut)
+            .map(|(p, _)| *p)
+            .collect();
+        if kept.len() < 3 {
+            return (r, kept, false);
+        }
+        r = rotation_aligning(&kept);
+    }
+    (r, kept, true)
+}
+
 /// The rotation closest to `m` in the Frobenius norm (SVD projection onto SO(3), with the
 /// reflection fix). Used for chordal rotation means and Kabsch/Wahba fits: for
 /// `m = sum b_i a_i^T` it is the rotation best mapping the `a_i` onto the `b_i`.

@@ -18,7 +18,7 @@
 //!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
 
 use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};
-use egoslam_geometry::rotation_aligning;
+use egoslam_geometry::rotation_aligning_trimmed;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
@@ -126,24 +126,10 @@ fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     a.normalize().dot(&b.normalize()).clamp(-1.0, 1.0).acos()
 }
 
-/// Rotation-only fit, trimmed twice to the matches within 3x the median residual.
+/// Rotation-only fit, trimmed twice to the matches within 3x the median residual, and the
+/// median residual (radians) of the matches it kept.
 fn rotation_only(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> (Rotation3<f64>, f64) {
-    let mut kept: Vec<(Vector3<f64>, Vector3<f64>)> = pairs.to_vec();
-    let mut r = rotation_aligning(&kept);
-    for _ in 0..2 {
-        let res: Vec<f64> = pairs.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
-        let cut = 3.0 * median(res.clone()).max(1e-6);
-        kept = pairs
-            .iter()
-            .zip(&res)
-            .filter(|(_, e)| **e <= cut)
-            .map(|(p, _)| *p)
-            .collect();
-        if kept.len() < 3 {
-            break;
-        }
-        r = rotation_aligning(&kept);
-    }
+    let (r, kept, _) = rotation_aligning_trimmed(pairs, |r, (bi, bj)| angle(&(r * bi), bj), 1e-6);
     let res: Vec<f64> = kept.iter().map(|(bi, bj)| angle(&(r * bi), bj)).collect();
     (r, median(res))
 }
