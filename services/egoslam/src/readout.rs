@@ -28,8 +28,8 @@ pub const AUTO_FRAMES: u32 = 150;
 /// restarted one goes on with it instead of estimating again.
 pub const READOUT_STATE_FILE: &str = "frontend.readout";
 
-/// Attempts of the online estimation (150 frames each) before a global shutter is assumed:
-/// 20 s of a still or blind start at 30 fps.
+/// Attempts of the online estimation (`readout_frames` each) before a global shutter is
+/// assumed: at the default 150, 20 s of a still or blind start at 30 fps.
 const ONLINE_ATTEMPTS: u32 = 4;
 
 /// The readout a frontend service starts with, and the online estimator when `auto`
