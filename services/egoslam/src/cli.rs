@@ -75,8 +75,9 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
-    /// global shutter), or `auto`: estimated by `egoslam run` from the first frames of a
-    /// recorded input; observations are moved to the middle row's time (docs/config.md).
+    /// global shutter), or `auto`: estimated from the first frames (read ahead by `egoslam
+    /// run` in a recorded input; on a live stream by the frontend, which corrects from then
+    /// on); observations are moved to the middle row's time (docs/config.md).
     #[arg(long, default_value = "auto", env = "EGOSLAM_ROLLING_SHUTTER_MS")]
     pub rolling_shutter_ms: crate::readout::Readout,
     /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
