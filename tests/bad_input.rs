@@ -179,3 +179,18 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
     assert_eq!(report["wrong_size_frames"], 1);
     assert_eq!(report["posed_frames"], 39);
 }
+
+#[test]
+fn calibrate_readout_refuses_a_missing_input() {
+    let out = egoslam()
+        .args(["calibrate-readout", "--input", "/nonexistent/sequence"])
+        .output()
+        .expect("calibrate-readout");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        err.contains("/nonexistent/sequence") && err.contains("No such file"),
+        "{err}"
+    );
+}

@@ -287,3 +287,30 @@ fn run_writes_every_output_and_the_report() {
             > 0.0
     );
 }
+
+/// `egoslam calibrate-readout` on the TUM clip: the estimate and the configuration line
+/// (docs/config.md; measured 21 ms).
+#[test]
+fn calibrate_readout_reads_the_clip() {
+    let out = egoslam()
+        .args(["calibrate-readout", "--input"])
+        .arg(tum_fixture())
+        .output()
+        .expect("calibrate-readout");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ms: f64 = text
+        .strip_prefix("readout ")
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no readout in: {text}"));
+    assert!((15.0..=30.0).contains(&ms), "{text}");
+    assert!(
+        text.contains(&format!("rolling_shutter_ms = {ms}")),
+        "{text}"
+    );
+}
