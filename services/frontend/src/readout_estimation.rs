@@ -23,7 +23,7 @@
 //! rolling shutter.
 
 use crate::tracker::TrackPoint;
-use egoslam_geometry::{rotation_aligning_trimmed, PinholeRadtan};
+use egoslam_geometry::{median, rotation_aligning_trimmed, PinholeRadtan};
 use nalgebra::{Point2, Vector2, Vector3};
 use std::collections::HashMap;
 
@@ -129,14 +129,6 @@ impl Sample {
         let p = self.pixel - self.velocity * (self.row_offset * readout_s);
         camera.bearing_from_undistorted(Point2::new(p.x, p.y))
     }
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 /// The frame's tracks with velocities from the frames either side (central difference),

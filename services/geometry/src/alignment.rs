@@ -92,14 +92,7 @@ pub fn rotation_aligning_trimmed(
     let mut r = rotation_aligning(&kept);
     for _ in 0..2 {
         let res: Vec<f64> = pairs.iter().map(|p| residual(&r, p)).collect();
-        let mut sorted = res.clone();
-        let mid = sorted.len() / 2;
-        let median = if sorted.is_empty() {
-            0.0
-        } else {
-            *sorted.select_nth_unstable_by(mid, f64::total_cmp).1
-        };
-        let cut = 3.0 * median.max(floor);
+        let cut = 3.0 * crate::median(res.clone()).max(floor);
         kept = pairs
             .iter()
             .zip(&res)

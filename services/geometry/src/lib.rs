@@ -4,6 +4,7 @@
 
 pub mod alignment;
 pub mod camera;
+pub mod median;
 pub mod point_uncertainty;
 pub mod relative_pose_error;
 pub mod structure_error;
@@ -14,6 +15,7 @@ pub use alignment::{
     AlignmentError, BearingPair, RobustAlignmentOptions, Similarity,
 };
 pub use camera::{CameraError, PinholeRadtan};
+pub use median::median;
 pub use point_uncertainty::PointInformation;
 pub use relative_pose_error::{relative_pose_error, RpeReport};
 pub use structure_error::{alignment_from_poses, structure_error, StructureReport};

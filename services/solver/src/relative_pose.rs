@@ -18,7 +18,7 @@
 //!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
 
 use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};
-use egoslam_geometry::rotation_aligning_trimmed;
+use egoslam_geometry::{median, rotation_aligning_trimmed};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
@@ -112,14 +112,6 @@ pub enum RelativePoseError {
     TooFewInliers(usize),
     #[error("OpenCV: {0}")]
     OpenCv(String),
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
