@@ -131,34 +131,39 @@ impl Sample {
     }
 }
 
-/// The frame's tracks with velocities from the frames either side (central difference),
-/// keyed by track id; tracks not seen in both neighbours are left out.
+/// A frame's undistorted track positions by track id.
+type Positions = HashMap<u64, Vector2<f64>>;
+
+fn positions(frame: &FrameTracks) -> Positions {
+    frame
+        .tracks
+        .iter()
+        .map(|t| {
+            let u = t.undistorted;
+            (t.track_id, Vector2::new(f64::from(u.x), f64::from(u.y)))
+        })
+        .collect()
+}
+
+/// The frame's tracks with velocities from the frames either side (central difference;
+/// `before` and `after` are those frames' [`positions`] and times), keyed by track id;
+/// tracks not seen in both neighbours are left out.
 fn samples(
     camera: &PinholeRadtan,
-    before: &FrameTracks,
+    (before, before_s): (&Positions, f64),
     frame: &FrameTracks,
-    after: &FrameTracks,
+    (after, after_s): (&Positions, f64),
 ) -> HashMap<u64, Sample> {
-    let dt = after.timestamp_s - before.timestamp_s;
+    let dt = after_s - before_s;
     if dt.is_nan() || dt <= 0.0 {
         return HashMap::new();
     }
-    let index = |f: &FrameTracks| -> HashMap<u64, Vector2<f64>> {
-        f.tracks
-            .iter()
-            .map(|t| {
-                let u = t.undistorted;
-                (t.track_id, Vector2::new(f64::from(u.x), f64::from(u.y)))
-            })
-            .collect()
-    };
-    let (b, a) = (index(before), index(after));
     let h = f64::from(camera.height);
     frame
         .tracks
         .iter()
         .filter_map(|t| {
-            let (pb, pa) = (b.get(&t.track_id)?, a.get(&t.track_id)?);
+            let (pb, pa) = (before.get(&t.track_id)?, after.get(&t.track_id)?);
             let u = t.undistorted;
             Some((
                 t.track_id,
@@ -199,8 +204,10 @@ pub fn estimate_readout(
             max_readout_s: max,
         });
     }
+    let indexed: Vec<Positions> = frames.iter().map(positions).collect();
+    let neighbour = |k: usize| (&indexed[k], frames[k].timestamp_s);
     let per_frame: Vec<HashMap<u64, Sample>> = (1..frames.len().saturating_sub(1))
-        .map(|k| samples(camera, &frames[k - 1], &frames[k], &frames[k + 1]))
+        .map(|k| samples(camera, neighbour(k - 1), &frames[k], neighbour(k + 1)))
         .collect();
     let pairs: Vec<Vec<(Sample, Sample)>> = per_frame
         .windows(2)
