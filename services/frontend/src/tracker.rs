@@ -273,17 +273,7 @@ impl Tracker {
         let step = old.len().div_ceil(max.max(1)).max(1);
         old.iter()
             .step_by(step)
-            .map(|t| {
-                let p = self.published_raw(t);
-                let und = self
-                    .camera
-                    .undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
-                TrackPoint {
-                    track_id: t.id,
-                    raw: Point2::new(t.pos.x, t.pos.y),
-                    undistorted: Point2::new(und.x as f32, und.y as f32),
-                }
-            })
+            .map(|t| self.track_point(t))
             .collect()
     }
 
@@ -537,28 +527,30 @@ impl Tracker {
         Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)
     }
 
+    /// A track as published: its raw image position and its undistorted geometric one
+    /// ([`Tracker::published_raw`]).
+    fn track_point(&self, t: &Track) -> TrackPoint {
+        let p = self.published_raw(t);
+        let und = self
+            .camera
+            .undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
+        TrackPoint {
+            track_id: t.id,
+            raw: Point2::new(t.pos.x, t.pos.y),
+            undistorted: Point2::new(und.x as f32, und.y as f32),
+        }
+    }
+
     fn make_keyframe(
         &mut self,
         frame_id: u64,
         reason: KeyframeReason,
         mean_flow_px: f64,
     ) -> KeyframeTracks {
-        let camera = self.camera;
-        let published: Vec<Point2f> = self.tracks.iter().map(|t| self.published_raw(t)).collect();
-        let tracks = self
-            .tracks
-            .iter_mut()
-            .zip(published)
-            .map(|(t, p)| {
-                t.at_keyframe = Some(t.pos);
-                let und = camera.undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
-                TrackPoint {
-                    track_id: t.id,
-                    raw: Point2::new(t.pos.x, t.pos.y),
-                    undistorted: Point2::new(und.x as f32, und.y as f32),
-                }
-            })
-            .collect();
+        let tracks = self.tracks.iter().map(|t| self.track_point(t)).collect();
+        for t in &mut self.tracks {
+            t.at_keyframe = Some(t.pos);
+        }
         self.tracks_at_keyframe = self.tracks.len();
         self.frames_since_keyframe = 0;
         let keyframe_id = self.next_keyframe_id;

@@ -52,8 +52,9 @@ pub struct TrackerOptions {
     /// Rolling-shutter readout, seconds from the first row to the last (default 0: a
     /// global shutter). With a readout, each published observation's undistorted position
     /// (what geometry uses; the raw one stays in the image) is moved to where the track was
-    /// at the middle row's time, along its own image velocity over the last frame
-    /// (first order: constant velocity over the readout), so that the solver, which models
+    /// at the middle row's time, along its own image velocity at the frame's time (its
+    /// motion over the last frame carried forward by the change since the frame before;
+    /// first order: constant velocity over the readout), so that the solver, which models
     /// a global shutter, sees one instant per frame. Needs the frames' timestamps
     /// ([`Tracker::process_timed`]).
     pub rolling_shutter_s: f64,
