@@ -4,8 +4,11 @@ use crate::cli::{PipelineArgs, RunArgs};
 use crate::output::{camera_yaml, write_atomically};
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
+use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::ground_truth::GroundTruth;
-use egoslam_sources::{detect_layout, load_calibration, load_ground_truth, open_source, Layout};
+use egoslam_sources::{
+    detect_layout, load_calibration, load_ground_truth, open_source, Frame, FrameSource, Layout,
+};
 use opencv::prelude::*;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -43,24 +46,31 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
 }
 
 /// Replaces `--rolling-shutter-ms auto` by the readout estimated from the input's first
-/// frames (0 when no estimate can be made: too short or too still an input), and says
-/// what was used, for the report.
-fn resolve_readout(args: &mut RunArgs, input: &Path) -> serde_json::Value {
-    use crate::readout::{estimate_from_input, Readout};
+/// frames (`first`, then the rest of `source`; 0 when no estimate can be made: too short or
+/// too still an input), and says what was used, for the report.
+fn resolve_readout(
+    args: &mut RunArgs,
+    input: &Path,
+    layout: &Layout,
+    first: Frame,
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+) -> serde_json::Value {
+    use crate::readout::{estimate_from_frames, Readout};
     let given = args.pipeline.rolling_shutter_ms;
     if let Readout::Millis(ms) = given {
         return json!({ "setting": given.to_string(), "readout_ms": ms });
     }
-    if matches!(detect_layout(input), Ok(Layout::Camera { .. })) {
+    if matches!(layout, Layout::Camera { .. }) {
         // A live camera cannot be read ahead: the frontend estimates it from its first
         // frames (readout.rs) and logs the value.
         return json!({ "setting": "auto", "estimated_by": "the frontend, online" });
     }
     let started = Instant::now();
-    let estimate = estimate_from_input(
-        input,
-        args.fps,
-        args.calib.as_deref(),
+    let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
+    let estimate = estimate_from_frames(
+        frames,
+        camera,
         &args.pipeline,
         args.pipeline.readout_frames as usize,
     );
@@ -76,10 +86,11 @@ fn resolve_readout(args: &mut RunArgs, input: &Path) -> serde_json::Value {
             }),
         ),
         Err(e) => {
+            let e = format!("estimating the readout of {}: {e}", input.display());
             tracing::warn!(
-                "no rolling-shutter readout estimate ({e:#}): a global shutter is assumed"
+                "no rolling-shutter readout estimate ({e}): a global shutter is assumed"
             );
-            (0.0, json!({ "error": format!("{e:#}") }))
+            (0.0, json!({ "error": e }))
         }
     };
     args.pipeline.rolling_shutter_ms = Readout::Millis(readout_ms);
@@ -266,8 +277,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: no frames", input.display()))??;
     let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
+    let readout_report =
+        resolve_readout(&mut args, &input, &layout, first, source.as_mut(), camera);
     drop(source);
-    let readout_report = resolve_readout(&mut args, &input);
 
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;

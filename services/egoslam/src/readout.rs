@@ -9,9 +9,10 @@ use crate::cli::PipelineArgs;
 use anyhow::{bail, Context};
 use egoslam_frontend::{
     estimate_readout, FrameTracks, KeyframePolicy, OnlineReadout, OnlineReadoutEstimator,
-    ReadoutEstimate, ReadoutEstimationOptions, Tracker, TrackerOptions,
+    ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
-use egoslam_sources::{detect_layout, load_calibration, open_source, Layout};
+use egoslam_geometry::PinholeRadtan;
+use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, Layout, SourceError};
 use opencv::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -162,41 +163,23 @@ impl<'de> serde::Deserialize<'de> for Readout {
     }
 }
 
-/// Tracks up to `max_frames` frames of `input` with no readout correction and estimates
-/// the readout from them. Stops early at a frame that cannot be read (the run itself
-/// reports it).
-pub fn estimate_from_input(
-    input: &Path,
-    fps: f64,
-    calibration: Option<&Path>,
+/// Tracks up to `max_frames` of `frames` (an input's first frames, as its source reads
+/// them) with no readout correction and estimates the readout from them. Stops early at a
+/// frame that cannot be read or tracked (the run itself reports it).
+pub fn estimate_from_frames(
+    frames: impl Iterator<Item = Result<Frame, SourceError>>,
+    camera: PinholeRadtan,
     pipeline: &PipelineArgs,
     max_frames: usize,
-) -> anyhow::Result<ReadoutEstimate> {
-    let layout = detect_layout(input)?;
-    if matches!(layout, Layout::Camera { .. }) {
-        bail!("--rolling-shutter-ms auto needs a recorded input, not a live camera: record a few seconds of turning the head and run `egoslam calibrate-readout` on it");
-    }
-    let mut source = open_source(input, fps)?;
-    let calibration = load_calibration(&layout, calibration)?;
-    let mut tracker: Option<Tracker> = None;
-    let mut frames = Vec::new();
-    while frames.len() < max_frames {
-        let frame = match source.next_frame() {
-            Some(Ok(frame)) => frame,
-            Some(Err(e)) => {
+) -> Result<ReadoutEstimate, ReadoutEstimationError> {
+    let mut tracker = Tracker::new(camera, tracker_options(pipeline, 0.0));
+    let mut tracked = Vec::new();
+    for frame in frames.take(max_frames) {
+        let frame = match frame {
+            Ok(frame) => frame,
+            Err(e) => {
                 tracing::warn!(%e, "readout estimation stops at a frame it cannot read");
                 break;
-            }
-            None => break,
-        };
-        let tracker = match &mut tracker {
-            Some(t) => t,
-            None => {
-                let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-                tracker.insert(Tracker::new(
-                    calibration.camera_for(w, h)?,
-                    tracker_options(pipeline, 0.0),
-                ))
             }
         };
         // A frame the tracker refuses (another size) ends the estimation likewise.
@@ -204,18 +187,13 @@ pub fn estimate_from_input(
             tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
             break;
         }
-        frames.push(FrameTracks {
+        tracked.push(FrameTracks {
             timestamp_s: frame.timestamp,
             tracks: tracker.sample_tracks(usize::MAX),
         });
     }
-    let camera = tracker
-        .as_ref()
-        .map(Tracker::camera)
-        .with_context(|| format!("{}: no frames", input.display()))?;
     let fit_started = std::time::Instant::now();
-    let estimate = estimate_readout(&frames, &camera, &ReadoutEstimationOptions::default())
-        .with_context(|| format!("estimating the readout of {}", input.display()))?;
+    let estimate = estimate_readout(&tracked, &camera, &ReadoutEstimationOptions::default())?;
     tracing::debug!(
         fit_ms = fit_started.elapsed().as_secs_f64() * 1e3,
         "readout fit"
@@ -271,13 +249,25 @@ pub struct CalibrateReadoutArgs {
 
 /// Prints the estimate as the configuration line to use.
 pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
-    let e = estimate_from_input(
-        &args.input,
-        args.fps,
-        args.calib.as_deref(),
+    let input = &args.input;
+    let layout = detect_layout(input)?;
+    if matches!(layout, Layout::Camera { .. }) {
+        bail!("calibrate-readout needs a recording, not a live camera: record a few seconds of turning the head and give that");
+    }
+    let mut source = open_source(input, args.fps)?;
+    let first = source
+        .next_frame()
+        .with_context(|| format!("{}: no frames", input.display()))??;
+    let camera = load_calibration(&layout, args.calib.as_deref())?
+        .camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
+    let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
+    let e = estimate_from_frames(
+        frames,
+        camera,
         &args.pipeline,
         args.pipeline.readout_frames as usize,
-    )?;
+    )
+    .with_context(|| format!("estimating the readout of {}", input.display()))?;
     println!(
         "readout {:.0} ms ({} frame pairs; rotation-only residual {:.3} px, {:.3} px at a global shutter, best at {:.0} ms{})",
         e.readout_s * 1e3,
