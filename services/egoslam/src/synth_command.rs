@@ -161,15 +161,10 @@ fn write_png(
     if depth == png::BitDepth::Sixteen {
         encoder.set_deflate_compression(png::DeflateCompression::Level(3));
     }
-    let mut writer = encoder
-        .write_header()
-        .with_context(|| format!("{}: encoding", path.display()))?;
-    writer
-        .write_image_data(bytes)
-        .with_context(|| format!("{}: encoding", path.display()))?;
-    writer
-        .finish()
-        .with_context(|| format!("{}: encoding", path.display()))?;
+    let encoding = || format!("{}: encoding", path.display());
+    let mut writer = encoder.write_header().with_context(encoding)?;
+    writer.write_image_data(bytes).with_context(encoding)?;
+    writer.finish().with_context(encoding)?;
     std::fs::write(path, &encoded).with_context(|| format!("{}: could not write", path.display()))
 }
 
@@ -324,20 +319,19 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         Ok(())
     });
     for (i, pose) in poses.iter().enumerate() {
-        let shutter: Vec<_> = if rolling {
-            // The readout, centred on the frame time (the ground-truth pose is the middle
-            // row's); clipped at the ends of the sequence.
-            let half =
-                (args.rolling_shutter_ms / 1000.0 * args.fps * sub as f64 / 2.0).round() as usize;
-            let centre = i * sub;
-            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec()
+        // The sub-frame poses of the exposure (the readout, or the open shutter), centred
+        // on the frame time (the ground-truth pose is the middle row's) and clipped at the
+        // ends of the sequence; without either, the frame's own pose.
+        let half = if rolling {
+            (args.rolling_shutter_ms / 1000.0 * args.fps * sub as f64 / 2.0).round() as usize
         } else if sub > 1 {
-            let half = ((sub as f64 * options.shutter) / 2.0).round() as usize;
-            let centre = i * sub;
-            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec()
+            ((sub as f64 * options.shutter) / 2.0).round() as usize
         } else {
-            vec![*pose]
+            0
         };
+        let centre = i * sub;
+        let shutter =
+            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec();
         let render_start = Instant::now();
         let in_dark =
             dark.is_some_and(|(start, length)| (start..start + length).contains(&pose.timestamp));
