@@ -46,8 +46,9 @@ pub struct ReadoutEstimationOptions {
     /// rotation fit and its trimming need a margin over 3).
     pub min_tracks: usize,
     /// Tracks of a frame pair used, evenly spread by track id (default 1000, the
-    /// frontend's default track count: the fit takes 35-270 ms on 120-300 frames, little
-    /// next to tracking them; 200 moved tum_fr1_rpy's estimate from 22 to 20 ms).
+    /// frontend's default track count: the fit then took 76 ms on tum_fr1_rpy's 120 frames
+    /// and 270 ms on 300 rendered ones, little next to tracking them; 200 moved
+    /// tum_fr1_rpy's estimate from 22 to 20 ms).
     pub max_tracks: usize,
     /// Frame pairs whose median track moved less than this, pixels, are left out
     /// (default 1.0): a still camera says nothing about the readout, and its pairs would
