@@ -56,7 +56,7 @@ fn resolve_readout(
     source: &mut dyn FrameSource,
     camera: PinholeRadtan,
 ) -> serde_json::Value {
-    use crate::readout::{estimate_from_frames, Readout};
+    use crate::readout::{estimate_from_source, Readout};
     let given = args.pipeline.rolling_shutter_ms;
     if let Readout::Millis(ms) = given {
         return json!({ "setting": given.to_string(), "readout_ms": ms });
@@ -67,13 +67,7 @@ fn resolve_readout(
         return json!({ "setting": "auto", "estimated_by": "the frontend, online" });
     }
     let started = Instant::now();
-    let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
-    let estimate = estimate_from_frames(
-        frames,
-        camera,
-        &args.pipeline,
-        args.pipeline.readout_frames as usize,
-    );
+    let estimate = estimate_from_source(first, source, camera, &args.pipeline);
     let (readout_ms, details) = match estimate {
         Ok(e) => (
             e.readout_s * 1e3,

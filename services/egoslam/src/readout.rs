@@ -12,7 +12,7 @@ use egoslam_frontend::{
     ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
 use egoslam_geometry::PinholeRadtan;
-use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, Layout, SourceError};
+use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, FrameSource, Layout};
 use opencv::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -163,18 +163,19 @@ impl<'de> serde::Deserialize<'de> for Readout {
     }
 }
 
-/// Tracks up to `max_frames` of `frames` (an input's first frames, as its source reads
-/// them) with no readout correction and estimates the readout from them. Stops early at a
-/// frame that cannot be read or tracked (the run itself reports it).
-pub fn estimate_from_frames(
-    frames: impl Iterator<Item = Result<Frame, SourceError>>,
+/// Tracks an input's first `pipeline.readout_frames` frames (`first`, already read, then
+/// the rest of `source`) with no readout correction and estimates the readout from them.
+/// Stops early at a frame that cannot be read or tracked (the run itself reports it).
+pub fn estimate_from_source(
+    first: Frame,
+    source: &mut dyn FrameSource,
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
-    max_frames: usize,
 ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
     let mut tracker = Tracker::new(camera, tracker_options(pipeline, 0.0));
     let mut tracked = Vec::new();
-    for frame in frames.take(max_frames) {
+    let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
+    for frame in frames.take(pipeline.readout_frames as usize) {
         let frame = match frame {
             Ok(frame) => frame,
             Err(e) => {
@@ -260,14 +261,8 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: no frames", input.display()))??;
     let camera = load_calibration(&layout, args.calib.as_deref())?
         .camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
-    let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
-    let e = estimate_from_frames(
-        frames,
-        camera,
-        &args.pipeline,
-        args.pipeline.readout_frames as usize,
-    )
-    .with_context(|| format!("estimating the readout of {}", input.display()))?;
+    let e = estimate_from_source(first, source.as_mut(), camera, &args.pipeline)
+        .with_context(|| format!("estimating the readout of {}", input.display()))?;
     println!(
         "readout {:.0} ms ({} frame pairs; rotation-only residual {:.3} px, {:.3} px at a global shutter, best at {:.0} ms{})",
         e.readout_s * 1e3,
