@@ -12,6 +12,7 @@ pub mod provisional_scale;
 pub mod refinement;
 pub mod relocalized_scale;
 pub mod retriangulation;
+pub mod scale_break;
 pub mod scene_depth;
 pub mod segment_linking;
 pub mod speed_continuity;

@@ -20,6 +20,7 @@
 //! against the observations.
 
 use crate::chaining::MapBuilder;
+use crate::scale_break::{locate_scale_break, ScaleBreakOptions};
 use crate::segment_linking::{
     relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
 };
@@ -46,12 +47,16 @@ pub struct LoopOptions {
     /// noise: on the 12,000-frame walk that gave loop scales of 0.01 and 37 and wrecked
     /// the map.
     pub min_shared_points: usize,
-    /// Largest scale change a loop may correct, as a factor either way (default 1.5).
-    /// Drift along a loop is gradual: on rendered walks whose map kept its scale, loops
-    /// corrected it by 0.97-0.99. A loop that asks for 37x (measured on the 12,000-frame
-    /// walk, where one window had broken the chain's scale) is not drift; spreading it
-    /// along the loop would distort all of it, so it is refused and logged.
+    /// Largest scale change a loop may spread as drift, as a factor either way (default
+    /// 1.5). Drift along a loop is gradual: on rendered walks whose map kept its scale,
+    /// loops corrected it by 0.97-0.99. A loop that asks for 37x (measured on the
+    /// 12,000-frame walk, where one window had broken the chain's scale) is not drift;
+    /// spreading it along the loop would distort all of it. Such a loop is applied as a
+    /// step where the map's pace shows the break (`scale_break`), and refused and logged
+    /// where it does not.
     pub max_scale_change: f64,
+    /// How a break is located ([`crate::scale_break`]).
+    pub scale_break: ScaleBreakOptions,
     /// Acceptance of the relocalized group (rotation and position tolerances, keyframes
     /// that must agree); segment linking's defaults.
     pub link: LinkOptions,
@@ -65,6 +70,7 @@ impl Default for LoopOptions {
             min_correction_fraction: 0.002,
             min_shared_points: 30,
             max_scale_change: 1.5,
+            scale_break: ScaleBreakOptions::default(),
             link: LinkOptions::default(),
         }
     }
@@ -83,6 +89,10 @@ pub struct LoopClosure {
     pub keyframes: usize,
     /// 3-D/3-D pairs that gave the scale.
     pub shared_points: usize,
+    /// When the scale change is a break, not drift (`LoopOptions::max_scale_change`): the
+    /// last keyframe before it ([`crate::scale_break`]). The keyframes after it take the
+    /// whole scale correction, those before none; `None`: drift, spread along the loop.
+    pub scale_step_after: Option<u64>,
 }
 
 /// What closing a loop did.
@@ -125,20 +135,40 @@ pub fn find_loop(
         return None;
     }
     let scale = agreement.transform.scale;
-    if !scale_is_drift(scale, options.max_scale_change) {
-        tracing::warn!(
+    let anchor_keyframe = agreement.old_keyframes.iter().copied().min()?;
+    let scale_step_after = if scale_is_drift(scale, options.max_scale_change) {
+        None
+    } else {
+        // Not drift: a break, if the map's pace shows one step of that factor.
+        let looped: Vec<(u64, StampedPose)> = sources
+            .map
+            .keyframes()
+            .filter(|(id, s, _)| *s == segment && *id >= anchor_keyframe)
+            .map(|(id, _, p)| (id, *p))
+            .collect();
+        let Some(found) = locate_scale_break(&looped, scale, &options.scale_break) else {
+            tracing::warn!(
+                scale,
+                shared_points = agreement.shared_points,
+                "loop refused: its scale change is not drift, and no single break in the map's pace explains it"
+            );
+            return None;
+        };
+        tracing::info!(
             scale,
-            shared_points = agreement.shared_points,
-            "loop refused: its scale change is not drift (the chain's scale broke inside the loop)"
+            after_keyframe = found.after_keyframe,
+            pace_ratio = found.pace_ratio,
+            "loop corrects a scale break as a step"
         );
-        return None;
-    }
+        Some(found.after_keyframe)
+    };
     Some(LoopClosure {
         segment,
-        anchor_keyframe: agreement.old_keyframes.iter().copied().min()?,
+        anchor_keyframe,
         transform: agreement.transform,
         keyframes: agreement.keyframes,
         shared_points: agreement.shared_points,
+        scale_step_after,
     })
 }
 
@@ -192,7 +222,11 @@ impl MapBuilder {
         // Rotation and scale per keyframe, and the chain re-integrated with them.
         let share = |k: usize| along[k] / path;
         let turn_at = |k: usize| UnitQuaternion::identity().slerp(&turn, share(k));
-        let scale_at = |k: usize| (share(k) * log_scale).exp();
+        let scale_at = |k: usize| match closure.scale_step_after {
+            Some(last_before) if ids[k] > last_before => closure.transform.scale,
+            Some(_) => 1.0,
+            None => (share(k) * log_scale).exp(),
+        };
         let mut centres = vec![old[0].position];
         for k in 1..old.len() {
             let step = old[k].position - old[k - 1].position;
@@ -310,6 +344,7 @@ mod tests {
             transform: drift(n - 1).inverse(),
             keyframes: 3,
             shared_points: 50,
+            scale_step_after: None,
         };
         let before: f64 = (0..n)
             .map(|i| (drifted(i).position - square_pose(i).position).norm_squared())
@@ -346,5 +381,64 @@ mod tests {
             ..closure
         };
         assert!(map.close_loop(&tiny, 0.002).is_none());
+    }
+
+    #[test]
+    fn a_scale_break_is_undone_as_a_step_where_spreading_would_bend_the_loop() {
+        // The chain's scale broke after keyframe 40: everything after it is 1.6 times too
+        // far from it. The loop's similarity maps those keyframes back exactly.
+        let (n, last_before, factor) = (81u64, 40u64, 1.6);
+        let pivot = square_pose(last_before).position;
+        let broken = |i: u64| {
+            let mut p = square_pose(i);
+            if i > last_before {
+                p.position = pivot + factor * (p.position - pivot);
+            }
+            p
+        };
+        let build = || {
+            let mut map = MapBuilder::new();
+            map.add_window(&WindowInput {
+                poses: (0..n).map(|i| (i, broken(i))).collect(),
+                points: vec![(7, broken(79).position + Vector3::new(0.0, 0.0, 2.0))],
+                observations: vec![(79, 7, Point2::new(320.0, 240.0))],
+                ..WindowInput::default()
+            });
+            map
+        };
+        let closure = LoopClosure {
+            segment: 0,
+            anchor_keyframe: 0,
+            transform: Similarity {
+                scale: 1.0 / factor,
+                rotation: Rotation3::identity(),
+                translation: pivot * (1.0 - 1.0 / factor),
+            },
+            keyframes: 3,
+            shared_points: 50,
+            scale_step_after: Some(last_before),
+        };
+        let error = |map: &MapBuilder| {
+            (0..n)
+                .map(|i| {
+                    let p = map.keyframe(i).expect("kf").1.position;
+                    (p - square_pose(i).position).norm()
+                })
+                .fold(0.0, f64::max)
+        };
+        let mut stepped = build();
+        stepped.close_loop(&closure, 0.002).expect("closed");
+        assert!(error(&stepped) < 1e-9, "{}", error(&stepped));
+        // The point seen first after the break came back with its keyframe.
+        let truth_point = square_pose(79).position + Vector3::new(0.0, 0.0, 2.0) / factor;
+        let point = stepped.points().find(|(t, _, _)| *t == 7).expect("point").2;
+        assert!((point - truth_point).norm() < 1e-9);
+        let mut spread = build();
+        let as_drift = LoopClosure {
+            scale_step_after: None,
+            ..closure
+        };
+        spread.close_loop(&as_drift, 0.002).expect("closed");
+        assert!(error(&spread) > 0.5, "{}", error(&spread));
     }
 }

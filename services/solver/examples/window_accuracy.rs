@@ -25,8 +25,9 @@ use std::path::{Path, PathBuf};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
-/// Keyframes of a whole sequence from the real tracker with default options.
-fn keyframes(path: &Path) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
+/// Keyframes of a whole sequence from the real tracker with default options, correcting
+/// for a rolling-shutter readout of `readout_s` (0: none).
+fn keyframes(path: &Path, readout_s: f64) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
     let layout = egoslam_sources::detect_layout(path)?;
     let calib = egoslam_sources::load_calibration(&layout, None)?;
     let mut source = egoslam_sources::open_source(path, 10.0)?;
@@ -41,8 +42,17 @@ fn keyframes(path: &Path) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> 
             Some(c) => c,
             None => *camera.insert(calib.camera_for(w, h)?),
         };
-        let t = tracker.get_or_insert_with(|| Tracker::new(cam, TrackerOptions::default()));
-        if let Some(k) = t.process(frame.index, &frame.image)?.keyframe {
+        let t = tracker.get_or_insert_with(|| {
+            let options = TrackerOptions {
+                rolling_shutter_s: readout_s,
+                ..TrackerOptions::default()
+            };
+            Tracker::new(cam, options)
+        });
+        if let Some(k) = t
+            .process_timed(frame.index, frame.timestamp, &frame.image)?
+            .keyframe
+        {
             let tracks = k.tracks.iter().map(|p| {
                 let u = p.undistorted;
                 (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
@@ -114,19 +124,29 @@ fn ba_from_truth(
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
     let (mut path, mut size, mut from_truth, mut verbose) = (None, 20usize, false, false);
+    let mut readout_ms = 0.0;
+    let mut start_from: Option<PathBuf> = None;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => size = args.next().ok_or("--window N")?.parse()?,
             "--ba-from-truth" => from_truth = true,
             "--verbose" => verbose = true,
+            "--ba-from" => start_from = Some(args.next().ok_or("--ba-from POSES.tum")?.into()),
+            "--rolling-shutter-ms" => {
+                readout_ms = args.next().ok_or("--rolling-shutter-ms MS")?.parse()?
+            }
             _ => path = Some(PathBuf::from(a)),
         }
     }
     let path =
-        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose]")?;
+        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS] [--ba-from POSES.tum]")?;
     opencv::core::set_num_threads(1)?;
     let truth = egoslam_sources::load_ground_truth(&path)?.poses;
-    let (camera, keyframes) = keyframes(&path)?;
+    let start_poses = match &start_from {
+        Some(file) => Some(egoslam_sources::ground_truth::read_tum_file(file)?),
+        None => None,
+    };
+    let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0)?;
     let options = WindowSolverOptions::default();
     let overlap = 5.min(size / 2);
     let mut cache = EdgeCache::new();
@@ -203,6 +223,27 @@ fn main() -> Result<()> {
                     .collect();
                 if let Some((e, px)) = ba_from_truth(&camera, window, &gt_all, &poses, &options) {
                     line += &format!("; BA from truth settles at {e:.4} m ({px:.3} px)");
+                }
+                let given: Option<Vec<CameraPose>> = start_poses.as_ref().and_then(|list| {
+                    window
+                        .iter()
+                        .map(|k| {
+                            nearest(list, k.timestamp).map(|g| CameraPose {
+                                rotation: g.rotation.to_rotation_matrix().inverse(),
+                                centre: g.position,
+                            })
+                        })
+                        .collect()
+                });
+                if let Some(given) = given {
+                    let centres: Vec<_> = given.iter().map(|p| p.centre).collect();
+                    let before = aligned_rmse(&centres, &gt_all).unwrap_or(f64::NAN);
+                    if let Some((e, px)) = ba_from_truth(&camera, window, &gt_all, &given, &options)
+                    {
+                        line += &format!(
+                            "; from the given poses ({before:.4} m) BA settles at {e:.4} m ({px:.3} px)"
+                        );
+                    }
                 }
             }
         }

@@ -1,0 +1,208 @@
+//! Where the chain of windows broke its scale, found from the walking pace.
+//!
+//! A loop whose scale correction is far beyond drift (say 0.65: the newest keyframes sit
+//! in a map 1.55 times too large) is not gradual drift but a break: one window across a
+//! sharp turn came out with the wrong scale and every window chained after it inherited
+//! it (measured on rendered 1500-frame walks with a rolling shutter: the map's length per
+//! true metre is flat for seconds, then steps by 0.86-1.56x at turns starting at
+//! 4000-5000 deg/s^2). Spreading such a correction along the loop, as drift is, would
+//! bend all of it, so such loops used to be refused.
+//!
+//! A step in scale is a step in the map's walking pace: a walker's speed in metres per
+//! second changes gradually, so the map's speed in its own units per second, compared
+//! over a few seconds before and after each keyframe, jumps by the break's factor exactly
+//! where the break is. The loop then corrects the scale as a step there
+//! ([`crate::loop_closure`]) instead of spreading it.
+
+use crate::median;
+use egoslam_geometry::StampedPose;
+
+/// How a scale break is located; defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScaleBreakOptions {
+    /// Seconds of keyframes on each side of a candidate whose paces are compared (default
+    /// 2: ~40 keyframes of walking, enough for a median to ignore the jitter of the turn
+    /// itself, short enough that two breaks seconds apart are told apart).
+    pub pace_window_s: f64,
+    /// Keyframe steps slower than this fraction of the loop's median pace are left out
+    /// (default 0.3: a stop's steps are the map's noise, and their ratio says nothing).
+    pub min_pace_fraction: f64,
+    /// Fewest moving steps on each side of a candidate (default 8).
+    pub min_steps: usize,
+    /// The pace must jump by the loop's factor within this factor either way (default
+    /// 1.25); otherwise the loop's scale is not one break's and nothing is located.
+    pub max_mismatch: f64,
+}
+
+impl Default for ScaleBreakOptions {
+    fn default() -> Self {
+        Self {
+            pace_window_s: 2.0,
+            min_pace_fraction: 0.3,
+            min_steps: 8,
+            max_mismatch: 1.25,
+        }
+    }
+}
+
+/// A located break.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScaleBreak {
+    /// The last keyframe with the old scale: those after it take the new one.
+    pub after_keyframe: u64,
+    /// The map's pace after the break over its pace before.
+    pub pace_ratio: f64,
+}
+
+/// The keyframe after which `keyframes` (in order, one segment, map poses) change their
+/// pace by the factor that `loop_scale` undoes (the pace after is `1 / loop_scale` times
+/// the pace before); `None` when no keyframe shows that step within
+/// `ScaleBreakOptions::max_mismatch`.
+pub fn locate_scale_break(
+    keyframes: &[(u64, StampedPose)],
+    loop_scale: f64,
+    options: &ScaleBreakOptions,
+) -> Option<ScaleBreak> {
+    if !(loop_scale.is_finite() && loop_scale > 0.0) || keyframes.len() < 2 * options.min_steps {
+        return None;
+    }
+    // Each step's pace (map units per second), stamped with its end time.
+    let steps: Vec<(f64, f64, f64)> = keyframes
+        .windows(2)
+        .filter_map(|w| {
+            let (a, b) = (&w[0].1, &w[1].1);
+            let dt = b.timestamp - a.timestamp;
+            (dt > 0.0).then(|| {
+                (
+                    a.timestamp,
+                    b.timestamp,
+                    (b.position - a.position).norm() / dt,
+                )
+            })
+        })
+        .collect();
+    let paces: Vec<f64> = steps.iter().map(|s| s.2).collect();
+    let typical = median(paces)?;
+    let moving = |s: &&(f64, f64, f64)| s.2 >= options.min_pace_fraction * typical;
+    let wanted = -loop_scale.ln();
+    let mut best: Option<(f64, ScaleBreak)> = None;
+    for (id, pose) in keyframes {
+        let t = pose.timestamp;
+        let before: Vec<f64> = steps
+            .iter()
+            .filter(|s| s.1 <= t && s.1 > t - options.pace_window_s)
+            .filter(moving)
+            .map(|s| s.2)
+            .collect();
+        let after: Vec<f64> = steps
+            .iter()
+            .filter(|s| s.0 >= t && s.1 <= t + options.pace_window_s)
+            .filter(moving)
+            .map(|s| s.2)
+            .collect();
+        if before.len() < options.min_steps || after.len() < options.min_steps {
+            continue;
+        }
+        let (Some(b), Some(a)) = (median(before), median(after)) else {
+            continue;
+        };
+        let jump = (a / b).ln();
+        // The strongest jump in the direction the loop asks for.
+        let strength = jump * wanted.signum();
+        if best.as_ref().is_none_or(|(s, _)| strength > *s) {
+            best = Some((
+                strength,
+                ScaleBreak {
+                    after_keyframe: *id,
+                    pace_ratio: a / b,
+                },
+            ));
+        }
+    }
+    let (_, found) = best?;
+    ((found.pace_ratio.ln() - wanted).abs() <= options.max_mismatch.ln()).then_some(found)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    /// A walk at 1.2 m/s with 20 keyframes per second, a stop of 2 s at 5-7 s, turning
+    /// its direction by 90 deg every 4 s; the map's scale is 1 before `break_at` seconds
+    /// and `after` from then on.
+    fn walk(break_at: f64, after: f64) -> Vec<(u64, StampedPose)> {
+        let mut position = Vector3::zeros();
+        let mut out = Vec::new();
+        for i in 0..400u64 {
+            let t = i as f64 * 0.05;
+            if i > 0 {
+                let speed = if (5.0..7.0).contains(&t) { 0.0 } else { 1.2 };
+                let heading = (t / 4.0).floor() * std::f64::consts::FRAC_PI_2;
+                let scale = if t > break_at { after } else { 1.0 };
+                // A little jitter, as a window leaves it.
+                let wobble = 1.0 + 0.05 * (i as f64 * 1.7).sin();
+                position +=
+                    scale * wobble * speed * 0.05 * Vector3::new(heading.cos(), 0.0, heading.sin());
+            }
+            out.push((
+                i,
+                StampedPose {
+                    timestamp: t,
+                    position,
+                    rotation: UnitQuaternion::identity(),
+                },
+            ));
+        }
+        out
+    }
+
+    #[test]
+    fn a_step_in_scale_is_found_where_the_pace_jumps() {
+        // The map after the break is 1.55 times too large: the loop asks for 1 / 1.55.
+        let keyframes = walk(11.0, 1.55);
+        let found = locate_scale_break(&keyframes, 1.0 / 1.55, &ScaleBreakOptions::default())
+            .expect("located");
+        // Keyframe 220 is at 11.0 s; the median needs a step or two of the new pace.
+        assert!(
+            (218..=222).contains(&found.after_keyframe),
+            "{}",
+            found.after_keyframe
+        );
+        assert!(
+            (found.pace_ratio - 1.55).abs() < 0.05,
+            "{}",
+            found.pace_ratio
+        );
+        // The other way round (the map shrank).
+        let shrunk = walk(14.0, 0.6);
+        let found =
+            locate_scale_break(&shrunk, 1.0 / 0.6, &ScaleBreakOptions::default()).expect("located");
+        assert!((278..=282).contains(&found.after_keyframe));
+    }
+
+    #[test]
+    fn no_break_is_claimed_where_the_pace_does_not_jump_by_the_loop_s_factor() {
+        // Steady scale: a loop asking for 0.6 is not explained by any step.
+        let steady = walk(100.0, 1.0);
+        assert_eq!(
+            locate_scale_break(&steady, 0.6, &ScaleBreakOptions::default()),
+            None
+        );
+        // A break of 1.2 does not explain a loop asking for 1 / 2.
+        let small = walk(11.0, 1.2);
+        assert_eq!(
+            locate_scale_break(&small, 0.5, &ScaleBreakOptions::default()),
+            None
+        );
+        // Too few keyframes, or a nonsense scale.
+        assert_eq!(
+            locate_scale_break(&steady[..10], 0.6, &ScaleBreakOptions::default()),
+            None
+        );
+        assert_eq!(
+            locate_scale_break(&steady, f64::NAN, &ScaleBreakOptions::default()),
+            None
+        );
+    }
+}
