@@ -253,6 +253,38 @@ mod tests {
     }
 
     #[test]
+    fn shared_points_that_say_the_pace_jumped_several_fold_are_overruled_by_it() {
+        // Firmly joined (60 points, every keyframe sees them all), but the window pulled
+        // its points 10x towards the shared keyframes: their scale says ~40 where the pace
+        // says 4. Such a window is broken; the pace is the wearer's.
+        let pulled = |factor: f64| {
+            let mut w = walk(25..45, 0.3, 0.75, 1000, 0);
+            let centre = w.poses[..5]
+                .iter()
+                .map(|(_, p)| p.position)
+                .sum::<Vector3<f64>>()
+                / 5.0;
+            for (_, x) in &mut w.points {
+                *x = centre + factor * (*x - centre);
+            }
+            w
+        };
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        let broken = pulled(0.1);
+        assert!(!map.lacks_shared_points(&broken));
+        let (scale, source) = chained(map.add_window(&broken));
+        assert_eq!(source, ScaleSource::WalkingPace);
+        assert!((scale - 4.0).abs() < 1e-9, "{scale}");
+        // Pulled by half, within what a pace may change: the points decide.
+        let mut map = MapBuilder::new();
+        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        let (scale, source) = chained(map.add_window(&pulled(0.5)));
+        assert_eq!(source, ScaleSource::SharedPoints);
+        assert!(scale > 6.0, "{scale}");
+    }
+
+    #[test]
     fn a_stop_inside_the_span_does_not_slow_the_pace() {
         let options = SpeedContinuityOptions::default();
         // 1 s walking at 1.2, then 1 s standing.
