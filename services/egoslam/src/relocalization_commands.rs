@@ -62,6 +62,22 @@ pub struct LocalizeArgs {
     /// Vocabulary the map was built with (default: the built-in one).
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
+    /// Rolling-shutter readout of the input's camera, milliseconds (0: a global shutter).
+    /// Each frame's pose is then refined with the camera's turn during the readout;
+    /// `egoslam calibrate-readout` measures it from a recording.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_readout_ms)]
+    pub rolling_shutter_ms: f64,
+}
+
+/// A readout in milliseconds, 0-100.
+fn parse_readout_ms(text: &str) -> Result<f64, String> {
+    let ms: f64 = text
+        .parse()
+        .map_err(|_| format!("{text}: not a number of milliseconds"))?;
+    if !(0.0..=100.0).contains(&ms) {
+        return Err(format!("{text}: must be between 0 and 100 ms"));
+    }
+    Ok(ms)
 }
 
 /// A query's features: GFTT corners, their ORB descriptors, undistorted positions.
@@ -204,7 +220,10 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let mut source = open_source(&args.input, args.fps)?;
     let total = source.len_hint();
     let relocalizer = Relocalizer::new(vocabulary, map);
-    let options = RelocalizerOptions::default();
+    let options = RelocalizerOptions {
+        rolling_shutter_s: args.rolling_shutter_ms / 1000.0,
+        ..RelocalizerOptions::default()
+    };
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     let keyframe_stamps: Vec<f64> = relocalizer
         .map()
@@ -272,6 +291,7 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let mut report = json!({
         "map": args.map.display().to_string(),
         "input": args.input.display().to_string(),
+        "rolling_shutter_ms": args.rolling_shutter_ms,
         "frames": frames,
         "localized": count,
         "non_keyframes": non_keyframes,

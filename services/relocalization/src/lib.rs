@@ -10,6 +10,7 @@ pub mod descriptors;
 pub mod keyframe_database;
 pub mod patch_alignment;
 pub mod relocalizer;
+pub mod rolling_shutter_pose;
 pub mod rotation_relocalization;
 pub mod saved_map;
 pub mod vocabulary;

@@ -8,6 +8,7 @@ use crate::absolute_pose::{solve_pnp, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
 use crate::keyframe_database::KeyframeDatabase;
 use crate::patch_alignment::{align_patch, viewpoint_warp, AlignmentOptions, Patch};
+use crate::rolling_shutter_pose::{refine_rolling_shutter_pose, RollingShutterPoseOptions};
 use crate::rotation_relocalization::relocalize_by_rotation;
 use crate::vocabulary::Vocabulary;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -118,6 +119,13 @@ pub struct RelocalizerOptions {
     /// which says nothing about where the frame is beyond that: uses that need a position
     /// from the points (segment linking, scale) turn it off.
     pub place_by_rotation: bool,
+    /// The query frames' rolling-shutter readout, seconds (default 0: a global shutter).
+    /// A query frame has no tracks for the frontend's correction; with a readout its final
+    /// pose is refined together with the camera's turn during the readout
+    /// ([`crate::rolling_shutter_pose`]).
+    pub rolling_shutter_s: f64,
+    /// Settings of that refinement.
+    pub rolling_shutter: RollingShutterPoseOptions,
 }
 
 impl Default for RelocalizerOptions {
@@ -144,6 +152,8 @@ impl Default for RelocalizerOptions {
             rotation_threshold_px: 2.0,
             rotation_min_inlier_ratio: 0.5,
             place_by_rotation: true,
+            rolling_shutter_s: 0.0,
+            rolling_shutter: RollingShutterPoseOptions::default(),
         }
     }
 }
@@ -440,6 +450,29 @@ impl Relocalizer {
             .collect()
     }
 
+    /// `pose` refined on its inlier `pairs` with the camera's turn during a rolling-shutter
+    /// readout (`RelocalizerOptions::rolling_shutter_s`); `pose` itself with a global
+    /// shutter or when the refinement does not hold.
+    fn unrolled(
+        &self,
+        pose: StampedPose,
+        pairs: impl Iterator<Item = (Vector3<f64>, Point2<f64>)>,
+        options: &RelocalizerOptions,
+    ) -> StampedPose {
+        if options.rolling_shutter_s <= 0.0 {
+            return pose;
+        }
+        let pairs: Vec<_> = pairs.collect();
+        refine_rolling_shutter_pose(
+            &self.map.camera,
+            &pairs,
+            &pose,
+            options.rolling_shutter_s,
+            &options.rolling_shutter,
+        )
+        .map_or(pose, |r| r.pose)
+    }
+
     /// Relocalizes one frame.
     pub fn relocalize(
         &self,
@@ -509,18 +542,23 @@ impl Relocalizer {
                 ransac_threshold_px: options.refine_threshold_px,
                 ..options.pnp
             };
-            let refined = solve_pnp(
-                camera,
-                &self.correspondences(query, &projected),
-                Some(&solution.pose),
-                &refine,
-            );
+            let projected_pairs = self.correspondences(query, &projected);
+            let refined = solve_pnp(camera, &projected_pairs, Some(&solution.pose), &refine);
             let (pose, inliers) = match refined {
-                Ok(s) if s.inliers.len() >= solution.inliers.len() => {
-                    (s.pose, s.inliers.iter().map(|&i| projected[i]).collect())
-                }
+                Ok(s) if s.inliers.len() >= solution.inliers.len() => (
+                    self.unrolled(
+                        s.pose,
+                        s.inliers.iter().map(|&i| projected_pairs[i]),
+                        options,
+                    ),
+                    s.inliers.iter().map(|&i| projected[i]).collect(),
+                ),
                 _ => (
-                    solution.pose,
+                    self.unrolled(
+                        solution.pose,
+                        solution.inliers.iter().map(|&i| correspondences[i]),
+                        options,
+                    ),
                     solution.inliers.iter().map(|&i| matches[i]).collect(),
                 ),
             };
@@ -606,7 +644,11 @@ impl Relocalizer {
             Ok(solution) => Relocalization {
                 pose: StampedPose {
                     timestamp: found.pose.timestamp,
-                    ..solution.pose
+                    ..self.unrolled(
+                        solution.pose,
+                        solution.inliers.iter().map(|&i| aligned[i]),
+                        options,
+                    )
                 },
                 inliers: solution.inliers.iter().map(|&i| tracks[i]).collect(),
                 ..found
