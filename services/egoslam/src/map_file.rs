@@ -42,8 +42,13 @@ pub fn load_vocabulary(path: Option<&Path>) -> anyhow::Result<Vocabulary> {
 }
 
 /// The relocalization map of the merger's state: every keyframe of the map with its
-/// described tracks, and the points.
-pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> RelocalizationMap {
+/// described tracks, the points, and the rolling-shutter readout its frames were corrected
+/// for (`rolling_shutter_s`, 0 when a global shutter or not known).
+pub fn relocalization_map(
+    state: &MergerState,
+    camera: &PinholeRadtan,
+    rolling_shutter_s: f64,
+) -> RelocalizationMap {
     let points: HashMap<u64, (u32, nalgebra::Vector3<f64>)> = state
         .map
         .points()
@@ -73,6 +78,7 @@ pub fn relocalization_map(state: &MergerState, camera: &PinholeRadtan) -> Reloca
         camera: *camera,
         keyframes,
         points,
+        rolling_shutter_s,
     }
 }
 

@@ -590,7 +590,13 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let Some(camera) = &merger.camera else {
             bail!("no window was received: there is no map to save")
         };
-        let map = crate::map_file::relocalization_map(&merger.state, camera);
+        // `egoslam run` hands the services the readout it estimated; a frontend left to
+        // estimate it online (`auto` under systemd) keeps it to itself: 0, unknown.
+        let readout_s = match merger.args.pipeline.rolling_shutter_ms {
+            crate::readout::Readout::Millis(ms) => ms / 1000.0,
+            crate::readout::Readout::Auto => 0.0,
+        };
+        let map = crate::map_file::relocalization_map(&merger.state, camera, readout_s);
         let source = merger.args.out.display().to_string();
         crate::map_file::write_map(path, &map, &merger.vocabulary, &source)?;
     }

@@ -63,10 +63,11 @@ pub struct LocalizeArgs {
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
     /// Rolling-shutter readout of the input's camera, milliseconds (0: a global shutter).
-    /// Each frame's pose is then refined with the camera's turn during the readout;
-    /// `egoslam calibrate-readout` measures it from a recording.
-    #[arg(long, default_value_t = 0.0, value_parser = parse_readout_ms)]
-    pub rolling_shutter_ms: f64,
+    /// Each frame's pose is then refined with the camera's turn during the readout.
+    /// Default: the readout the map's run corrected its frames for (recorded in the map;
+    /// 0 in maps that do not know it); `egoslam calibrate-readout` measures it.
+    #[arg(long, value_parser = parse_readout_ms)]
+    pub rolling_shutter_ms: Option<f64>,
 }
 
 /// A readout in milliseconds, 0-100.
@@ -219,9 +220,12 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let mut source = open_source(&args.input, args.fps)?;
     let total = source.len_hint();
+    let readout_ms = args
+        .rolling_shutter_ms
+        .unwrap_or(map.rolling_shutter_s * 1000.0);
     let relocalizer = Relocalizer::new(vocabulary, map);
     let options = RelocalizerOptions {
-        rolling_shutter_s: args.rolling_shutter_ms / 1000.0,
+        rolling_shutter_s: readout_ms / 1000.0,
         ..RelocalizerOptions::default()
     };
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
@@ -291,7 +295,7 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let mut report = json!({
         "map": args.map.display().to_string(),
         "input": args.input.display().to_string(),
-        "rolling_shutter_ms": args.rolling_shutter_ms,
+        "rolling_shutter_ms": readout_ms,
         "frames": frames,
         "localized": count,
         "non_keyframes": non_keyframes,

@@ -264,6 +264,8 @@ pub(crate) fn relocalize_consistently(
             camera: *camera,
             keyframes: candidates,
             points,
+            // The pipeline's keyframe features are corrected already.
+            rolling_shutter_s: 0.0,
         },
     );
     let mut found: Vec<Relocalized> = Vec::new();

@@ -49,6 +49,9 @@ pub struct RelocalizationMap {
     pub keyframes: Vec<MapKeyframe>,
     /// track id -> (segment, position).
     pub points: HashMap<u64, (u32, Vector3<f64>)>,
+    /// Rolling-shutter readout the map's keyframes were corrected for, seconds (0: a global
+    /// shutter or unknown): the default for query frames from the same camera.
+    pub rolling_shutter_s: f64,
 }
 
 /// A query frame's features (undistorted pixels and their descriptors, same order).

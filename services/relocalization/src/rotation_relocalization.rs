@@ -217,6 +217,7 @@ mod tests {
             camera: camera(),
             keyframes,
             points: HashMap::new(),
+            rolling_shutter_s: 0.0,
         }
     }
 

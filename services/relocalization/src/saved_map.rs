@@ -125,6 +125,7 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
         }),
         vocabulary_id,
         source: source.to_string(),
+        rolling_shutter_s: map.rolling_shutter_s,
         keyframes: map
             .keyframes
             .iter()
@@ -219,6 +220,12 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
         .ok_or_else(|| SavedMapError::Invalid("no camera".into()))?;
     let camera = PinholeRadtan::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], [0.0; 5])
         .map_err(|e| SavedMapError::Invalid(format!("camera: {e}")))?;
+    let readout_s = message.rolling_shutter_s;
+    if !(0.0..=0.1).contains(&readout_s) {
+        return Err(SavedMapError::Invalid(format!(
+            "rolling-shutter readout {readout_s} s"
+        )));
+    }
     let mut points = HashMap::with_capacity(message.points.len());
     for p in &message.points {
         let x = finite3(p.position.as_ref(), &format!("point {}", p.track_id))?;
@@ -264,6 +271,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
             camera,
             keyframes,
             points,
+            rolling_shutter_s: readout_s,
         },
         message.vocabulary_id,
     ))
@@ -302,6 +310,7 @@ mod tests {
             camera,
             keyframes,
             points,
+            rolling_shutter_s: 0.021,
         }
     }
 

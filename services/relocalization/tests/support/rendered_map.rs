@@ -114,5 +114,6 @@ pub fn rendered_map(
         camera: camera(),
         keyframes,
         points,
+        rolling_shutter_s: 0.0,
     }
 }
