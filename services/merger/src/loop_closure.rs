@@ -17,7 +17,9 @@
 //! (each step of the chain is re-integrated with those), and the position left over at
 //! the end is spread linearly. Keyframes before the loop do not move; points move with
 //! the keyframe that first saw them. The background refinement then adjusts the result
-//! against the observations.
+//! against the observations. A scale change beyond drift is a break in the chain, not
+//! drift: it is applied as a step at the keyframe where the map's walking pace jumps by
+//! its factor ([`crate::scale_break`]), or the loop is refused.
 
 use crate::chaining::MapBuilder;
 use crate::scale_break::{locate_scale_break, ScaleBreakOptions};
