@@ -261,10 +261,13 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
     // The map's run estimated the readout (30 ms rendered) and the map kept it.
     let readout = f(&turned["rolling_shutter_ms"]);
     assert!((25.0..=35.0).contains(&readout), "{turned}");
-    // Measured: 125 of 150 both ways; median 9.8 cm and 1.32 deg without the turn, 3.0 cm
-    // and 0.34 deg with it.
-    assert_eq!(plain["localized"], turned["localized"], "{plain} {turned}");
-    assert!(f(&turned["localized"]) >= 115.0, "{turned}");
+    // Measured: 125 of 150 frames, median 9.8 cm and 1.32 deg without the turn; with it
+    // 150 (the turn in place at the end placed by rotation too), 2.6 cm and 0.24 deg.
+    assert!(f(&turned["localized"]) >= 145.0, "{turned}");
+    assert!(
+        f(&turned["localized"]) > f(&plain["localized"]),
+        "{plain} {turned}"
+    );
     let (p, t) = (&plain["accuracy"], &turned["accuracy"]);
     assert!(
         f(&t["median_position_m"]) < 0.5 * f(&p["median_position_m"]),

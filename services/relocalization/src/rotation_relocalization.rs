@@ -65,6 +65,45 @@ fn match_keyframe(
     matches
 }
 
+/// The rotation `R` and angular velocity `w` (query camera frame, rad/s) that best map each
+/// query bearing `q`, read `tau` seconds after the middle row, onto its keyframe bearing
+/// `k`: `R exp(w tau) q = k` (least squares, Gauss-Newton from `start` and no turn);
+/// `None` with fewer than 6 pairs or a singular system.
+fn rotation_with_turn(
+    pairs: &[(Vector3<f64>, Vector3<f64>, f64)],
+    start: &Rotation3<f64>,
+) -> Option<(Rotation3<f64>, Vector3<f64>)> {
+    if pairs.len() < 6 {
+        return None;
+    }
+    let (mut rotation, mut turn) = (*start, Vector3::zeros());
+    for _ in 0..10 {
+        let (mut jtj, mut jtr) = (
+            nalgebra::Matrix6::<f64>::zeros(),
+            nalgebra::Vector6::zeros(),
+        );
+        for (q, k, tau) in pairs {
+            let turned = Rotation3::new(turn * *tau) * q;
+            let predicted = rotation * turned;
+            let residual = predicted - k;
+            // d(R exp(d) v)/dd = -R [v]x for the rotation; the turn enters as tau d.
+            let block = -(rotation.matrix() * turned.cross_matrix());
+            let mut j = nalgebra::Matrix3x6::<f64>::zeros();
+            j.fixed_view_mut::<3, 3>(0, 0).copy_from(&block);
+            j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(block * *tau));
+            jtj += j.transpose() * j;
+            jtr += j.transpose() * residual;
+        }
+        let delta = jtj.cholesky()?.solve(&(-jtr));
+        rotation *= Rotation3::new(Vector3::new(delta[0], delta[1], delta[2]));
+        turn += Vector3::new(delta[3], delta[4], delta[5]);
+        if delta.norm() < 1e-12 {
+            break;
+        }
+    }
+    Some((rotation, turn))
+}
+
 /// The pose of `query` from the first of `candidates` (keyframe indices, best first) that
 /// turns in place and whose matches a rotation explains; `None` if none does.
 pub(crate) fn relocalize_by_rotation(
@@ -119,8 +158,34 @@ pub(crate) fn relocalize_by_rotation(
                 best = inliers;
             }
         }
-        let refined = rotation_aligning(&best.iter().map(|&m| pairs[m]).collect::<Vec<_>>());
-        let inliers = inliers_of(&refined);
+        let mut refined = rotation_aligning(&best.iter().map(|&m| pairs[m]).collect::<Vec<_>>());
+        let mut inliers = inliers_of(&refined);
+        // A rolling shutter shears a turning frame's bearings beyond the threshold: fit the
+        // turn during the readout on the matches near the rotation, and count again.
+        if options.rolling_shutter_s > 0.0 {
+            let h = f64::from(camera.height);
+            let near: Vec<(Vector3<f64>, Vector3<f64>, f64)> = (0..pairs.len())
+                .filter(|&m| (refined * pairs[m].0 - pairs[m].1).norm() < 4.0 * threshold)
+                .map(|m| {
+                    let row = query.pixels[matches[m].0].y;
+                    let tau = (row - h / 2.0) / h * options.rolling_shutter_s;
+                    (pairs[m].0, pairs[m].1, tau)
+                })
+                .collect();
+            if let Some((r, turn)) = rotation_with_turn(&near, &refined) {
+                let turned = |m: usize| {
+                    let row = query.pixels[matches[m].0].y;
+                    let tau = (row - h / 2.0) / h * options.rolling_shutter_s;
+                    r * Rotation3::new(turn * tau) * pairs[m].0
+                };
+                let rs_inliers: Vec<usize> = (0..pairs.len())
+                    .filter(|&m| (turned(m) - pairs[m].1).norm() < threshold)
+                    .collect();
+                if rs_inliers.len() > inliers.len() {
+                    (refined, inliers) = (r, rs_inliers);
+                }
+            }
+        }
         let enough = inliers.len() >= options.pnp.min_inliers
             && inliers.len() as f64 >= options.rotation_min_inlier_ratio * pairs.len() as f64;
         if !enough {
@@ -253,5 +318,27 @@ mod tests {
         assert!(
             relocalize_by_rotation(&turning, &query(&points, &moved), &[0, 1], &options).is_none()
         );
+    }
+
+    #[test]
+    fn a_turn_during_the_readout_is_fitted_with_the_rotation() {
+        // Bearings across the image, each read tau after the middle row, turned by a head
+        // scan of 150 deg/s (and some pitch) during a 30 ms readout.
+        let rotation = Rotation3::from_euler_angles(0.1, -0.4, 0.05);
+        let turn = Vector3::new(0.5, 2.6, 0.1);
+        let pairs: Vec<(Vector3<f64>, Vector3<f64>, f64)> = (0..60)
+            .map(|i| {
+                let (x, y) = ((i % 10) as f64 * 0.1 - 0.45, (i / 10) as f64 * 0.12 - 0.3);
+                let q = Vector3::new(x, y, 1.0).normalize();
+                let tau = y / 0.6 * 0.03;
+                (q, rotation * Rotation3::new(turn * tau) * q, tau)
+            })
+            .collect();
+        // From the rotation alone, a little off, as the 2-point RANSAC leaves it.
+        let start = rotation * Rotation3::from_euler_angles(0.01, 0.0, -0.01);
+        let (r, w) = rotation_with_turn(&pairs, &start).expect("fitted");
+        assert!(r.angle_to(&rotation) < 1e-6, "{}", r.angle_to(&rotation));
+        assert!((w - turn).norm() < 1e-3, "{w}");
+        assert!(rotation_with_turn(&pairs[..5], &start).is_none());
     }
 }
