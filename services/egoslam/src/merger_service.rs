@@ -591,11 +591,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             bail!("no window was received: there is no map to save")
         };
         // `egoslam run` hands the services the readout it estimated; a frontend left to
-        // estimate it online (`auto` under systemd) keeps it to itself: 0, unknown.
-        let readout_s = match merger.args.pipeline.rolling_shutter_ms {
-            crate::readout::Readout::Millis(ms) => ms / 1000.0,
-            crate::readout::Readout::Auto => 0.0,
+        // estimate it online (`auto` under systemd) saves it in the shared output folder
+        // (0 until it has, or if it gave up).
+        let readout_ms = match merger.args.pipeline.rolling_shutter_ms {
+            crate::readout::Readout::Millis(ms) => ms,
+            crate::readout::Readout::Auto => {
+                crate::readout::saved_readout_ms(&merger.args.out).unwrap_or(0.0)
+            }
         };
+        let readout_s = readout_ms / 1000.0;
         let map = crate::map_file::relocalization_map(&merger.state, camera, readout_s);
         let source = merger.args.out.display().to_string();
         crate::map_file::write_map(path, &map, &merger.vocabulary, &source)?;

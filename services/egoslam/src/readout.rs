@@ -33,6 +33,15 @@ pub const READOUT_STATE_FILE: &str = "frontend.readout";
 /// assumed: at the default 150, 20 s of a still or blind start at 30 fps.
 const ONLINE_ATTEMPTS: u32 = 4;
 
+/// The readout (ms) a frontend service of this run estimated online and saved in `out`,
+/// if any.
+pub fn saved_readout_ms(out: &Path) -> Option<f64> {
+    std::fs::read_to_string(out.join(READOUT_STATE_FILE))
+        .ok()
+        .and_then(|t| t.trim().parse::<f64>().ok())
+        .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms))
+}
+
 /// The readout a frontend service starts with, and the online estimator when `auto`
 /// reaches it (a live stream: `egoslam run` resolves it for recorded inputs) and no
 /// earlier estimate of this run is in `out`.
@@ -42,33 +51,27 @@ pub fn service_readout(
 ) -> (f64, Option<OnlineReadoutEstimator>) {
     match pipeline.rolling_shutter_ms {
         Readout::Millis(ms) => (ms / 1000.0, None),
-        Readout::Auto => {
-            let saved = std::fs::read_to_string(out.join(READOUT_STATE_FILE))
-                .ok()
-                .and_then(|t| t.trim().parse::<f64>().ok())
-                .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms));
-            match saved {
-                Some(ms) => {
-                    tracing::info!(
-                        readout_ms = ms,
-                        "rolling-shutter readout of this run, estimated before a restart"
-                    );
-                    (ms / 1000.0, None)
-                }
-                None => {
-                    tracing::info!(
+        Readout::Auto => match saved_readout_ms(out) {
+            Some(ms) => {
+                tracing::info!(
+                    readout_ms = ms,
+                    "rolling-shutter readout of this run, estimated before a restart"
+                );
+                (ms / 1000.0, None)
+            }
+            None => {
+                tracing::info!(
                         frames = pipeline.readout_frames,
                         "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
                     );
-                    let estimator = OnlineReadoutEstimator::new(
-                        ReadoutEstimationOptions::default(),
-                        pipeline.readout_frames as usize,
-                        ONLINE_ATTEMPTS,
-                    );
-                    (0.0, Some(estimator))
-                }
+                let estimator = OnlineReadoutEstimator::new(
+                    ReadoutEstimationOptions::default(),
+                    pipeline.readout_frames as usize,
+                    ONLINE_ATTEMPTS,
+                );
+                (0.0, Some(estimator))
             }
-        }
+        },
     }
 }
 
@@ -283,6 +286,21 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The readout a frontend saved is what the merger records in a saved map, and what a
+    /// restarted frontend resumes with; a damaged or impossible value is not used.
+    #[test]
+    fn a_saved_readout_is_read_back_and_a_bad_one_ignored() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        assert_eq!(saved_readout_ms(dir.path()), None);
+        let file = dir.path().join(READOUT_STATE_FILE);
+        std::fs::write(&file, "21.000\n").expect("write");
+        assert_eq!(saved_readout_ms(dir.path()), Some(21.0));
+        for bad in ["", "fast", "-3", "500", "NaN"] {
+            std::fs::write(&file, bad).expect("write");
+            assert_eq!(saved_readout_ms(dir.path()), None, "{bad:?}");
+        }
+    }
 
     #[test]
     fn parses_times_and_auto_and_refuses_the_rest() {
