@@ -61,9 +61,9 @@ pub fn service_readout(
             }
             None => {
                 tracing::info!(
-                        frames = pipeline.readout_frames,
-                        "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
-                    );
+                    frames = pipeline.readout_frames,
+                    "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
+                );
                 let estimator = OnlineReadoutEstimator::new(
                     ReadoutEstimationOptions::default(),
                     pipeline.readout_frames as usize,

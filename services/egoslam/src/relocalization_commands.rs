@@ -70,13 +70,15 @@ pub struct LocalizeArgs {
     pub rolling_shutter_ms: Option<f64>,
 }
 
-/// A readout in milliseconds, 0-100.
+/// A readout in milliseconds, 0 to [`crate::readout::MAX_READOUT_MS`] (`auto` has no
+/// meaning for single query frames).
 fn parse_readout_ms(text: &str) -> Result<f64, String> {
+    use crate::readout::MAX_READOUT_MS;
     let ms: f64 = text
         .parse()
         .map_err(|_| format!("{text}: not a number of milliseconds"))?;
-    if !(0.0..=100.0).contains(&ms) {
-        return Err(format!("{text}: must be between 0 and 100 ms"));
+    if !(0.0..=MAX_READOUT_MS).contains(&ms) {
+        return Err(format!("{text}: must be between 0 and {MAX_READOUT_MS} ms"));
     }
     Ok(ms)
 }

@@ -159,7 +159,6 @@ fn samples(
     if dt.is_nan() || dt <= 0.0 {
         return HashMap::new();
     }
-    let h = f64::from(camera.height);
     frame
         .tracks
         .iter()
@@ -171,7 +170,7 @@ fn samples(
                 Sample {
                     pixel: Vector2::new(f64::from(u.x), f64::from(u.y)),
                     velocity: (pa - pb) / dt,
-                    row_offset: (f64::from(t.raw.y) - h / 2.0) / h,
+                    row_offset: camera.row_offset(f64::from(t.raw.y)),
                 },
             ))
         })

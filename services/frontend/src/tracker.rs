@@ -522,8 +522,7 @@ impl Tracker {
             (Some(a), None) => a,
             _ => self.image_velocity,
         };
-        let h = self.camera.height as f64;
-        let shift = ((f64::from(t.pos.y) - h / 2.0) / h * readout / step) as f32;
+        let shift = (self.camera.row_offset(f64::from(t.pos.y)) * readout / step) as f32;
         Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)
     }
 

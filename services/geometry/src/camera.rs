@@ -150,6 +150,16 @@ impl PinholeRadtan {
         ))
     }
 
+    /// Where row `y` is read in a rolling-shutter readout, as a signed share of the readout
+    /// from the middle row: `(y - h/2) / h` (-0.5 at the top, +0.5 at the bottom). Times
+    /// the readout, it is the row's capture time after the frame's timestamp, which is the
+    /// middle row's; the frontend's correction, the readout estimate and the relocalizer's
+    /// turn during the readout all read rows this way.
+    pub fn row_offset(&self, y: f64) -> f64 {
+        let h = f64::from(self.height);
+        (y - h / 2.0) / h
+    }
+
     /// True when a pixel lies inside the image (with half-pixel borders).
     pub fn contains(&self, px: Point2<f64>) -> bool {
         px.x >= -0.5

@@ -23,12 +23,8 @@ pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
 /// The median of `values` (the upper one of an even count); `None` when empty. Scales,
 /// depths and errors in the merger are all taken this way, robust to the tail of points
 /// on occlusion edges and near the camera cluster.
-pub(crate) fn median(mut values: Vec<f64>) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    let mid = values.len() / 2;
-    Some(*values.select_nth_unstable_by(mid, f64::total_cmp).1)
+pub(crate) fn median(values: Vec<f64>) -> Option<f64> {
+    (!values.is_empty()).then(|| egoslam_geometry::median(values))
 }
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};

@@ -33,8 +33,9 @@ pub(crate) const MIN_JOIN_OBSERVATIONS: usize = 50;
 
 /// Largest factor by which a firmly joined window's shared-point scale may disagree with
 /// the walking pace ([`crate::speed_continuity`]) before the pace gives the scale instead
-/// (4). Where both are measured they agree within 0.96-1.04 on rendered global-shutter
-/// walks and within 0.84-1.35 at the sharp turns of rolling-shutter walks; a car's speed
+/// (4). Where both are measured they agree within 0.96-1.04 on a rendered global-shutter
+/// walk and within 0.76-1.92 on two walks rendered with a rolling shutter (the extremes at
+/// sharp turns; one window left out, below); a car's speed
 /// changes more (KITTI 0.43-1.40) and a hand-held camera's pace means little (TUM 0.60),
 /// so only a several-fold jump overrides the points. On a 1500-frame walk rendered with
 /// a 20 ms readout one window's points said 0.022 of the pace: they had collapsed the map

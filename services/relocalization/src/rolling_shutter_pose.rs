@@ -68,8 +68,7 @@ fn predict(
     observed: &Point2<f64>,
     readout_s: f64,
 ) -> Option<Point2<f64>> {
-    let h = f64::from(camera.height);
-    let tau = (observed.y - h / 2.0) / h * readout_s;
+    let tau = camera.row_offset(observed.y) * readout_s;
     let turn = Vector3::new(params[6], params[7], params[8]) * tau;
     let rotation = pose.rotation.to_rotation_matrix()
         * Rotation3::new(Vector3::new(params[0], params[1], params[2]))
@@ -113,9 +112,10 @@ fn rmse(r: &[[f64; 2]]) -> f64 {
 
 /// Refines `start` (world_from_camera, a global-shutter PnP pose) on inlier
 /// `correspondences` (map point, undistorted pixel in `camera`, the ideal camera) with a
-/// rolling shutter of `readout_s` seconds; `None` when there are too few correspondences,
-/// a point falls behind the camera, or the fit does not lower the cost with a plausible
-/// turn (the global-shutter pose then stands).
+/// rolling shutter of `readout_s` seconds (`start` itself, with no turn, when no step lowers
+/// the cost); `None` when there are too few correspondences, a point falls behind the
+/// camera, or the turn found is beyond `max_angular_velocity` (the global-shutter pose then
+/// stands).
 pub fn refine_rolling_shutter_pose(
     camera: &PinholeRadtan,
     correspondences: &[(Vector3<f64>, Point2<f64>)],
@@ -131,9 +131,11 @@ pub fn refine_rolling_shutter_pose(
     let mut params = Params::zeros();
     let first = residuals(camera, start, &params, correspondences, readout_s)?;
     let mut cost = huber_cost(&first, k);
+    // The residuals at `params`, carried from the step that was accepted.
+    let mut current = first.clone();
     let mut lambda = 1e-3;
     for _ in 0..options.iterations {
-        let r0 = residuals(camera, start, &params, correspondences, readout_s)?;
+        let r0 = &current;
         // Forward-difference Jacobian: 9 columns, a few hundred points.
         let mut jacobian = vec![[[0.0; 2]; 9]; r0.len()];
         for j in 0..9 {
@@ -141,7 +143,7 @@ pub fn refine_rolling_shutter_pose(
             let mut moved = params;
             moved[j] += step;
             let r1 = residuals(camera, start, &moved, correspondences, readout_s)?;
-            for (i, (a, b)) in r1.iter().zip(&r0).enumerate() {
+            for (i, (a, b)) in r1.iter().zip(r0).enumerate() {
                 jacobian[i][j] = [(a[0] - b[0]) / step, (a[1] - b[1]) / step];
             }
         }
@@ -171,6 +173,7 @@ pub fn refine_rolling_shutter_pose(
                 if c < cost {
                     params = candidate;
                     cost = c;
+                    current = r;
                     lambda = (lambda * 0.3).max(1e-9);
                     improved = true;
                     break;
@@ -186,7 +189,6 @@ pub fn refine_rolling_shutter_pose(
     if angular_velocity.norm() > options.max_angular_velocity {
         return None;
     }
-    let last = residuals(camera, start, &params, correspondences, readout_s)?;
     let rotation = start.rotation
         * UnitQuaternion::from_scaled_axis(Vector3::new(params[0], params[1], params[2]));
     Some(RollingShutterPose {
@@ -197,7 +199,7 @@ pub fn refine_rolling_shutter_pose(
         },
         angular_velocity,
         rmse_before_px: rmse(&first),
-        rmse_after_px: rmse(&last),
+        rmse_after_px: rmse(&current),
     })
 }
 

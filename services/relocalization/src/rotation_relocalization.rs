@@ -163,23 +163,21 @@ pub(crate) fn relocalize_by_rotation(
         // A rolling shutter shears a turning frame's bearings beyond the threshold: fit the
         // turn during the readout on the matches near the rotation, and count again.
         if options.rolling_shutter_s > 0.0 {
-            let h = f64::from(camera.height);
+            // Each match's capture time after the query's middle row.
+            let tau: Vec<f64> = matches
+                .iter()
+                .map(|&(qi, _)| camera.row_offset(query.pixels[qi].y) * options.rolling_shutter_s)
+                .collect();
             let near: Vec<(Vector3<f64>, Vector3<f64>, f64)> = (0..pairs.len())
                 .filter(|&m| (refined * pairs[m].0 - pairs[m].1).norm() < 4.0 * threshold)
-                .map(|m| {
-                    let row = query.pixels[matches[m].0].y;
-                    let tau = (row - h / 2.0) / h * options.rolling_shutter_s;
-                    (pairs[m].0, pairs[m].1, tau)
-                })
+                .map(|m| (pairs[m].0, pairs[m].1, tau[m]))
                 .collect();
             if let Some((r, turn)) = rotation_with_turn(&near, &refined) {
-                let turned = |m: usize| {
-                    let row = query.pixels[matches[m].0].y;
-                    let tau = (row - h / 2.0) / h * options.rolling_shutter_s;
-                    r * Rotation3::new(turn * tau) * pairs[m].0
-                };
                 let rs_inliers: Vec<usize> = (0..pairs.len())
-                    .filter(|&m| (turned(m) - pairs[m].1).norm() < threshold)
+                    .filter(|&m| {
+                        let turned = r * Rotation3::new(turn * tau[m]) * pairs[m].0;
+                        (turned - pairs[m].1).norm() < threshold
+                    })
                     .collect();
                 if rs_inliers.len() > inliers.len() {
                     (refined, inliers) = (r, rs_inliers);
