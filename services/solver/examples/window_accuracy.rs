@@ -10,6 +10,10 @@
 //! gap between the two is the solver's share of the error, the rest is the data's.
 //! `--window 1000` does the same for the whole sequence as one problem.
 //!
+//! `--rolling-shutter-ms MS` corrects the tracks for that readout as the frontend does;
+//! `--turn-prior RAD_S` then also estimates each keyframe's residual turn during the
+//! readout in bundle adjustment, with that prior (`BundleAdjustmentOptions::readout_s`).
+//!
 //! `cargo run --release -p egoslam-solver --example window_accuracy -- DATASET [--window N] [--ba-from-truth] [--verbose]`
 
 use egoslam_frontend::{Tracker, TrackerOptions};
@@ -126,12 +130,14 @@ fn main() -> Result<()> {
     let (mut path, mut size, mut from_truth, mut verbose) = (None, 20usize, false, false);
     let mut readout_ms = 0.0;
     let mut start_from: Option<PathBuf> = None;
+    let mut turn_prior: Option<f64> = None;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => size = args.next().ok_or("--window N")?.parse()?,
             "--ba-from-truth" => from_truth = true,
             "--verbose" => verbose = true,
             "--ba-from" => start_from = Some(args.next().ok_or("--ba-from POSES.tum")?.into()),
+            "--turn-prior" => turn_prior = Some(args.next().ok_or("--turn-prior RAD_S")?.parse()?),
             "--rolling-shutter-ms" => {
                 readout_ms = args.next().ok_or("--rolling-shutter-ms MS")?.parse()?
             }
@@ -139,7 +145,7 @@ fn main() -> Result<()> {
         }
     }
     let path =
-        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS] [--ba-from POSES.tum]")?;
+        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS [--turn-prior RAD_S]] [--ba-from POSES.tum]")?;
     opencv::core::set_num_threads(1)?;
     let truth = egoslam_sources::load_ground_truth(&path)?.poses;
     let start_poses = match &start_from {
@@ -147,7 +153,11 @@ fn main() -> Result<()> {
         None => None,
     };
     let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0)?;
-    let options = WindowSolverOptions::default();
+    let mut options = WindowSolverOptions::default();
+    if let Some(prior) = turn_prior {
+        options.bundle_adjustment.readout_s = readout_ms / 1000.0;
+        options.bundle_adjustment.turn_prior_rad_s = prior;
+    }
     let overlap = 5.min(size / 2);
     let mut cache = EdgeCache::new();
     let (mut start, mut sq, mut n) = (0usize, 0.0, 0usize);

@@ -7,13 +7,22 @@
 //! 2009 (the damped Schur-complement scheme); Huber, "Robust Estimation of a Location
 //! Parameter", 1964. After convergence, observations whose error exceeds a threshold are
 //! removed, reported, and the problem is solved again without them.
+//!
+//! With a rolling-shutter readout (`readout_s > 0`) each camera also has an angular
+//! velocity during its readout: the turn the frontend's first-order correction of the
+//! tracks got wrong (it predicts the image's motion from the two frames before, so at the
+//! onset of a sharp head turn it lags by tens of pixels per frame). Row `y` is seen at
+//! `readout_s * (y - h/2) / h` after the middle row, by the camera turned by that velocity
+//! for that time (the first-order model of Hedborg et al., "Rolling Shutter Bundle
+//! Adjustment", CVPR 2012; Albl et al., "R6P", CVPR 2015), with a weak prior towards no
+//! turn for cameras whose rows cannot tell it.
 
 use crate::huber;
 use crate::normal_equations::NormalEquations;
 use crate::sparse_schur::SymbolicCache;
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
-use nalgebra::{Matrix2x3, Point2, Rotation3, Vector2, Vector3};
+use nalgebra::{Matrix2x3, Matrix3, Point2, Rotation3, Vector2, Vector3};
 
 /// One observation of point `point` in camera `camera` at an undistorted pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -51,6 +60,23 @@ pub struct BundleAdjustmentOptions {
     /// Leading cameras held fixed (default 1: camera 0 fixes rotation and translation; the
     /// merger fixes the keyframes it shares with the settled map, which also fixes scale).
     pub fixed_cameras: usize,
+    /// Rolling-shutter readout, seconds, first row to last (default 0: a global shutter,
+    /// no turn is estimated). Only whether it is on matters to the poses: the estimated
+    /// angular velocity absorbs the value, which sets the units of the prior below.
+    pub readout_s: f64,
+    /// Standard deviation of the prior on each camera's readout turn, rad/s (default
+    /// 1.0: a weak pull, worth 1 px^2 per rad/s, where a camera's ~1000 observations
+    /// over the rows pin it to ~0.01 rad/s; it only keeps the turn of a camera whose
+    /// observations span few rows from wandering).
+    pub turn_prior_rad_s: f64,
+    /// Standard deviation of the prior on the cameras' mean turn, rad/s (default 0.01:
+    /// held). A turn about the camera's x axis shared by every camera stretches all images
+    /// vertically, which a vertical stretch of the scene explains as well when the
+    /// cameras' rows are parallel, as a walking head's are (Albl et al., "Degeneracies in
+    /// Rolling Shutter SfM", ECCV 2016): on synthetic windows it came back 0.9 rad/s off
+    /// with the reprojection error at the noise. The frontend's correction gets the
+    /// readout right on average, so only each camera's departure from it is estimated.
+    pub mean_turn_prior_rad_s: f64,
 }
 
 impl Default for BundleAdjustmentOptions {
@@ -63,6 +89,9 @@ impl Default for BundleAdjustmentOptions {
             tolerance: 1e-4,
             min_depth_fraction: 0.02,
             fixed_cameras: 1,
+            readout_s: 0.0,
+            turn_prior_rad_s: 1.0,
+            mean_turn_prior_rad_s: 0.01,
         }
     }
 }
@@ -91,6 +120,9 @@ pub struct BundleAdjustmentResult {
     /// Focal scale (1 = as calibrated) and radial k on normalised coordinates.
     pub focal_scale: f64,
     pub radial_k: f64,
+    /// Each camera's angular velocity during the readout, rad/s, in its own frame (zeros
+    /// without a readout).
+    pub turns: Vec<Vector3<f64>>,
     /// Indices of observations removed as outliers.
     pub outliers: Vec<usize>,
     /// sqrt(mean squared per-axis error) over inlier observations, pixels.
@@ -105,6 +137,37 @@ struct State {
     points: Vec<Vector3<f64>>,
     focal_scale: f64,
     radial_k: f64,
+    turns: Vec<Vector3<f64>>,
+}
+
+impl State {
+    /// Observation `o`'s point in its camera at the moment its row was read: the camera
+    /// turned by its readout turn for the row's time after the middle row (`tau`).
+    fn seen(&self, camera: &PinholeRadtan, readout_s: f64, o: &Observation) -> SeenPoint {
+        let pc = self.poses[o.camera].to_camera(&self.points[o.point]);
+        if readout_s == 0.0 {
+            return SeenPoint {
+                pc,
+                tau: 0.0,
+                turned: pc,
+            };
+        }
+        let tau = readout_s * camera.row_offset(o.pixel.y);
+        let turn = self.turns[o.camera];
+        SeenPoint {
+            pc,
+            tau,
+            turned: pc + tau * turn.cross(&pc),
+        }
+    }
+}
+
+/// A point in its camera's frame, before and after the readout turn of its row.
+struct SeenPoint {
+    pc: Vector3<f64>,
+    /// The row's time after the middle row, seconds.
+    tau: f64,
+    turned: Vector3<f64>,
 }
 
 /// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
@@ -147,19 +210,39 @@ fn cost(
     st: &State,
     obs: &[Observation],
     active: &[bool],
-    delta: f64,
+    options: &BundleAdjustmentOptions,
 ) -> f64 {
-    obs.iter()
+    let delta = options.huber_px;
+    let observations: f64 = obs
+        .iter()
         .zip(active)
         .filter(|(_, a)| **a)
         .map(|(o, _)| {
-            let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
-            match project(camera, st.focal_scale, st.radial_k, &pc) {
+            let seen = st.seen(camera, options.readout_s, o);
+            match project(camera, st.focal_scale, st.radial_k, &seen.turned) {
                 Some((p, _, _)) => huber::cost((p - o.pixel.coords).norm(), delta),
                 None => huber::cost(1e3, delta),
             }
         })
-        .sum()
+        .sum();
+    let prior: f64 = st
+        .turns
+        .iter()
+        .map(|w| 0.5 * (w / options.turn_prior_rad_s).norm_squared())
+        .sum();
+    observations + prior + mean_turn_prior(&st.turns, options).1
+}
+
+/// The prior on the cameras' mean turn as one residual per axis, `sqrt(n) mean / sigma`:
+/// its weight per camera's turn (`sqrt(n) / (n sigma)`) and its cost.
+fn mean_turn_prior(turns: &[Vector3<f64>], options: &BundleAdjustmentOptions) -> (f64, f64) {
+    if turns.is_empty() {
+        return (0.0, 0.0);
+    }
+    let n = turns.len() as f64;
+    let scale = n.sqrt() / options.mean_turn_prior_rad_s;
+    let mean = turns.iter().sum::<Vector3<f64>>() / n;
+    (scale / n, 0.5 * (mean * scale).norm_squared())
 }
 
 /// LM iterations; returns (converged, iterations).
@@ -173,11 +256,23 @@ fn levenberg_marquardt(
     let cams = st.poses.len();
     let globals = if options.refine_intrinsics { 2 } else { 0 };
     let fixed = options.fixed_cameras.clamp(1, cams);
-    let reduced = 6 * (cams - fixed) + globals;
-    let g0 = 6 * (cams - fixed);
+    let turns_on = options.readout_s > 0.0;
+    // A free camera's block: rotation, centre and, with a readout, its turn (consecutive,
+    // so the Schur couplings stay runs); fixed cameras keep only their turns, after them.
+    let block = if turns_on { 9 } else { 6 };
+    let g0 = block * (cams - fixed) + if turns_on { 3 * fixed } else { 0 };
+    let reduced = g0 + globals;
+    let turn_index = |c: usize| {
+        if c >= fixed {
+            block * (c - fixed) + 6
+        } else {
+            block * (cams - fixed) + 3 * c
+        }
+    };
+    let prior_sqrt = 1.0 / options.turn_prior_rad_s;
     let mut lambda = 1e-4;
     let mut symbolic = SymbolicCache::default();
-    let mut current = cost(camera, st, obs, active, options.huber_px);
+    let mut current = cost(camera, st, obs, active, options);
     let mut sys = NormalEquations::new(reduced, globals, st.points.len());
     let mut idx = Vec::with_capacity(8);
     let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
@@ -186,22 +281,29 @@ fn levenberg_marquardt(
             sys.reset(reduced, st.points.len());
         }
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
-            let pose = &st.poses[o.camera];
-            let pc = pose.to_camera(&st.points[o.point]);
-            let Some((p, j_pc, j_intr)) = project(camera, st.focal_scale, st.radial_k, &pc) else {
+            let seen = st.seen(camera, options.readout_s, o);
+            let Some((p, j_turned, j_intr)) =
+                project(camera, st.focal_scale, st.radial_k, &seen.turned)
+            else {
                 continue;
             };
             let r = p - o.pixel.coords;
             let w = huber::weight(r.norm(), options.huber_px);
-            let r_mat = pose.rotation.matrix();
-            // d pc / d rotation (left perturbation): -[pc]x ; d pc / d centre: -R ; d pc / d X: R
-            let j_rot = j_pc * -pc.cross_matrix();
+            let r_mat = st.poses[o.camera].rotation.matrix();
+            // turned = (I + tau [turn]x) pc; d pc / d rotation (left perturbation): -[pc]x;
+            // d pc / d centre: -R; d pc / d X: R; d turned / d turn: -tau [pc]x.
+            let j_pc = if turns_on {
+                j_turned * (Matrix3::identity() + seen.tau * st.turns[o.camera].cross_matrix())
+            } else {
+                j_turned
+            };
+            let j_rot = j_pc * -seen.pc.cross_matrix();
             let j_c = j_pc * -r_mat;
             let j_x = j_pc * r_mat;
             idx.clear();
             cols.clear();
             if o.camera >= fixed {
-                let base = 6 * (o.camera - fixed);
+                let base = block * (o.camera - fixed);
                 for d in 0..3 {
                     idx.push(base + d);
                     cols.push(j_rot.column(d).into_owned());
@@ -211,11 +313,40 @@ fn levenberg_marquardt(
                     cols.push(j_c.column(d).into_owned());
                 }
             }
+            if turns_on {
+                let j_turn = j_turned * (-seen.tau * seen.pc.cross_matrix());
+                let base = turn_index(o.camera);
+                for d in 0..3 {
+                    idx.push(base + d);
+                    cols.push(j_turn.column(d).into_owned());
+                }
+            }
             for d in 0..globals {
                 idx.push(g0 + d);
                 cols.push(j_intr.column(d).into_owned());
             }
             sys.add(&idx, &cols, Some((o.point, &j_x)), &r, w);
+        }
+        if turns_on {
+            for (c, turn) in st.turns.iter().enumerate() {
+                let base = turn_index(c);
+                let unit = |d: usize| Vector3::ith(d, prior_sqrt);
+                sys.add(
+                    &[base, base + 1, base + 2],
+                    &[unit(0), unit(1), unit(2)],
+                    None,
+                    &(turn * prior_sqrt),
+                    1.0,
+                );
+            }
+            let (per_turn, _) = mean_turn_prior(&st.turns, options);
+            let mean = st.turns.iter().sum::<Vector3<f64>>() * per_turn;
+            for d in 0..3 {
+                idx.clear();
+                idx.extend((0..cams).map(|c| turn_index(c) + d));
+                let cols = vec![nalgebra::Vector1::new(per_turn); cams];
+                sys.add(&idx, &cols, None, &nalgebra::Vector1::new(mean[d]), 1.0);
+            }
         }
         let mut accepted = false;
         for _ in 0..8 {
@@ -228,9 +359,17 @@ fn levenberg_marquardt(
                 points: st.points.clone(),
                 focal_scale: st.focal_scale,
                 radial_k: st.radial_k,
+                turns: st.turns.clone(),
             };
+            if turns_on {
+                for (c, turn) in trial.turns.iter_mut().enumerate() {
+                    let b = turn_index(c);
+                    *turn +=
+                        Vector3::new(step.reduced[b], step.reduced[b + 1], step.reduced[b + 2]);
+                }
+            }
             for c in fixed..cams {
-                let b = 6 * (c - fixed);
+                let b = block * (c - fixed);
                 let dr = Vector3::new(step.reduced[b], step.reduced[b + 1], step.reduced[b + 2]);
                 let dc = Vector3::new(
                     step.reduced[b + 3],
@@ -247,7 +386,7 @@ fn levenberg_marquardt(
             for (x, dx) in trial.points.iter_mut().zip(&step.points) {
                 *x += dx;
             }
-            let new_cost = cost(camera, &trial, obs, active, options.huber_px);
+            let new_cost = cost(camera, &trial, obs, active, options);
             if new_cost < current {
                 let decrease = (current - new_cost) / current.max(1e-18);
                 *st = trial;
@@ -319,6 +458,7 @@ pub fn bundle_adjust(
         points: points.to_vec(),
         focal_scale: 1.0,
         radial_k: 0.0,
+        turns: vec![Vector3::zeros(); poses.len()],
     };
     let mut active = vec![true; observations.len()];
     let (_, first_iterations) =
@@ -326,7 +466,7 @@ pub fn bundle_adjust(
     let mut outliers = Vec::new();
     let in_camera: Vec<Vector3<f64>> = observations
         .iter()
-        .map(|o| st.poses[o.camera].to_camera(&st.points[o.point]))
+        .map(|o| st.seen(camera, options.readout_s, o).turned)
         .collect();
     let fraction = options.min_depth_fraction;
     let collapsed = collapsed_points(st.points.len(), observations, &in_camera, fraction);
@@ -346,7 +486,7 @@ pub fn bundle_adjust(
     };
     let (mut sum, mut count) = (0.0, 0usize);
     for (o, _) in observations.iter().zip(&active).filter(|(_, a)| **a) {
-        let pc = st.poses[o.camera].to_camera(&st.points[o.point]);
+        let pc = st.seen(camera, options.readout_s, o).turned;
         if let Some((p, _, _)) = project(camera, st.focal_scale, st.radial_k, &pc) {
             sum += (p - o.pixel.coords).norm_squared();
             count += 1;
@@ -357,6 +497,7 @@ pub fn bundle_adjust(
         points: st.points,
         focal_scale: st.focal_scale,
         radial_k: st.radial_k,
+        turns: st.turns,
         outliers,
         rmse_px: (sum / (2.0 * count.max(1) as f64)).sqrt(),
         converged,

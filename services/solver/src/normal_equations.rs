@@ -5,7 +5,7 @@
 
 use crate::schur::{SchurStep, SchurSystem};
 use crate::sparse_schur::{SparseSchurSystem, SymbolicCache};
-use nalgebra::{Matrix2x3, Vector2};
+use nalgebra::{SMatrix, SVector};
 
 /// Cameras above which the reduced system is kept sparse (a window's 20 cameras factor
 /// faster dense; the merger's hundreds of keyframes couple only through shared points).
@@ -37,13 +37,14 @@ impl NormalEquations {
         }
     }
 
-    /// One observation's residual block (`SchurSystem::add`).
-    pub(crate) fn add(
+    /// One residual block of `M` rows (`SchurSystem::add`): an observation's two, or a
+    /// prior's three.
+    pub(crate) fn add<const M: usize>(
         &mut self,
         idx: &[usize],
-        jr: &[Vector2<f64>],
-        point: Option<(usize, &Matrix2x3<f64>)>,
-        r: &Vector2<f64>,
+        jr: &[SVector<f64, M>],
+        point: Option<(usize, &SMatrix<f64, M, 3>)>,
+        r: &SVector<f64, M>,
         w: f64,
     ) {
         match self {
