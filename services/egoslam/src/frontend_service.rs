@@ -177,6 +177,21 @@ fn describe_tracks(
     patched.retain(|t| live.contains(t));
 }
 
+/// Counts a keyframe sent and records the ids a restarted frontend continues from.
+fn published(
+    stats: &mut ServiceStats,
+    tracker: &Tracker,
+    state_path: &std::path::Path,
+    k: &KeyframeTracks,
+) -> anyhow::Result<()> {
+    stats.keyframes += 1;
+    let (kf, track) = tracker.next_ids();
+    let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
+    crate::output::write_atomically(state_path, ids.to_string().as_bytes())?;
+    tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
+    Ok(())
+}
+
 /// The proto message of a keyframe.
 fn keyframe_message(
     k: &KeyframeTracks,
@@ -267,6 +282,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     crate::systemd::ready("frontend");
     let mut skipped: Vec<pb::FrameStamp> = Vec::new();
     let mut last_stamp: Option<pb::FrameStamp> = None;
+    // With a rolling shutter a keyframe waits for the next frame, which centres its
+    // correction (`Tracker::centre_keyframe`); described, with its skipped frames taken.
+    let mut pending: Option<(KeyframeTracks, pb::Keyframe)> = None;
     // The last frame, for the descriptors of the final keyframe (made after the stream).
     let mut last_image = Mat::default();
     let started = Instant::now();
@@ -293,6 +311,17 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }
             Err(e) => return Err(e.into()),
         };
+        if let Some((mut k, mut msg)) = pending.take() {
+            if tracker.centre_keyframe(&mut k) > 0 {
+                for (m, t) in msg.tracks.iter_mut().zip(&k.tracks) {
+                    (m.x, m.y) = (t.undistorted.x, t.undistorted.y);
+                }
+            }
+            stats.time("publish", || {
+                log_and_send(&mut keyframe_log, &mut keyframes, &msg)
+            })?;
+            published(&mut stats, &tracker, &state_path, &k)?;
+        }
         let mut described = None;
         if let Some(k) = &outcome.keyframe {
             let mut msg = keyframe_message(k, meta.timestamp, &intrinsics, Vec::new());
@@ -326,14 +355,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         match (outcome.keyframe, described) {
             (Some(k), Some(mut msg)) => {
                 msg.frames_since_previous = std::mem::take(&mut skipped);
-                stats.time("publish", || {
-                    log_and_send(&mut keyframe_log, &mut keyframes, &msg)
-                })?;
-                stats.keyframes += 1;
-                let (kf, track) = tracker.next_ids();
-                let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
-                crate::output::write_atomically(&state_path, ids.to_string().as_bytes())?;
-                tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
+                if tracker.rolling_shutter_s() > 0.0 {
+                    pending = Some((k, msg));
+                } else {
+                    stats.time("publish", || {
+                        log_and_send(&mut keyframe_log, &mut keyframes, &msg)
+                    })?;
+                    published(&mut stats, &tracker, &state_path, &k)?;
+                }
             }
             _ => skipped.push(pb::FrameStamp {
                 tracks: tracker
@@ -345,6 +374,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }),
         }
         last_stamp = Some(stamp);
+    }
+    // No frame came after it to centre its correction.
+    if let Some((k, msg)) = pending.take() {
+        log_and_send(&mut keyframe_log, &mut keyframes, &msg)?;
+        published(&mut stats, &tracker, &state_path, &k)?;
     }
     // The last frame becomes a keyframe so that every frame lies between two keyframes.
     if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {

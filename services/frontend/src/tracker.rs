@@ -99,6 +99,10 @@ pub struct Tracker {
     image_velocity: Point2f,
     /// Timestamps of the last two frames processed, seconds (NaN: not given).
     last_times: (f64, f64),
+    /// Timestamp of the frame before those two (NaN: not given).
+    time_before_last: f64,
+    /// The tracked frame before the last one, if tracks continued from it.
+    previous_frame_id: Option<u64>,
 }
 
 fn cv_err(frame_id: u64) -> impl Fn(opencv::Error) -> TrackerError {
@@ -124,6 +128,8 @@ impl Tracker {
             last_mean_flow: 0.0,
             image_velocity: Point2f::new(0.0, 0.0),
             last_times: (f64::NAN, f64::NAN),
+            time_before_last: f64::NAN,
+            previous_frame_id: None,
         }
     }
 
@@ -131,6 +137,11 @@ impl Tracker {
     /// decides it after the first frames). Keyframes already made keep their positions.
     pub fn set_rolling_shutter_s(&mut self, readout_s: f64) {
         self.options.rolling_shutter_s = readout_s;
+    }
+
+    /// The rolling-shutter readout the tracks are corrected for, seconds (0: none).
+    pub fn rolling_shutter_s(&self) -> f64 {
+        self.options.rolling_shutter_s
     }
 
     /// The camera the tracks are undistorted with.
@@ -187,6 +198,7 @@ impl Tracker {
         }
         // Only a frame that is tracked sets the time step its velocities span (a refused
         // frame in between would otherwise shorten it).
+        self.time_before_last = self.last_times.0;
         self.last_times = (self.last_times.1, timestamp_s);
         let err = cv_err(frame_id);
         let (mut mean, mut deviation) = (Mat::default(), Mat::default());
@@ -200,6 +212,7 @@ impl Tracker {
                 self.tracks.clear();
                 self.previous_pyramid = None;
                 self.image_velocity = Point2f::new(0.0, 0.0);
+                self.previous_frame_id = None;
                 tracing::debug!(frame_id, contrast, lost, "blind frame");
                 return Ok(FrameOutcome {
                     keyframe: None,
@@ -244,6 +257,7 @@ impl Tracker {
             }
         };
         self.previous_pyramid = Some(pyramid);
+        self.previous_frame_id = self.last_frame_id;
         self.last_frame_id = Some(frame_id);
         self.last_mean_flow = mean_flow;
         Ok(FrameOutcome {
@@ -563,6 +577,9 @@ impl Tracker {
         }
     }
 }
+
+#[path = "keyframe_centring.rs"]
+mod keyframe_centring;
 
 #[cfg(test)]
 #[path = "tracker_tests.rs"]

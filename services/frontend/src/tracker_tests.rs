@@ -1,6 +1,7 @@
 //! Tests of the tracker (kept beside it to keep tracker.rs short).
 
 use super::*;
+use crate::keyframe_policy::KeyframePolicy;
 use opencv::core::{Mat, Rect};
 
 /// A blurred random texture, big enough to crop shifted views from.
@@ -372,4 +373,82 @@ fn a_rolling_shutter_correction_uses_the_velocity_at_the_frame_time() {
         right * 10 > far_rows * 8,
         "{right} of {far_rows} tracks moved by the velocity at the frame time"
     );
+}
+
+#[test]
+fn a_keyframe_centred_on_the_next_frame_follows_a_turn_onset() {
+    // A pan that starts at frame 6 and accelerates ever faster (content 0.2 (i - 6)^3 px
+    // left at frame i): the velocity at frame 10 is 0.6 x 16 = 9.6 px per frame. The
+    // extrapolation from the frames before reads 9.2, the centred difference with the
+    // next frame 9.8; every frame is a keyframe here, so frame 10's can be compared.
+    let big = texture(700, 300);
+    let (w, h) = (320, 240);
+    let offset = |i: u64| 0.2 * (i.saturating_sub(6) as f64).powi(3);
+    let frame_at = |x: f64| {
+        let shift =
+            Mat::from_slice_2d(&[[1.0f64, 0.0, -x - 20.0], [0.0, 1.0, -30.0]]).expect("matrix");
+        let mut out = Mat::default();
+        imgproc::warp_affine(
+            &big,
+            &mut out,
+            &shift,
+            Size::new(w, h),
+            imgproc::INTER_LINEAR,
+            opencv::core::BORDER_REPLICATE,
+            Scalar::all(0.0),
+        )
+        .expect("warp");
+        out
+    };
+    let options = TrackerOptions {
+        rolling_shutter_s: 0.030,
+        keyframes: KeyframePolicy {
+            max_frames_between: 1,
+            ..KeyframePolicy::default()
+        },
+        ..TrackerOptions::default()
+    };
+    let mut tracker = Tracker::new(camera(w as u32, h as u32), options);
+    let mut keyframe_10 = None;
+    for i in 0..=11u64 {
+        let out = tracker
+            .process_timed(i, i as f64 / 30.0, &frame_at(offset(i)))
+            .expect("tracks");
+        if i == 10 {
+            keyframe_10 = out.keyframe;
+        }
+    }
+    let extrapolated = keyframe_10.expect("frame 10 is a keyframe");
+    let mut centred = extrapolated.clone();
+    assert!(tracker.centre_keyframe(&mut centred) > 100);
+    let velocity = 0.6 * 16.0 * 30.0; // px/s, leftwards
+    let error = |k: &KeyframeTracks| {
+        let (mut sum, mut n) = (0.0, 0);
+        for t in &k.tracks {
+            let dt_row = (f64::from(t.raw.y) - h as f64 / 2.0) / h as f64 * 0.030;
+            if dt_row.abs() < 0.010 {
+                continue;
+            }
+            // Read dt_row after the middle row: by the middle row's time the content was
+            // velocity x dt_row further right.
+            let expected = f64::from(t.raw.x) + velocity * dt_row;
+            sum += (f64::from(t.undistorted.x) - expected).abs();
+            n += 1;
+        }
+        assert!(n > 30, "{n} tracks on far rows");
+        sum / n as f64
+    };
+    let (before, after) = (error(&extrapolated), error(&centred));
+    assert!(
+        after < 0.6 * before,
+        "mean error {before:.3} px extrapolated, {after:.3} px centred"
+    );
+    // Centring needs the very next frame: after another one it refuses.
+    let frame = frame_at(offset(12));
+    tracker
+        .process_timed(12, 12.0 / 30.0, &frame)
+        .expect("tracks");
+    let mut late = extrapolated.clone();
+    assert_eq!(tracker.centre_keyframe(&mut late), 0);
+    assert_eq!(late, extrapolated);
 }

@@ -10,13 +10,14 @@
 //! gap between the two is the solver's share of the error, the rest is the data's.
 //! `--window 1000` does the same for the whole sequence as one problem.
 //!
-//! `--rolling-shutter-ms MS` corrects the tracks for that readout as the frontend does;
+//! `--rolling-shutter-ms MS` corrects the tracks for that readout as the frontend does
+//! (`--extrapolated`: without centring each keyframe's correction on the next frame);
 //! `--turn-prior RAD_S` then also estimates each keyframe's residual turn during the
 //! readout in bundle adjustment, with that prior (`BundleAdjustmentOptions::readout_s`).
 //!
 //! `cargo run --release -p egoslam-solver --example window_accuracy -- DATASET [--window N] [--ba-from-truth] [--verbose]`
 
-use egoslam_frontend::{Tracker, TrackerOptions};
+use egoslam_frontend::{KeyframeTracks, Tracker, TrackerOptions};
 use egoslam_geometry::{umeyama, PinholeRadtan, StampedPose};
 use egoslam_solver::bundle_adjustment::{bundle_adjust, Observation};
 use egoslam_solver::triangulation::{triangulate_track, CameraPose};
@@ -31,13 +32,31 @@ type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
 /// Keyframes of a whole sequence from the real tracker with default options, correcting
 /// for a rolling-shutter readout of `readout_s` (0: none).
-fn keyframes(path: &Path, readout_s: f64) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
+fn keyframes(
+    path: &Path,
+    readout_s: f64,
+    centred: bool,
+) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
     let layout = egoslam_sources::detect_layout(path)?;
     let calib = egoslam_sources::load_calibration(&layout, None)?;
     let mut source = egoslam_sources::open_source(path, 10.0)?;
     let mut tracker: Option<Tracker> = None;
     let mut camera = None;
     let mut keyframes = Vec::new();
+    // As the frontend service: a keyframe waits for the next frame, which centres its
+    // rolling-shutter correction (`Tracker::centre_keyframe`).
+    let mut pending: Option<(KeyframeTracks, f64)> = None;
+    let observations = |k: KeyframeTracks, timestamp: f64| {
+        let tracks = k.tracks.iter().map(|p| {
+            let u = p.undistorted;
+            (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
+        });
+        KeyframeObservations {
+            id: k.keyframe_id,
+            timestamp,
+            tracks: tracks.collect(),
+        }
+    };
     while let Some(frame) = source.next_frame() {
         let frame = frame?;
         use opencv::prelude::MatTraitConst;
@@ -53,21 +72,16 @@ fn keyframes(path: &Path, readout_s: f64) -> Result<(PinholeRadtan, Vec<Keyframe
             };
             Tracker::new(cam, options)
         });
-        if let Some(k) = t
-            .process_timed(frame.index, frame.timestamp, &frame.image)?
-            .keyframe
-        {
-            let tracks = k.tracks.iter().map(|p| {
-                let u = p.undistorted;
-                (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
-            });
-            keyframes.push(KeyframeObservations {
-                id: k.keyframe_id,
-                timestamp: frame.timestamp,
-                tracks: tracks.collect(),
-            });
+        let outcome = t.process_timed(frame.index, frame.timestamp, &frame.image)?;
+        if let Some((mut k, timestamp)) = pending.take() {
+            if centred {
+                t.centre_keyframe(&mut k);
+            }
+            keyframes.push(observations(k, timestamp));
         }
+        pending = outcome.keyframe.map(|k| (k, frame.timestamp));
     }
+    keyframes.extend(pending.map(|(k, timestamp)| observations(k, timestamp)));
     Ok((camera.ok_or("no frame decoded")?, keyframes))
 }
 
@@ -131,12 +145,14 @@ fn main() -> Result<()> {
     let mut readout_ms = 0.0;
     let mut start_from: Option<PathBuf> = None;
     let mut turn_prior: Option<f64> = None;
+    let mut extrapolated = false;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => size = args.next().ok_or("--window N")?.parse()?,
             "--ba-from-truth" => from_truth = true,
             "--verbose" => verbose = true,
             "--ba-from" => start_from = Some(args.next().ok_or("--ba-from POSES.tum")?.into()),
+            "--extrapolated" => extrapolated = true,
             "--turn-prior" => turn_prior = Some(args.next().ok_or("--turn-prior RAD_S")?.parse()?),
             "--rolling-shutter-ms" => {
                 readout_ms = args.next().ok_or("--rolling-shutter-ms MS")?.parse()?
@@ -145,14 +161,14 @@ fn main() -> Result<()> {
         }
     }
     let path =
-        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS [--turn-prior RAD_S]] [--ba-from POSES.tum]")?;
+        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS [--extrapolated] [--turn-prior RAD_S]] [--ba-from POSES.tum]")?;
     opencv::core::set_num_threads(1)?;
     let truth = egoslam_sources::load_ground_truth(&path)?.poses;
     let start_poses = match &start_from {
         Some(file) => Some(egoslam_sources::ground_truth::read_tum_file(file)?),
         None => None,
     };
-    let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0)?;
+    let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0, !extrapolated)?;
     let mut options = WindowSolverOptions::default();
     if let Some(prior) = turn_prior {
         options.bundle_adjustment.readout_s = readout_ms / 1000.0;
