@@ -22,7 +22,7 @@
 //! its factor ([`crate::scale_break`]), or the loop is refused.
 
 use crate::chaining::MapBuilder;
-use crate::scale_break::{locate_scale_break, ScaleBreakOptions};
+use crate::scale_break::{locate_scale_break, strongest_pace_jump, ScaleBreakOptions};
 use crate::segment_linking::{
     relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
 };
@@ -91,10 +91,21 @@ pub struct LoopClosure {
     pub keyframes: usize,
     /// 3-D/3-D pairs that gave the scale.
     pub shared_points: usize,
-    /// When the scale change is a break, not drift (`LoopOptions::max_scale_change`): the
-    /// last keyframe before it ([`crate::scale_break`]). The keyframes after it take the
-    /// whole scale correction, those before none; `None`: drift, spread along the loop.
-    pub scale_step_after: Option<u64>,
+    /// When the scale change is a break, not drift (`LoopOptions::max_scale_change`):
+    /// where the break is and the part of the correction it accounts for
+    /// ([`crate::scale_break`]); the rest is spread along the loop as drift. `None`: all
+    /// of it is drift.
+    pub scale_step: Option<ScaleStep>,
+}
+
+/// A scale break a loop undoes as a step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScaleStep {
+    /// The last keyframe before the break: those after it take `factor`.
+    pub after_keyframe: u64,
+    /// The scale correction of the break itself (the inverse of the map's pace ratio
+    /// there).
+    pub factor: f64,
 }
 
 /// What closing a loop did.
@@ -138,7 +149,7 @@ pub fn find_loop(
     }
     let scale = agreement.transform.scale;
     let anchor_keyframe = agreement.old_keyframes.iter().copied().min()?;
-    let scale_step_after = if scale_is_drift(scale, options.max_scale_change) {
+    let scale_step = if scale_is_drift(scale, options.max_scale_change) {
         None
     } else {
         // Not drift: a break, if the map's pace shows one step of that factor.
@@ -149,9 +160,13 @@ pub fn find_loop(
             .map(|(id, _, p)| (id, *p))
             .collect();
         let Some(found) = locate_scale_break(&looped, scale, &options.scale_break) else {
+            let strongest = strongest_pace_jump(&looped, scale, &options.scale_break);
             tracing::warn!(
                 scale,
                 shared_points = agreement.shared_points,
+                keyframes = looped.len(),
+                strongest_pace_ratio = strongest.map(|s| s.pace_ratio),
+                strongest_after_keyframe = strongest.map(|s| s.after_keyframe),
                 "loop refused: its scale change is not drift, and no single break in the map's pace explains it"
             );
             return None;
@@ -162,7 +177,10 @@ pub fn find_loop(
             pace_ratio = found.pace_ratio,
             "loop corrects a scale break as a step"
         );
-        Some(found.after_keyframe)
+        Some(ScaleStep {
+            after_keyframe: found.after_keyframe,
+            factor: 1.0 / found.pace_ratio,
+        })
     };
     Some(LoopClosure {
         segment,
@@ -170,7 +188,7 @@ pub fn find_loop(
         transform: agreement.transform,
         keyframes: agreement.keyframes,
         shared_points: agreement.shared_points,
-        scale_step_after,
+        scale_step,
     })
 }
 
@@ -220,14 +238,18 @@ impl MapBuilder {
             return None;
         }
         let turn = UnitQuaternion::from_rotation_matrix(&closure.transform.rotation);
-        let log_scale = closure.transform.scale.ln();
+        // A break's step, and the rest of the scale correction as drift.
+        let (step_after, step) = match closure.scale_step {
+            Some(s) => (s.after_keyframe, s.factor),
+            None => (u64::MAX, 1.0),
+        };
+        let drift_log_scale = closure.transform.scale.ln() - step.ln();
         // Rotation and scale per keyframe, and the chain re-integrated with them.
         let share = |k: usize| along[k] / path;
         let turn_at = |k: usize| UnitQuaternion::identity().slerp(&turn, share(k));
-        let scale_at = |k: usize| match closure.scale_step_after {
-            Some(last_before) if ids[k] > last_before => closure.transform.scale,
-            Some(_) => 1.0,
-            None => (share(k) * log_scale).exp(),
+        let scale_at = |k: usize| {
+            let stepped = if ids[k] > step_after { step } else { 1.0 };
+            stepped * (share(k) * drift_log_scale).exp()
         };
         let mut centres = vec![old[0].position];
         for k in 1..old.len() {
@@ -346,7 +368,7 @@ mod tests {
             transform: drift(n - 1).inverse(),
             keyframes: 3,
             shared_points: 50,
-            scale_step_after: None,
+            scale_step: None,
         };
         let before: f64 = (0..n)
             .map(|i| (drifted(i).position - square_pose(i).position).norm_squared())
@@ -418,7 +440,10 @@ mod tests {
             },
             keyframes: 3,
             shared_points: 50,
-            scale_step_after: Some(last_before),
+            scale_step: Some(ScaleStep {
+                after_keyframe: last_before,
+                factor: 1.0 / factor,
+            }),
         };
         let error = |map: &MapBuilder| {
             (0..n)
@@ -437,10 +462,30 @@ mod tests {
         assert!((point - truth_point).norm() < 1e-9);
         let mut spread = build();
         let as_drift = LoopClosure {
-            scale_step_after: None,
+            scale_step: None,
             ..closure
         };
         spread.close_loop(&as_drift, 0.002).expect("closed");
         assert!(error(&spread) > 0.5, "{}", error(&spread));
+        // A loop asking for 5 % more than the break: the step stays the break's, the rest
+        // is spread as drift, and the newest keyframe lands where the loop puts it.
+        let mut with_drift = build();
+        let more = LoopClosure {
+            transform: Similarity {
+                scale: 0.95 / factor,
+                ..closure.transform
+            },
+            ..closure
+        };
+        let newest_before = with_drift.keyframe(n - 1).expect("kf").1.position;
+        with_drift.close_loop(&more, 0.002).expect("closed");
+        let kf = |i: u64| with_drift.keyframe(i).expect("kf").1.position;
+        let newest_target = more.transform.apply(&newest_before);
+        assert!((kf(n - 1) - newest_target).norm() < 1e-9);
+        // Across the break consecutive steps keep their lengths (0.5 m on the square):
+        // the step undid the break, the drift's share changes them by well under 1 %.
+        let step = |i: u64| (kf(i) - kf(i - 1)).norm();
+        let ratio = step(last_before + 1) / step(last_before);
+        assert!((ratio - 1.0).abs() < 0.01, "{ratio}");
     }
 }

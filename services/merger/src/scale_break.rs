@@ -29,8 +29,12 @@ pub struct ScaleBreakOptions {
     pub min_pace_fraction: f64,
     /// Fewest moving steps on each side of a candidate (default 8).
     pub min_steps: usize,
-    /// The pace must jump by the loop's factor within this factor either way (default
-    /// 1.25); otherwise the loop's scale is not one break's and nothing is located.
+    /// The pace must jump by the loop's factor within this factor either way, else nothing
+    /// is located (default 1.5, `LoopOptions::max_scale_change`: the loop spreads what the
+    /// jump leaves as drift, so the rest may be as large as drift a loop may correct).
+    /// It was 1.25 while the step took the loop's whole factor; on a 1500-frame
+    /// rolling-shutter walk (seed 7) a loop asking for 3.16 then found a 2.16x jump and
+    /// was refused, leaving its map collapsed 3.8x.
     pub max_mismatch: f64,
 }
 
@@ -40,7 +44,7 @@ impl Default for ScaleBreakOptions {
             pace_window_s: 2.0,
             min_pace_fraction: 0.3,
             min_steps: 8,
-            max_mismatch: 1.25,
+            max_mismatch: 1.5,
         }
     }
 }
@@ -59,6 +63,19 @@ pub struct ScaleBreak {
 /// the pace before); `None` when no keyframe shows that step within
 /// `ScaleBreakOptions::max_mismatch`.
 pub fn locate_scale_break(
+    keyframes: &[(u64, StampedPose)],
+    loop_scale: f64,
+    options: &ScaleBreakOptions,
+) -> Option<ScaleBreak> {
+    let found = strongest_pace_jump(keyframes, loop_scale, options)?;
+    let wanted = -loop_scale.ln();
+    ((found.pace_ratio.ln() - wanted).abs() <= options.max_mismatch.ln()).then_some(found)
+}
+
+/// The keyframe with the strongest jump of the map's pace in the direction `loop_scale`
+/// asks for, whatever its size (what [`locate_scale_break`] then holds to the loop's
+/// factor; also what a refused loop logs).
+pub fn strongest_pace_jump(
     keyframes: &[(u64, StampedPose)],
     loop_scale: f64,
     options: &ScaleBreakOptions,
@@ -119,8 +136,7 @@ pub fn locate_scale_break(
             ));
         }
     }
-    let (_, found) = best?;
-    ((found.pace_ratio.ln() - wanted).abs() <= options.max_mismatch.ln()).then_some(found)
+    best.map(|(_, found)| found)
 }
 
 #[cfg(test)]
