@@ -22,7 +22,9 @@
 //! its factor ([`crate::scale_break`]), or the loop is refused.
 
 use crate::chaining::MapBuilder;
-use crate::scale_break::{locate_scale_break, strongest_pace_jump, ScaleBreakOptions};
+use crate::scale_break::{
+    locate_scale_break, locate_second_break, strongest_pace_jump, ScaleBreakOptions,
+};
 use crate::segment_linking::{
     relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
 };
@@ -92,10 +94,10 @@ pub struct LoopClosure {
     /// 3-D/3-D pairs that gave the scale.
     pub shared_points: usize,
     /// When the scale change is a break, not drift (`LoopOptions::max_scale_change`):
-    /// where the break is and the part of the correction it accounts for
-    /// ([`crate::scale_break`]); the rest is spread along the loop as drift. `None`: all
-    /// of it is drift.
-    pub scale_step: Option<ScaleStep>,
+    /// where the break is and the part of the correction it accounts for, and a second
+    /// break for what a first leaves beyond drift ([`crate::scale_break`]); the rest is
+    /// spread along the loop as drift. Empty: all of it is drift.
+    pub scale_steps: Vec<ScaleStep>,
 }
 
 /// A scale break a loop undoes as a step.
@@ -149,8 +151,8 @@ pub fn find_loop(
     }
     let scale = agreement.transform.scale;
     let anchor_keyframe = agreement.old_keyframes.iter().copied().min()?;
-    let scale_step = if scale_is_drift(scale, options.max_scale_change) {
-        None
+    let scale_steps = if scale_is_drift(scale, options.max_scale_change) {
+        Vec::new()
     } else {
         // Not drift: a break, if the map's pace shows one step of that factor.
         let looped: Vec<(u64, StampedPose)> = sources
@@ -177,10 +179,22 @@ pub fn find_loop(
             pace_ratio = found.pace_ratio,
             "loop corrects a scale break as a step"
         );
-        Some(ScaleStep {
+        let mut steps = vec![ScaleStep {
             after_keyframe: found.after_keyframe,
             factor: 1.0 / found.pace_ratio,
-        })
+        }];
+        if let Some(second) = locate_second_break(&looped, scale, &found, &options.scale_break) {
+            tracing::info!(
+                after_keyframe = second.after_keyframe,
+                pace_ratio = second.pace_ratio,
+                "loop corrects a second scale break as a step"
+            );
+            steps.push(ScaleStep {
+                after_keyframe: second.after_keyframe,
+                factor: 1.0 / second.pace_ratio,
+            });
+        }
+        steps
     };
     Some(LoopClosure {
         segment,
@@ -188,7 +202,7 @@ pub fn find_loop(
         transform: agreement.transform,
         keyframes: agreement.keyframes,
         shared_points: agreement.shared_points,
-        scale_step,
+        scale_steps,
     })
 }
 
@@ -238,17 +252,19 @@ impl MapBuilder {
             return None;
         }
         let turn = UnitQuaternion::from_rotation_matrix(&closure.transform.rotation);
-        // A break's step, and the rest of the scale correction as drift.
-        let (step_after, step) = match closure.scale_step {
-            Some(s) => (s.after_keyframe, s.factor),
-            None => (u64::MAX, 1.0),
-        };
-        let drift_log_scale = closure.transform.scale.ln() - step.ln();
+        // The breaks' steps, and the rest of the scale correction as drift.
+        let steps_log_scale: f64 = closure.scale_steps.iter().map(|s| s.factor.ln()).sum();
+        let drift_log_scale = closure.transform.scale.ln() - steps_log_scale;
         // Rotation and scale per keyframe, and the chain re-integrated with them.
         let share = |k: usize| along[k] / path;
         let turn_at = |k: usize| UnitQuaternion::identity().slerp(&turn, share(k));
         let scale_at = |k: usize| {
-            let stepped = if ids[k] > step_after { step } else { 1.0 };
+            let stepped: f64 = closure
+                .scale_steps
+                .iter()
+                .filter(|s| ids[k] > s.after_keyframe)
+                .map(|s| s.factor)
+                .product();
             stepped * (share(k) * drift_log_scale).exp()
         };
         let mut centres = vec![old[0].position];
@@ -368,7 +384,7 @@ mod tests {
             transform: drift(n - 1).inverse(),
             keyframes: 3,
             shared_points: 50,
-            scale_step: None,
+            scale_steps: Vec::new(),
         };
         let before: f64 = (0..n)
             .map(|i| (drifted(i).position - square_pose(i).position).norm_squared())
@@ -440,10 +456,10 @@ mod tests {
             },
             keyframes: 3,
             shared_points: 50,
-            scale_step: Some(ScaleStep {
+            scale_steps: vec![ScaleStep {
                 after_keyframe: last_before,
                 factor: 1.0 / factor,
-            }),
+            }],
         };
         let error = |map: &MapBuilder| {
             (0..n)
@@ -462,7 +478,7 @@ mod tests {
         assert!((point - truth_point).norm() < 1e-9);
         let mut spread = build();
         let as_drift = LoopClosure {
-            scale_step: None,
+            scale_steps: Vec::new(),
             ..closure
         };
         spread.close_loop(&as_drift, 0.002).expect("closed");

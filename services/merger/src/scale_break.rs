@@ -36,6 +36,12 @@ pub struct ScaleBreakOptions {
     /// rolling-shutter walk (seed 7) a loop asking for 3.16 then found a 2.16x jump and
     /// was refused, leaving its map collapsed 3.8x.
     pub max_mismatch: f64,
+    /// What a first break leaves beyond this factor either way is looked for as a second
+    /// break, which must match it within this factor too (default 1.25). On the seed-7
+    /// rolling-shutter walk the map collapsed over two windows: the first jump found was
+    /// 2.16x of the loop's 3.16, and spreading the remaining 1.46 as drift inflated the
+    /// map's middle by up to 1.46x.
+    pub second_break_above: f64,
 }
 
 impl Default for ScaleBreakOptions {
@@ -45,6 +51,7 @@ impl Default for ScaleBreakOptions {
             min_pace_fraction: 0.3,
             min_steps: 8,
             max_mismatch: 1.5,
+            second_break_above: 1.25,
         }
     }
 }
@@ -70,6 +77,42 @@ pub fn locate_scale_break(
     let found = strongest_pace_jump(keyframes, loop_scale, options)?;
     let wanted = -loop_scale.ln();
     ((found.pace_ratio.ln() - wanted).abs() <= options.max_mismatch.ln()).then_some(found)
+}
+
+/// A second break for what `first` leaves of `loop_scale`, when that is beyond
+/// `ScaleBreakOptions::second_break_above`: located as [`locate_scale_break`] does, in the
+/// map with the first break undone, and within `second_break_above` of the remainder.
+pub fn locate_second_break(
+    keyframes: &[(u64, StampedPose)],
+    loop_scale: f64,
+    first: &ScaleBreak,
+    options: &ScaleBreakOptions,
+) -> Option<ScaleBreak> {
+    let remainder = loop_scale * first.pace_ratio;
+    if remainder.ln().abs() <= options.second_break_above.ln() {
+        return None;
+    }
+    let pivot = keyframes
+        .iter()
+        .find(|(id, _)| *id == first.after_keyframe)?
+        .1
+        .position;
+    let undone: Vec<(u64, StampedPose)> = keyframes
+        .iter()
+        .map(|(id, p)| {
+            let mut p = *p;
+            if *id > first.after_keyframe {
+                p.position = pivot + (p.position - pivot) / first.pace_ratio;
+            }
+            (*id, p)
+        })
+        .collect();
+    let strict = ScaleBreakOptions {
+        max_mismatch: options.second_break_above,
+        ..*options
+    };
+    locate_scale_break(&undone, remainder, &strict)
+        .filter(|second| second.after_keyframe != first.after_keyframe)
 }
 
 /// The keyframe with the strongest jump of the map's pace in the direction `loop_scale`
@@ -171,6 +214,30 @@ mod tests {
             ));
         }
         out
+    }
+
+    #[test]
+    fn a_break_over_two_windows_is_found_as_two_steps() {
+        // The map shrank 2x at 11 s and 1.4x more at 14 s: the loop asks for 2.8.
+        let mut keyframes = walk(11.0, 0.5);
+        let second_at = keyframes
+            .iter()
+            .position(|(_, p)| p.timestamp > 14.0)
+            .expect("keyframe");
+        let pivot = keyframes[second_at - 1].1.position;
+        for (_, p) in &mut keyframes[second_at..] {
+            p.position = pivot + (p.position - pivot) / 1.4;
+        }
+        let options = ScaleBreakOptions::default();
+        let first = locate_scale_break(&keyframes, 2.8, &options).expect("first");
+        assert!((218..=222).contains(&first.after_keyframe), "{first:?}");
+        let second = locate_second_break(&keyframes, 2.8, &first, &options).expect("second");
+        assert!((278..=282).contains(&second.after_keyframe), "{second:?}");
+        assert!((second.pace_ratio - 1.0 / 1.4).abs() < 0.05, "{second:?}");
+        // One break of the loop's whole factor leaves nothing to look for.
+        let single = walk(11.0, 1.0 / 3.0);
+        let first = locate_scale_break(&single, 3.0, &options).expect("first");
+        assert!(locate_second_break(&single, 3.0, &first, &options).is_none());
     }
 
     #[test]
