@@ -18,8 +18,10 @@
 //! the end is spread linearly. Keyframes before the loop do not move; points move with
 //! the keyframe that first saw them. The background refinement then adjusts the result
 //! against the observations. A scale change beyond drift is a break in the chain, not
-//! drift: it is applied as a step at the keyframe where the map's walking pace jumps by
-//! its factor ([`crate::scale_break`]), or the loop is refused.
+//! drift: the keyframes after the one where the map's walking pace jumps (within 1.5x of
+//! the loop's factor) take that jump as a step, a second jump takes what the first leaves
+//! beyond 1.25x, and the rest is spread as drift ([`crate::scale_break`]); where the pace
+//! shows no such jump the loop is refused.
 
 use crate::chaining::MapBuilder;
 use crate::scale_break::{

@@ -11,8 +11,9 @@
 //! A step in scale is a step in the map's walking pace: a walker's speed in metres per
 //! second changes gradually, so the map's speed in its own units per second, compared
 //! over a few seconds before and after each keyframe, jumps by the break's factor exactly
-//! where the break is. The loop then corrects the scale as a step there
-//! ([`crate::loop_closure`]) instead of spreading it.
+//! where the break is. The loop then corrects that jump as a step there
+//! ([`crate::loop_closure`]) instead of spreading it, and spreads only what is left; a
+//! break spread over two windows shows as two jumps ([`locate_second_break`]).
 
 use crate::median;
 use egoslam_geometry::StampedPose;
