@@ -177,13 +177,17 @@ fn describe_tracks(
     patched.retain(|t| live.contains(t));
 }
 
-/// Counts a keyframe sent and records the ids a restarted frontend continues from.
-fn published(
+/// Sends keyframe `k` as `msg` ([`log_and_send`]), counts it, and records the ids a
+/// restarted frontend continues from.
+fn publish(
     stats: &mut ServiceStats,
+    (log, publisher): (&mut CompactingLog, &mut MessagePublisher<pb::Keyframe>),
+    msg: &pb::Keyframe,
     tracker: &Tracker,
     state_path: &std::path::Path,
     k: &KeyframeTracks,
 ) -> anyhow::Result<()> {
+    stats.time("publish", || log_and_send(log, publisher, msg))?;
     stats.keyframes += 1;
     let (kf, track) = tracker.next_ids();
     let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
@@ -317,10 +321,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                     (m.x, m.y) = (t.undistorted.x, t.undistorted.y);
                 }
             }
-            stats.time("publish", || {
-                log_and_send(&mut keyframe_log, &mut keyframes, &msg)
-            })?;
-            published(&mut stats, &tracker, &state_path, &k)?;
+            let sender = (&mut keyframe_log, &mut keyframes);
+            publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
         }
         let mut described = None;
         if let Some(k) = &outcome.keyframe {
@@ -358,10 +360,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                 if tracker.rolling_shutter_s() > 0.0 {
                     pending = Some((k, msg));
                 } else {
-                    stats.time("publish", || {
-                        log_and_send(&mut keyframe_log, &mut keyframes, &msg)
-                    })?;
-                    published(&mut stats, &tracker, &state_path, &k)?;
+                    let sender = (&mut keyframe_log, &mut keyframes);
+                    publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
                 }
             }
             _ => skipped.push(pb::FrameStamp {
@@ -377,8 +377,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     }
     // No frame came after it to centre its correction.
     if let Some((k, msg)) = pending.take() {
-        log_and_send(&mut keyframe_log, &mut keyframes, &msg)?;
-        published(&mut stats, &tracker, &state_path, &k)?;
+        let sender = (&mut keyframe_log, &mut keyframes);
+        publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
     }
     // The last frame becomes a keyframe so that every frame lies between two keyframes.
     if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {

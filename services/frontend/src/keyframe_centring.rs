@@ -15,6 +15,7 @@
 //! therefore holds each keyframe for one frame before publishing it.
 
 use super::{KeyframeTracks, Track, Tracker};
+use egoslam_geometry::median;
 use nalgebra::Point2;
 use opencv::core::Point2f;
 use std::collections::HashMap;
@@ -34,13 +35,13 @@ impl Tracker {
         let live: HashMap<u64, &Track> = self.tracks.iter().map(|t| (t.id, t)).collect();
         // A track born on the keyframe has no motion before it: it is taken as its motion
         // after, changed by the median change of the older tracks' motion.
-        let (dx, dy): (Vec<f32>, Vec<f32>) = self
+        let (dx, dy): (Vec<f64>, Vec<f64>) = self
             .tracks
             .iter()
             .filter_map(|t| Some((t.velocity?, t.previous_velocity?)))
-            .map(|(after, before)| (before.x - after.x, before.y - after.y))
+            .map(|(after, before)| (f64::from(before.x - after.x), f64::from(before.y - after.y)))
             .unzip();
-        let change = median(dx).zip(median(dy)).map(|(x, y)| Point2f::new(x, y));
+        let change = (!dx.is_empty()).then(|| Point2f::new(median(dx) as f32, median(dy) as f32));
         let mut moved = 0;
         for point in &mut keyframe.tracks {
             let Some(track) = live.get(&point.track_id) else {
@@ -65,13 +66,4 @@ impl Tracker {
         }
         moved
     }
-}
-
-/// The median of `values` (None when empty).
-fn median(mut values: Vec<f32>) -> Option<f32> {
-    if values.is_empty() {
-        return None;
-    }
-    let mid = values.len() / 2;
-    Some(*values.select_nth_unstable_by(mid, f32::total_cmp).1)
 }
