@@ -215,7 +215,11 @@ fn egoslam() -> anyhow::Result<Command> {
 /// Runs one entry; returns its table row as JSON.
 fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
     if let Some(synth) = &entry.synth {
-        if !entry.input.join("groundtruth.txt").exists() {
+        // Rendered again when missing or drawn by an earlier revision of the renderer.
+        let revision = format!("renderer revision {}.", egoslam_synth::RENDER_REVISION);
+        let current = std::fs::read_to_string(entry.input.join("SOURCE.txt"))
+            .is_ok_and(|about| about.contains(&revision));
+        if !current || !entry.input.join("groundtruth.txt").exists() {
             let status = egoslam()?
                 .arg("synth")
                 .args(synth)

@@ -9,7 +9,8 @@ use egoslam_geometry::PinholeRadtan;
 use egoslam_synth::paths::aria_head_trajectory;
 use egoslam_synth::placement::place_in_free_space;
 use egoslam_synth::{
-    render_frame, CameraPath, Photo, RenderOptions, RobustnessEvent, Scene, WalkerOptions,
+    readout_poses, render_frame, CameraPath, Photo, RenderOptions, RobustnessEvent, Scene,
+    WalkerOptions,
 };
 use opencv::core::Vector;
 use opencv::prelude::*;
@@ -322,16 +323,21 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         // The sub-frame poses of the exposure (the readout, or the open shutter), centred
         // on the frame time (the ground-truth pose is the middle row's) and clipped at the
         // ends of the sequence; without either, the frame's own pose.
-        let half = if rolling {
-            (args.rolling_shutter_ms / 1000.0 * args.fps * sub as f64 / 2.0).round() as usize
-        } else if sub > 1 {
-            ((sub as f64 * options.shutter) / 2.0).round() as usize
+        let shutter = if rolling {
+            // As finely as the path is sampled, the first and last rows at the readout's
+            // ends exactly.
+            let readout_s = args.rolling_shutter_ms / 1000.0;
+            let samples = (readout_s * args.fps * sub as f64).ceil() as usize + 1;
+            readout_poses(&fine, pose.timestamp, readout_s, samples)
         } else {
-            0
+            let half = if sub > 1 {
+                ((sub as f64 * options.shutter) / 2.0).round() as usize
+            } else {
+                0
+            };
+            let centre = i * sub;
+            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec()
         };
-        let centre = i * sub;
-        let shutter =
-            fine[centre.saturating_sub(half)..(centre + half + 1).min(fine.len())].to_vec();
         let render_start = Instant::now();
         let in_dark =
             dark.is_some_and(|(start, length)| (start..start + length).contains(&pose.timestamp));
@@ -382,8 +388,8 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
         }
     };
     let about = format!(
-        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}, rolling shutter {} ms; path length {:.2} m.\n{licence}\n",
-        args.path, scene_kind, poses.len(), args.fps, args.width, args.height, args.focal, args.noise, options.blur_samples, args.exposure_drift, args.seed, args.rolling_shutter_ms, length
+        "Rendered by egoslam synth: path {:?}, scene {:?}, {} frames at {} fps, {}x{} f={}, noise {}, blur {}, exposure drift {}, seed {}, rolling shutter {} ms; path length {:.2} m; renderer revision {}.\n{licence}\n",
+        args.path, scene_kind, poses.len(), args.fps, args.width, args.height, args.focal, args.noise, options.blur_samples, args.exposure_drift, args.seed, args.rolling_shutter_ms, length, egoslam_synth::RENDER_REVISION
     );
     write_atomically(&out.join("SOURCE.txt"), about.as_bytes())?;
     tracing::info!(

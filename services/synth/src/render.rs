@@ -198,6 +198,50 @@ fn planes_seen<'s>(
         .collect()
 }
 
+/// The poses a rolling shutter exposes its rows from: `samples` (at least 2) poses evenly
+/// spaced in time over `readout_s` centred on `centre_s`, interpolated in `path` (sorted
+/// by time; times beyond its ends take its end poses). Given to [`render_frame`] with
+/// [`RenderOptions::rolling_shutter`], the first row is exposed at `centre_s - readout_s
+/// / 2` and the last at `centre_s + readout_s / 2` exactly, whatever the path's sampling
+/// (taking whole path samples instead rounded a 20 ms readout to 20.8 ms at 30 fps).
+pub fn readout_poses(
+    path: &[StampedPose],
+    centre_s: f64,
+    readout_s: f64,
+    samples: usize,
+) -> Vec<StampedPose> {
+    let n = samples.max(2);
+    (0..n)
+        .filter_map(|k| {
+            let t = centre_s + readout_s * (k as f64 / (n - 1) as f64 - 0.5);
+            pose_at_time(path, t)
+        })
+        .collect()
+}
+
+/// The pose of `path` (sorted by time) at time `t`, interpolated between the samples
+/// either side (clamped at its ends); `None` for an empty path.
+fn pose_at_time(path: &[StampedPose], t: f64) -> Option<StampedPose> {
+    let after = path.partition_point(|p| p.timestamp <= t);
+    let (a, b) = match (after.checked_sub(1), path.get(after)) {
+        (Some(i), Some(b)) => (&path[i], b),
+        (Some(i), None) => {
+            return Some(StampedPose {
+                timestamp: t,
+                ..path[i]
+            })
+        }
+        (None, Some(b)) => return Some(StampedPose { timestamp: t, ..*b }),
+        (None, None) => return None,
+    };
+    let f = (t - a.timestamp) / (b.timestamp - a.timestamp);
+    Some(StampedPose {
+        timestamp: t,
+        position: a.position + (b.position - a.position) * f,
+        rotation: a.rotation.slerp(&b.rotation, f),
+    })
+}
+
 /// The pose a fraction `at` in [0, 1] along `poses` (equally spaced in time): centres
 /// interpolated linearly, orientations by slerp.
 fn interpolate(poses: &[StampedPose], at: f64) -> StampedPose {
@@ -377,6 +421,29 @@ pub fn render_frame(
 mod tests {
     use super::*;
     use crate::paths::CameraPath;
+
+    #[test]
+    fn readout_poses_span_the_readout_exactly() {
+        // A path sampled 32 times per 30 fps frame interval: a 20 ms readout is 19.2
+        // samples, which whole samples rounded to 20 (20.8 ms).
+        let walk = CameraPath::Walker(Default::default()).poses(200, 960.0);
+        let centre = walk[100].timestamp;
+        let rows = readout_poses(&walk, centre, 0.020, 21);
+        assert_eq!(rows.len(), 21);
+        assert!((rows[0].timestamp - (centre - 0.010)).abs() < 1e-12);
+        assert!((rows[20].timestamp - (centre + 0.010)).abs() < 1e-12);
+        // The middle row is the frame's own pose; the ends lie between path samples.
+        assert!((rows[10].position - walk[100].position).norm() < 1e-12);
+        let first = &rows[0];
+        let (a, b) = (&walk[90], &walk[91]); // 9.6 samples before the centre
+        let f = (first.timestamp - a.timestamp) / (b.timestamp - a.timestamp);
+        assert!((f - 0.4).abs() < 1e-9, "{f}");
+        assert!((first.position - (a.position + (b.position - a.position) * f)).norm() < 1e-12);
+        // Beyond the path's ends its end poses are kept.
+        let start = readout_poses(&walk, 0.0, 0.020, 5);
+        assert!((start[0].position - walk[0].position).norm() < 1e-12);
+        assert!(readout_poses(&[], 0.0, 0.02, 5).is_empty());
+    }
 
     #[test]
     fn a_rolling_shutter_renders_each_row_from_its_own_pose() {
