@@ -160,6 +160,8 @@ impl MergerState {
                     frame_id: *frame,
                     anchor_keyframe_id: l.anchor_keyframe,
                     relative: Some(pose_to_pb(*frame, 0, &l.relative)),
+                    next_keyframe_id: l.next_keyframe,
+                    bracket_length: l.bracket_length,
                 })
                 .collect(),
         }
@@ -257,6 +259,8 @@ impl MergerState {
                         let frame = LocalizedFrame {
                             anchor_keyframe: l.anchor_keyframe_id,
                             relative,
+                            next_keyframe: l.next_keyframe_id,
+                            bracket_length: l.bracket_length,
                         };
                         Some((l.frame_id, frame))
                     })
@@ -343,6 +347,8 @@ mod tests {
                     position: Vector3::new(0.01, 0.0, 0.02),
                     rotation: UnitQuaternion::from_euler_angles(0.0, 0.01, 0.0),
                 },
+                next_keyframe: 1,
+                bracket_length: 0.05,
             },
         );
         state.last_sequence = Some(3);

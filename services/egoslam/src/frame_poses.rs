@@ -60,11 +60,20 @@ pub fn localize_pending(
             .collect();
         match localize_frame(camera, &correspondences, &prior, &options) {
             Ok(l) => {
+                tracing::debug!(
+                    frame = frame_id,
+                    from_prior = (l.pose.position - prior.position).norm(),
+                    bracket = (next.position - anchor.position).norm(),
+                    inliers = l.inliers,
+                    "frame localized"
+                );
                 index.localized.insert(
                     frame_id,
                     LocalizedFrame {
                         anchor_keyframe: anchor_id,
                         relative: relative(anchor, &l.pose),
+                        next_keyframe: pending.next_keyframe,
+                        bracket_length: (next.position - anchor.position).norm(),
                     },
                 );
                 stats.count("localized_frames", 1);

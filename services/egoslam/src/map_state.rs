@@ -21,12 +21,38 @@ pub struct PendingFrame {
 }
 
 /// A frame posed by PnP, kept relative to the keyframe before it so that it follows that
-/// keyframe when a refinement moves it.
+/// keyframe when a refinement moves it, and rescaled with the distance to the keyframe
+/// after it when the map's scale there changes (a loop's scale step can shrink a stretch
+/// posed while inflated a thousandfold: its frames were left hundreds of metres off).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalizedFrame {
     pub anchor_keyframe: u64,
     /// anchor_from_frame (position: the frame's centre in the anchor camera's frame).
     pub relative: StampedPose,
+    /// The keyframe after the frame.
+    pub next_keyframe: u64,
+    /// Distance from the anchor to `next_keyframe` when the frame was posed, map units
+    /// (0: not known; `relative` is then used as it is).
+    pub bracket_length: f64,
+}
+
+impl LocalizedFrame {
+    /// world_from_frame, given its anchor's pose now and the next keyframe's (when in the
+    /// same segment): `relative` with its position scaled by how the anchor-to-next
+    /// distance changed since the frame was posed.
+    pub fn pose(&self, anchor: &StampedPose, next: Option<&StampedPose>) -> StampedPose {
+        let scale = match next {
+            Some(next) if self.bracket_length > 1e-12 => {
+                (next.position - anchor.position).norm() / self.bracket_length
+            }
+            _ => 1.0,
+        };
+        let relative = StampedPose {
+            position: self.relative.position * scale,
+            ..self.relative
+        };
+        compose(anchor, &relative)
+    }
 }
 
 /// Every frame known to the merger, which keyframe is which frame, and how the frames
@@ -138,7 +164,10 @@ impl MapState {
                 let frame_id = ids[i];
                 let localized = index.localized.get(&frame_id).and_then(|l| {
                     let (s, anchor) = map.keyframe(l.anchor_keyframe)?;
-                    (s == segment).then(|| compose(anchor, &l.relative))
+                    let next = map
+                        .keyframe(l.next_keyframe)
+                        .and_then(|(sn, next)| (sn == s).then_some(next));
+                    (s == segment).then(|| l.pose(anchor, next))
                 });
                 PosedFrame {
                     frame_id,
@@ -351,5 +380,47 @@ mod tests {
         let moved = after.changed(&[frame(1, 0.7), frame(2, 0.1), frame(3, 0.0)]);
         let revisions: Vec<(u64, u32)> = moved.iter().map(|p| (p.frame_id, p.revision)).collect();
         assert_eq!(revisions, vec![(1, 2), (2, 1), (3, 0)]);
+    }
+
+    #[test]
+    fn a_localized_frame_follows_the_scale_of_its_bracket() {
+        // Posed while the map there was inflated: keyframes 10 units apart, the frame a
+        // quarter of the way and 1 unit aside, the anchor turned 90 deg about y.
+        let turned = UnitQuaternion::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0);
+        let at = |x: f64| StampedPose {
+            timestamp: 0.0,
+            position: Vector3::new(x, 0.0, 0.0),
+            rotation: turned,
+        };
+        let (anchor, next) = (at(0.0), at(10.0));
+        let posed = StampedPose {
+            position: Vector3::new(2.5, 1.0, 0.0),
+            ..at(0.0)
+        };
+        let frame = LocalizedFrame {
+            anchor_keyframe: 0,
+            relative: relative(&anchor, &posed),
+            next_keyframe: 1,
+            bracket_length: 10.0,
+        };
+        // Unchanged map: the pose as found.
+        let same = frame.pose(&anchor, Some(&next));
+        assert!((same.position - posed.position).norm() < 1e-12);
+        // A loop shrank the stretch 1000x and moved it: the frame keeps its place between.
+        let moved = |x: f64| StampedPose {
+            position: Vector3::new(5.0 + x / 1000.0, 2.0, 0.0),
+            ..at(0.0)
+        };
+        let shrunk = frame.pose(&moved(0.0), Some(&moved(10.0)));
+        assert!((shrunk.position - Vector3::new(5.0025, 2.001, 0.0)).norm() < 1e-12);
+        // No next keyframe in the segment, or none recorded (older checkpoints): as found.
+        let alone = frame.pose(&moved(0.0), None);
+        assert!((alone.position - Vector3::new(7.5, 3.0, 0.0)).norm() < 1e-12);
+        let unrecorded = LocalizedFrame {
+            bracket_length: 0.0,
+            ..frame
+        };
+        let old = unrecorded.pose(&moved(0.0), Some(&moved(10.0)));
+        assert!((old.position - alone.position).norm() < 1e-12);
     }
 }
