@@ -593,12 +593,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         // `egoslam run` hands the services the readout it estimated; a frontend left to
         // estimate it online (`auto` under systemd) saves it in the shared output folder
         // (0 until it has, or if it gave up).
-        let readout_ms = match merger.args.pipeline.rolling_shutter_ms {
-            crate::readout::Readout::Millis(ms) => ms,
-            crate::readout::Readout::Auto => {
-                crate::readout::saved_readout_ms(&merger.args.out).unwrap_or(0.0)
-            }
-        };
+        let readout_ms = crate::readout::known_readout_ms(&merger.args.pipeline, &merger.args.out)
+            .unwrap_or(0.0);
         let readout_s = readout_ms / 1000.0;
         let map = crate::map_file::relocalization_map(&merger.state, camera, readout_s);
         let source = merger.args.out.display().to_string();

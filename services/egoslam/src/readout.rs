@@ -35,11 +35,20 @@ const ONLINE_ATTEMPTS: u32 = 4;
 
 /// The readout (ms) a frontend service of this run estimated online and saved in `out`,
 /// if any.
-pub fn saved_readout_ms(out: &Path) -> Option<f64> {
+fn saved_readout_ms(out: &Path) -> Option<f64> {
     std::fs::read_to_string(out.join(READOUT_STATE_FILE))
         .ok()
         .and_then(|t| t.trim().parse::<f64>().ok())
         .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms))
+}
+
+/// The readout (ms) this run uses as far as is known now: the one given, or under `auto`
+/// the one a frontend of this run estimated and saved (`None`: not yet, or it gave up).
+pub fn known_readout_ms(pipeline: &PipelineArgs, out: &Path) -> Option<f64> {
+    match pipeline.rolling_shutter_ms {
+        Readout::Millis(ms) => Some(ms),
+        Readout::Auto => saved_readout_ms(out),
+    }
 }
 
 /// The readout a frontend service starts with, and the online estimator when `auto`
@@ -49,29 +58,28 @@ pub fn service_readout(
     pipeline: &PipelineArgs,
     out: &Path,
 ) -> (f64, Option<OnlineReadoutEstimator>) {
-    match pipeline.rolling_shutter_ms {
-        Readout::Millis(ms) => (ms / 1000.0, None),
-        Readout::Auto => match saved_readout_ms(out) {
-            Some(ms) => {
+    match known_readout_ms(pipeline, out) {
+        Some(ms) => {
+            if matches!(pipeline.rolling_shutter_ms, Readout::Auto) {
                 tracing::info!(
                     readout_ms = ms,
                     "rolling-shutter readout of this run, estimated before a restart"
                 );
-                (ms / 1000.0, None)
             }
-            None => {
-                tracing::info!(
-                    frames = pipeline.readout_frames,
-                    "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
-                );
-                let estimator = OnlineReadoutEstimator::new(
-                    ReadoutEstimationOptions::default(),
-                    pipeline.readout_frames as usize,
-                    ONLINE_ATTEMPTS,
-                );
-                (0.0, Some(estimator))
-            }
-        },
+            (ms / 1000.0, None)
+        }
+        None => {
+            tracing::info!(
+                frames = pipeline.readout_frames,
+                "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
+            );
+            let estimator = OnlineReadoutEstimator::new(
+                ReadoutEstimationOptions::default(),
+                pipeline.readout_frames as usize,
+                ONLINE_ATTEMPTS,
+            );
+            (0.0, Some(estimator))
+        }
     }
 }
 
