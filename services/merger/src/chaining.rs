@@ -223,7 +223,7 @@ impl MapBuilder {
                     after_keyframe = window.poses[cut.after].0,
                     transfer_points = cut.transfer_points,
                     scale,
-                    "weak cut inside the window: the keyframes after it take the pace before"
+                    "cut inside the window (weak, or the pace jumps across it): the keyframes after it take the pace before"
                 );
                 rescaled
             }

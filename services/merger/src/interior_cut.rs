@@ -15,6 +15,11 @@
 //! inside one solve: the part after it gets the scale that gives it the walking pace of the
 //! part before, both measured in the window's own frame, and the points triangulated
 //! across it (positions mixing the two scales) are left out.
+//!
+//! A solve can also break where many points cross (a degenerate stretch of a
+//! rolling-shutter walk: keyframes after one cut ~3,000x too far apart). So a cut across
+//! which the window's pace changes more than tenfold is rescaled the same way, however many
+//! points cross it.
 
 use crate::chaining::WindowInput;
 use crate::scene_depth::window_scene_depth;
@@ -42,6 +47,12 @@ pub struct InteriorCutOptions {
     /// points) moved the keyframe ATE from 0.17 to 0.20 m; the 12,000-frame walk's cut
     /// asked for 2.7.
     pub min_correction: f64,
+    /// A cut crossed by many points is still taken for a broken solve when the window's
+    /// pace jumps across it by more than this factor (default 10: a walking wearer's pace
+    /// changes by 10-20 % within a second and a car's by < 3x, while on the 1500-frame
+    /// seed-2 walk rendered with a 20 ms readout one window's keyframes moved 2,468x faster
+    /// after a cut crossed by 20+ points, and the rest of the map carried it until a loop).
+    pub max_pace_jump: f64,
 }
 
 impl Default for InteriorCutOptions {
@@ -50,6 +61,7 @@ impl Default for InteriorCutOptions {
             min_transfer_points: 20,
             min_span_s: 0.25,
             min_correction: 1.25,
+            max_pace_jump: 10.0,
         }
     }
 }
@@ -95,81 +107,140 @@ fn weakest_cut_of(
     // Two keyframes on each side at least: a side of one has nothing seen twice.
     let last = keyframes.checked_sub(3)?;
     (first_new.max(1)..=last)
-        .map(|after| {
-            let transfer_points = views
-                .values()
-                .filter(|v| {
-                    let before = v.iter().filter(|&&i| i <= after).count();
-                    before >= 2 && v.len() - before >= 2
-                })
-                .count();
-            Cut {
-                after,
-                transfer_points,
-            }
+        .map(|after| Cut {
+            after,
+            transfer_points: transfer_points(views, after),
         })
         // The weakest; of equals the earliest.
         .min_by_key(|c| (c.transfer_points, c.after))
 }
 
+/// Points seen twice or more on each side of the cut after keyframe index `after`.
+fn transfer_points(views: &HashMap<u64, Vec<usize>>, after: usize) -> usize {
+    views
+        .values()
+        .filter(|v| {
+            let before = v.iter().filter(|&&i| i <= after).count();
+            before >= 2 && v.len() - before >= 2
+        })
+        .count()
+}
+
 /// `window` with the keyframes after `cut` scaled about the last keyframe before it so
 /// that they walk at the pace of those before, and without the points triangulated across
 /// it. `None` when the cut is not weak, either side has no pace, or the paces agree within
-/// [`InteriorCutOptions::min_correction`].
+/// [`InteriorCutOptions::min_correction`]; then a cut crossed by more points is rescaled
+/// the same way when the pace jumps across it by more than
+/// [`InteriorCutOptions::max_pace_jump`] ([`strongest_pace_jump`]).
 pub fn rescale_after_weak_cut(
     window: &WindowInput,
     first_new: usize,
     options: &InteriorCutOptions,
 ) -> Option<(WindowInput, Cut, f64)> {
     let views = track_views(window);
-    let cut = weakest_cut_of(&views, window.poses.len(), first_new)?;
-    if cut.transfer_points >= options.min_transfer_points {
-        return None;
-    }
-    let split = cut.after + 1;
-    let before_ids: HashSet<u64> = window.poses[..split].iter().map(|(id, _)| *id).collect();
-    let side = |keep_before: bool| WindowInput {
+    let pace_options = SpeedContinuityOptions {
+        min_span_s: options.min_span_s,
+        ..SpeedContinuityOptions::default()
+    };
+    let floor = pace_options.min_speed_depths_per_s * window_scene_depth(window)?;
+    let weak = weakest_cut_of(&views, window.poses.len(), first_new)
+        .filter(|cut| cut.transfer_points < options.min_transfer_points)
+        .and_then(|cut| Some((cut, pace_ratio(window, cut.after, floor, &pace_options)?)))
+        .filter(|(_, scale)| scale.max(1.0 / scale) > options.min_correction);
+    let (cut, scale) = match weak {
+        Some(weak) => weak,
+        None => strongest_pace_jump(window, &views, first_new, floor, &pace_options)
+            .filter(|(_, scale)| scale.max(1.0 / scale) > options.max_pace_jump)?,
+    };
+    Some((rescaled_after(window, &views, cut.after, scale), cut, scale))
+}
+
+/// The keyframes of `window` up to index `after` (`before == true`) or after it, with
+/// their observations: what the pace is measured on.
+fn side(window: &WindowInput, after: usize, before: bool) -> WindowInput {
+    let ids: HashSet<u64> = window.poses[..=after].iter().map(|(id, _)| *id).collect();
+    WindowInput {
         poses: window
             .poses
             .iter()
-            .filter(|(id, _)| before_ids.contains(id) == keep_before)
+            .filter(|(id, _)| ids.contains(id) == before)
             .copied()
             .collect(),
         points: Vec::new(), // the pace needs the poses and how well they are observed
         observations: window
             .observations
             .iter()
-            .filter(|(kf, _, _)| before_ids.contains(kf) == keep_before)
+            .filter(|(kf, _, _)| ids.contains(kf) == before)
             .copied()
             .collect(),
         weak_observations: Vec::new(),
-    };
-    let (before, after) = (side(true), side(false));
-    let pace_options = SpeedContinuityOptions {
-        min_span_s: options.min_span_s,
-        ..SpeedContinuityOptions::default()
-    };
-    let depth = window_scene_depth(window)?;
-    let floor = pace_options.min_speed_depths_per_s * depth;
-    let scale =
-        window_pace(&before, floor, &pace_options)? / window_pace(&after, floor, &pace_options)?;
-    if !(scale.is_finite() && scale > 0.0) || scale.max(1.0 / scale) <= options.min_correction {
-        return None;
     }
-    let pivot = window.poses[cut.after].1.position;
+}
+
+/// The window's pace before the cut after index `after` over its pace after it: the
+/// scale that gives the part after the pace before. `None` when a side has no pace.
+fn pace_ratio(
+    window: &WindowInput,
+    after: usize,
+    floor: f64,
+    options: &SpeedContinuityOptions,
+) -> Option<f64> {
+    let before = window_pace(&side(window, after, true), floor, options)?;
+    let scale = before / window_pace(&side(window, after, false), floor, options)?;
+    (scale.is_finite() && scale > 0.0).then_some(scale)
+}
+
+/// The cut after `first_new` (two keyframes or more on each side) across which the pace
+/// changes the most, with [`pace_ratio`] there. Each side's pace is a median over its
+/// steps, so the cuts next to a jump show nearly the same change: of those within 1 % of
+/// the largest, the one fewest points cross (the earliest of equals).
+fn strongest_pace_jump(
+    window: &WindowInput,
+    views: &HashMap<u64, Vec<usize>>,
+    first_new: usize,
+    floor: f64,
+    options: &SpeedContinuityOptions,
+) -> Option<(Cut, f64)> {
+    let last = window.poses.len().checked_sub(3)?;
+    let ratios: Vec<(usize, f64)> = (first_new.max(1)..=last)
+        .filter_map(|after| Some((after, pace_ratio(window, after, floor, options)?)))
+        .collect();
+    let strongest = ratios
+        .iter()
+        .map(|(_, r)| r.ln().abs())
+        .max_by(f64::total_cmp)?;
+    ratios
+        .into_iter()
+        .filter(|(_, r)| r.ln().abs() >= 0.99 * strongest)
+        .map(|(after, scale)| {
+            let cut = Cut {
+                after,
+                transfer_points: transfer_points(views, after),
+            };
+            (cut, scale)
+        })
+        .min_by_key(|(cut, _)| (cut.transfer_points, cut.after))
+}
+
+/// `window` with the keyframes after index `after` scaled by `scale` about the keyframe at
+/// `after`, and without the points seen on both sides (their positions mix two scales).
+fn rescaled_after(
+    window: &WindowInput,
+    views: &HashMap<u64, Vec<usize>>,
+    after: usize,
+    scale: f64,
+) -> WindowInput {
+    let pivot = window.poses[after].1.position;
     // (seen before the cut, seen after it) per track.
     let sides = |track: &u64| {
         views.get(track).map_or((false, false), |v| {
-            (
-                v.iter().any(|&i| i <= cut.after),
-                v.iter().any(|&i| i > cut.after),
-            )
+            (v.iter().any(|&i| i <= after), v.iter().any(|&i| i > after))
         })
     };
     let across = |track: &u64| sides(track) == (true, true);
     let mut rescaled = window.clone();
-    for (id, pose) in &mut rescaled.poses {
-        if !before_ids.contains(id) {
+    for (i, (_, pose)) in rescaled.poses.iter_mut().enumerate() {
+        if i > after {
             pose.position = pivot + (pose.position - pivot) * scale;
         }
     }
@@ -180,7 +251,7 @@ pub fn rescale_after_weak_cut(
         }
     }
     rescaled.observations.retain(|(_, track, _)| !across(track));
-    Some((rescaled, cut, scale))
+    rescaled
 }
 
 #[cfg(test)]
@@ -272,5 +343,26 @@ mod tests {
         assert!(rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).is_none());
         let w = window(1.1, 3);
         assert!(rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).is_none());
+    }
+
+    #[test]
+    fn a_cut_many_points_cross_is_still_rescaled_when_the_pace_jumps_tenfold() {
+        // 40 points cross the cut: not weak. A 2.6x jump stays (above); 30x does not.
+        let w = window(30.0, 40);
+        let (rescaled, cut, scale) =
+            rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).expect("jump");
+        assert_eq!((cut.after, cut.transfer_points), (9, 40));
+        assert!((scale - 1.0 / 30.0).abs() < 1e-9, "{scale}");
+        let step =
+            |w: &WindowInput, i: usize| (w.poses[i].1.position - w.poses[i - 1].1.position).norm();
+        assert!((step(&rescaled, 15) - 0.05).abs() < 1e-9);
+        assert_eq!(rescaled.poses[9], w.poses[9], "the part before stays");
+        assert!(rescaled.points.iter().all(|(t, _)| *t < 2000 || *t >= 5000));
+        // A threshold above the jump leaves it.
+        let lenient = InteriorCutOptions {
+            max_pace_jump: 40.0,
+            ..Default::default()
+        };
+        assert!(rescale_after_weak_cut(&w, 5, &lenient).is_none());
     }
 }

@@ -255,6 +255,16 @@ impl MapBuilder {
             None
         };
         let (t, r) = align_shared_or_by_depth(w, m, shared_points, depth_scale);
+        tracing::debug!(
+            first_keyframe = window.poses.first().map(|(id, _)| *id),
+            scale = t.scale,
+            scene_depth_scale = self
+                .recent_scene_depth(segment)
+                .zip(crate::scene_depth::window_scene_depth(window))
+                .map(|(m, w)| m / w),
+            pace = pace,
+            "weak join"
+        );
         (t, r, ScaleSource::Weak)
     }
 }
