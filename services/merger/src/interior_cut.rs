@@ -23,8 +23,8 @@
 
 use crate::chaining::WindowInput;
 use crate::scene_depth::window_scene_depth;
-use crate::speed_continuity::{window_pace, SpeedContinuityOptions};
-use std::collections::{HashMap, HashSet};
+use crate::speed_continuity::{well_seen_pace, SpeedContinuityOptions};
+use std::collections::HashMap;
 
 /// When a cut is weak and how the pace is measured across it; defaults commented.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -143,50 +143,35 @@ pub fn rescale_after_weak_cut(
         ..SpeedContinuityOptions::default()
     };
     let floor = pace_options.min_speed_depths_per_s * window_scene_depth(window)?;
+    let seen = window.observation_counts();
     let weak = weakest_cut_of(&views, window.poses.len(), first_new)
         .filter(|cut| cut.transfer_points < options.min_transfer_points)
-        .and_then(|cut| Some((cut, pace_ratio(window, cut.after, floor, &pace_options)?)))
+        .and_then(|cut| {
+            let scale = pace_ratio(window, &seen, cut.after, floor, &pace_options)?;
+            Some((cut, scale))
+        })
         .filter(|(_, scale)| scale.max(1.0 / scale) > options.min_correction);
     let (cut, scale) = match weak {
         Some(weak) => weak,
-        None => strongest_pace_jump(window, &views, first_new, floor, &pace_options)
+        None => strongest_pace_jump(window, (&views, &seen), first_new, floor, &pace_options)
             .filter(|(_, scale)| scale.max(1.0 / scale) > options.max_pace_jump)?,
     };
     Some((rescaled_after(window, &views, cut.after, scale), cut, scale))
 }
 
-/// The keyframes of `window` up to index `after` (`before == true`) or after it, with
-/// their observations: what the pace is measured on.
-fn side(window: &WindowInput, after: usize, before: bool) -> WindowInput {
-    let ids: HashSet<u64> = window.poses[..=after].iter().map(|(id, _)| *id).collect();
-    WindowInput {
-        poses: window
-            .poses
-            .iter()
-            .filter(|(id, _)| ids.contains(id) == before)
-            .copied()
-            .collect(),
-        points: Vec::new(), // the pace needs the poses and how well they are observed
-        observations: window
-            .observations
-            .iter()
-            .filter(|(kf, _, _)| ids.contains(kf) == before)
-            .copied()
-            .collect(),
-        weak_observations: Vec::new(),
-    }
-}
-
 /// The window's pace before the cut after index `after` over its pace after it: the
 /// scale that gives the part after the pace before. `None` when a side has no pace.
+/// `seen`: the window's observations per keyframe, counted once for all its cuts.
 fn pace_ratio(
     window: &WindowInput,
+    seen: &HashMap<u64, usize>,
     after: usize,
     floor: f64,
     options: &SpeedContinuityOptions,
 ) -> Option<f64> {
-    let before = window_pace(&side(window, after, true), floor, options)?;
-    let scale = before / window_pace(&side(window, after, false), floor, options)?;
+    let (before, rest) = window.poses.split_at(after + 1);
+    let scale =
+        well_seen_pace(before, seen, floor, options)? / well_seen_pace(rest, seen, floor, options)?;
     (scale.is_finite() && scale > 0.0).then_some(scale)
 }
 
@@ -196,14 +181,14 @@ fn pace_ratio(
 /// the largest, the one fewest points cross (the earliest of equals).
 fn strongest_pace_jump(
     window: &WindowInput,
-    views: &HashMap<u64, Vec<usize>>,
+    (views, seen): (&HashMap<u64, Vec<usize>>, &HashMap<u64, usize>),
     first_new: usize,
     floor: f64,
     options: &SpeedContinuityOptions,
 ) -> Option<(Cut, f64)> {
     let last = window.poses.len().checked_sub(3)?;
     let ratios: Vec<(usize, f64)> = (first_new.max(1)..=last)
-        .filter_map(|after| Some((after, pace_ratio(window, after, floor, options)?)))
+        .filter_map(|after| Some((after, pace_ratio(window, seen, after, floor, options)?)))
         .collect();
     let strongest = ratios
         .iter()
@@ -357,7 +342,10 @@ mod tests {
             |w: &WindowInput, i: usize| (w.poses[i].1.position - w.poses[i - 1].1.position).norm();
         assert!((step(&rescaled, 15) - 0.05).abs() < 1e-9);
         assert_eq!(rescaled.poses[9], w.poses[9], "the part before stays");
-        assert!(rescaled.points.iter().all(|(t, _)| *t < 2000 || *t >= 5000));
+        assert!(
+            rescaled.points.iter().all(|(t, _)| *t < 2000),
+            "points across dropped"
+        );
         // A threshold above the jump leaves it.
         let lenient = InteriorCutOptions {
             max_pace_jump: 40.0,

@@ -96,9 +96,23 @@ pub(crate) fn window_pace(
     min_speed: f64,
     options: &SpeedContinuityOptions,
 ) -> Option<f64> {
-    let seen = window.observation_counts();
-    let poses: Vec<&StampedPose> = window
-        .poses
+    well_seen_pace(
+        &window.poses,
+        &window.observation_counts(),
+        min_speed,
+        options,
+    )
+}
+
+/// The pace of the first of `poses` that have `min_observations` in `seen` (observations
+/// per keyframe), in their units per second: [`window_pace`] over a part of a window.
+pub(crate) fn well_seen_pace(
+    poses: &[(u64, StampedPose)],
+    seen: &std::collections::HashMap<u64, usize>,
+    min_speed: f64,
+    options: &SpeedContinuityOptions,
+) -> Option<f64> {
+    let poses: Vec<&StampedPose> = poses
         .iter()
         .filter(|(id, _)| seen.get(id).copied().unwrap_or(0) >= options.min_observations)
         .map(|(_, p)| p)

@@ -247,10 +247,13 @@ impl MapBuilder {
             let (t, res) = align_with_scale(w, m, r.scale);
             return (t, res, ScaleSource::Relocalized);
         }
-        let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
+        let scene_depth_scale = || {
             let map_depth = self.recent_scene_depth(segment);
             let window_depth = crate::scene_depth::window_scene_depth(window);
             map_depth.zip(window_depth).map(|(m, w)| m / w)
+        };
+        let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
+            scene_depth_scale()
         } else {
             None
         };
@@ -258,10 +261,7 @@ impl MapBuilder {
         tracing::debug!(
             first_keyframe = window.poses.first().map(|(id, _)| *id),
             scale = t.scale,
-            scene_depth_scale = self
-                .recent_scene_depth(segment)
-                .zip(crate::scene_depth::window_scene_depth(window))
-                .map(|(m, w)| m / w),
+            scene_depth_scale = scene_depth_scale(),
             pace = pace,
             "weak join"
         );
