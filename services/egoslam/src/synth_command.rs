@@ -321,8 +321,9 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     });
     for (i, pose) in poses.iter().enumerate() {
         // The sub-frame poses of the exposure (the readout, or the open shutter), centred
-        // on the frame time (the ground-truth pose is the middle row's) and clipped at the
-        // ends of the sequence; without either, the frame's own pose.
+        // on the frame time (the ground-truth pose is the middle row's); at the ends of
+        // the sequence a readout takes the path's end poses and an open shutter is
+        // clipped; without either, the frame's own pose.
         let shutter = if rolling {
             // As finely as the path is sampled, the first and last rows at the readout's
             // ends exactly.
