@@ -60,10 +60,11 @@ pub fn localize_pending(
             .collect();
         match localize_frame(camera, &correspondences, &prior, &options) {
             Ok(l) => {
+                let bracket_length = (next.position - anchor.position).norm();
                 tracing::debug!(
                     frame = frame_id,
                     from_prior = (l.pose.position - prior.position).norm(),
-                    bracket = (next.position - anchor.position).norm(),
+                    bracket = bracket_length,
                     inliers = l.inliers,
                     "frame localized"
                 );
@@ -73,7 +74,7 @@ pub fn localize_pending(
                         anchor_keyframe: anchor_id,
                         relative: relative(anchor, &l.pose),
                         next_keyframe: pending.next_keyframe,
-                        bracket_length: (next.position - anchor.position).norm(),
+                        bracket_length,
                     },
                 );
                 stats.count("localized_frames", 1);
