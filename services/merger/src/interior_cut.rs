@@ -295,6 +295,19 @@ mod tests {
         }
     }
 
+    /// `rescaled` (from `window`, cut after index 9) walks at the pace before the cut
+    /// (0.05 per keyframe) after it too, the part before unmoved and the points seen on
+    /// both sides dropped.
+    fn assert_walks_at_the_pace_before(window: &WindowInput, rescaled: &WindowInput) {
+        let step = (rescaled.poses[15].1.position - rescaled.poses[14].1.position).norm();
+        assert!((step - 0.05).abs() < 1e-9, "{step}");
+        assert_eq!(rescaled.poses[9], window.poses[9], "the part before stays");
+        assert!(
+            rescaled.points.iter().all(|(t, _)| *t < 2000),
+            "points across dropped"
+        );
+    }
+
     #[test]
     fn the_part_after_a_weak_cut_walks_at_the_pace_of_the_part_before() {
         let w = window(2.6, 3);
@@ -309,14 +322,7 @@ mod tests {
             rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).expect("weak");
         assert_eq!(cut.after, 9);
         assert!((scale - 1.0 / 2.6).abs() < 1e-9, "{scale}");
-        let step =
-            |w: &WindowInput, i: usize| (w.poses[i].1.position - w.poses[i - 1].1.position).norm();
-        assert!((step(&rescaled, 15) - 0.05).abs() < 1e-9);
-        assert_eq!(rescaled.poses[9], w.poses[9], "the part before stays");
-        assert!(
-            rescaled.points.iter().all(|(t, _)| *t < 2000),
-            "points across dropped"
-        );
+        assert_walks_at_the_pace_before(&w, &rescaled);
         assert_eq!(rescaled.points.len(), 120);
         assert!(rescaled.observations.iter().all(|(_, t, _)| *t < 2000));
     }
@@ -338,14 +344,7 @@ mod tests {
             rescale_after_weak_cut(&w, 5, &InteriorCutOptions::default()).expect("jump");
         assert_eq!((cut.after, cut.transfer_points), (9, 40));
         assert!((scale - 1.0 / 30.0).abs() < 1e-9, "{scale}");
-        let step =
-            |w: &WindowInput, i: usize| (w.poses[i].1.position - w.poses[i - 1].1.position).norm();
-        assert!((step(&rescaled, 15) - 0.05).abs() < 1e-9);
-        assert_eq!(rescaled.poses[9], w.poses[9], "the part before stays");
-        assert!(
-            rescaled.points.iter().all(|(t, _)| *t < 2000),
-            "points across dropped"
-        );
+        assert_walks_at_the_pace_before(&w, &rescaled);
         // A threshold above the jump leaves it.
         let lenient = InteriorCutOptions {
             max_pace_jump: 40.0,
