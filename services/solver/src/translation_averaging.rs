@@ -48,7 +48,7 @@ pub struct TranslationAveragingOptions {
     /// 1DSfM-style refinements in Theia).
     pub huber: f64,
     /// Largest factor by which the refinement may rescale a group of the cameras against
-    /// the others (default 30; [`refinement_rescale`] measured at most 10 on sound
+    /// the others (default 30; [`refinement_rescale`] measured at most 10.3 on sound
     /// windows); beyond it the LUD positions are kept. The direction objective is
     /// scale-free for every group of cameras with its points, so nothing but the
     /// constraints across the group's border stops it from shrinking: where its
