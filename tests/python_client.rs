@@ -26,12 +26,16 @@ fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], ru
     );
     let out = tempfile::tempdir().expect("tempdir");
     let saved = out.path().join("python.tum");
+    // The client's own temporary files (generated message modules) go here, so the test
+    // can see that it leaves none behind.
+    let client_tmp = tempfile::tempdir().expect("tempdir");
     let mut client = std::process::Command::new(&python)
         .arg(repo().join("clients/python/egoslam_subscriber.py"))
         .args(["--connect", endpoint, "--device", device])
         .args(["--quiet", "--until-finished", "--timeout", "120", "--out"])
         .arg(&saved)
         .args(client_args)
+        .env("TMPDIR", client_tmp.path())
         .spawn()
         .expect("python client");
     std::thread::sleep(Duration::from_millis(300));
@@ -48,6 +52,11 @@ fn python_follows_a_run(endpoint: &str, device: &str, client_args: &[String], ru
     assert!(status.success());
     let client_status = client.wait().expect("client exit");
     assert!(client_status.success(), "python client failed");
+    let left: Vec<_> = std::fs::read_dir(client_tmp.path())
+        .expect("client tmp")
+        .filter_map(|e| e.ok().map(|e| e.file_name()))
+        .collect();
+    assert!(left.is_empty(), "the client left {left:?} behind");
     let from_python = std::fs::read_to_string(&saved).expect("python trajectory");
     let from_run = std::fs::read_to_string(results.join("trajectory.tum")).expect("run trajectory");
     assert_eq!(from_python.lines().count(), 121, "120 frames and a header");

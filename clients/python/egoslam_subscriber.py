@@ -13,6 +13,7 @@ Requirements: clients/python/requirements.txt. Key expressions: docs/egress.md.
 import argparse
 import json
 import pathlib
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -23,15 +24,23 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 
 def generated_modules():
-    """Runs protoc on proto/ and imports the generated egoslam.v1 modules."""
+    """Runs protoc on proto/ and imports the generated egoslam.v1 modules.
+
+    The temporary folder is removed once they are imported (they are then in memory), so
+    repeated runs leave nothing behind, even when this process is killed later."""
     out = pathlib.Path(tempfile.mkdtemp(prefix="egoslam_pb_"))
-    protos = sorted((REPO / "proto" / "egoslam" / "v1").glob("*.proto"))
-    subprocess.run(
-        ["protoc", f"-I{REPO / 'proto'}", f"--python_out={out}", *map(str, protos)],
-        check=True,
-    )
-    sys.path.insert(0, str(out))
-    from egoslam.v1 import geometry_pb2, map_pb2  # noqa: E402  (generated above)
+    try:
+        protos = sorted((REPO / "proto" / "egoslam" / "v1").glob("*.proto"))
+        subprocess.run(
+            ["protoc", f"-I{REPO / 'proto'}", f"--python_out={out}", *map(str, protos)],
+            check=True,
+        )
+        sys.path.insert(0, str(out))
+        from egoslam.v1 import geometry_pb2, map_pb2  # noqa: E402  (generated above)
+    finally:
+        if str(out) in sys.path:
+            sys.path.remove(str(out))
+        shutil.rmtree(out, ignore_errors=True)
 
     class Messages:
         Pose = geometry_pb2.Pose
