@@ -247,21 +247,20 @@ impl MapBuilder {
             let (t, res) = align_with_scale(w, m, r.scale);
             return (t, res, ScaleSource::Relocalized);
         }
-        let scene_depth_scale = || {
-            let map_depth = self.recent_scene_depth(segment);
-            let window_depth = crate::scene_depth::window_scene_depth(window);
-            map_depth.zip(window_depth).map(|(m, w)| m / w)
-        };
-        let depth_scale = if shared_points.len() < MIN_SHARED_POINTS {
-            scene_depth_scale()
-        } else {
-            None
-        };
+        // The scene-depth ratio, measured once and only when the shared points are too few
+        // to give the scale.
+        let depth_scale = (shared_points.len() < MIN_SHARED_POINTS)
+            .then(|| {
+                let map_depth = self.recent_scene_depth(segment);
+                let window_depth = crate::scene_depth::window_scene_depth(window);
+                map_depth.zip(window_depth).map(|(m, w)| m / w)
+            })
+            .flatten();
         let (t, r) = align_shared_or_by_depth(w, m, shared_points, depth_scale);
         tracing::debug!(
             first_keyframe = window.poses.first().map(|(id, _)| *id),
             scale = t.scale,
-            scene_depth_scale = scene_depth_scale(),
+            depth_scale,
             pace = pace,
             "weak join"
         );

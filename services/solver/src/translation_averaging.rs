@@ -51,14 +51,15 @@ pub struct TranslationAveragingOptions {
     /// the others (default 30; [`refinement_rescale`] measured at most 10.3 on sound
     /// windows but one, 48.7); beyond it the LUD positions are kept. Low on purpose: a
     /// false alarm costs bundle adjustment a start from the LUD positions (on that window
-    /// the same result to 0.1 % of its path), a missed collapse a broken window. The direction objective is
-    /// scale-free for every group of cameras with its points, so nothing but the
-    /// constraints across the group's border stops it from shrinking: where its
-    /// camera-to-camera directions are poor (a few pixels of parallax, 10-50 deg off) and
-    /// its points are far compared with its baselines, shrinking costs its camera-to-point
-    /// constraints little. On a rendered rolling-shutter walk a 25-keyframe window's first
-    /// 20 keyframes shrank a little more with each refinement iteration, to 0.0007 of
-    /// their length (window ATE 19 % of its path, 2.5 % from the LUD positions).
+    /// the same result to 0.1 % of its path), a missed collapse a broken window. The
+    /// direction objective is scale-free for every group of cameras with its points, so
+    /// nothing but the constraints across the group's border stops it from shrinking:
+    /// where its camera-to-camera directions are poor (a few pixels of parallax, 10-50 deg
+    /// off) and its points are far compared with its baselines, shrinking costs its
+    /// camera-to-point constraints little. On a rendered rolling-shutter walk a
+    /// 25-keyframe window's first 20 keyframes shrank a little more with each refinement
+    /// iteration, to 0.0007 of their length (window ATE 19 % of its path, 2.5 % from the
+    /// LUD positions).
     pub max_refinement_rescale: f64,
 }
 
@@ -374,7 +375,8 @@ fn refine(
 /// to 180 on sound windows), while a tenth of the cameras moving together is what a
 /// collapse looks like. Measured over ~500 windows of 13 sequences (rendered walks, head
 /// shakes, TUM, KITTI): 10.3 at most but one sound window at 48.7, against 3,628 for the
-/// window whose 20 of 25 cameras collapsed. `None` with fewer than two cameras with a local scale.
+/// window whose 20 of 25 cameras collapsed. `None` with fewer than two cameras with a
+/// local scale.
 pub fn refinement_rescale(
     cameras: usize,
     constraints: &[DirectionConstraint],
