@@ -115,6 +115,10 @@ fn truncated_image_mid_stream_is_skipped_named_and_counted() {
     assert_eq!(report["corrupt_frames"], 1);
     assert_eq!(report["frames"], 39);
     assert_eq!(report["posed_frames"], 39);
+    // The rolling-shutter readout is still estimated from every readable frame: the bad
+    // one had ended the estimation there (19 pairs, too few, so a global shutter).
+    let pairs = &report["rolling_shutter"]["estimate"]["frame_pairs"];
+    assert!(pairs.as_u64().is_some_and(|n| n >= 35), "{pairs}");
 }
 
 #[test]
@@ -178,6 +182,9 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
     assert!(err.contains("320x240") && err.contains("skipped"), "{err}");
     assert_eq!(report["wrong_size_frames"], 1);
     assert_eq!(report["posed_frames"], 39);
+    // Left out of the readout estimation too, which had stopped there (14 pairs).
+    let pairs = &report["rolling_shutter"]["estimate"]["frame_pairs"];
+    assert!(pairs.as_u64().is_some_and(|n| n >= 35), "{pairs}");
 }
 
 #[test]

@@ -12,7 +12,9 @@ use egoslam_frontend::{
     ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
 use egoslam_geometry::PinholeRadtan;
-use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, FrameSource, Layout};
+use egoslam_sources::{
+    detect_layout, load_calibration, open_source, Frame, FrameSource, Layout, SourceError,
+};
 use opencv::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -176,7 +178,11 @@ impl<'de> serde::Deserialize<'de> for Readout {
 
 /// Tracks an input's first `pipeline.readout_frames` frames (`first`, already read, then
 /// the rest of `source`) with no readout correction and estimates the readout from them.
-/// Stops early at a frame that cannot be read or tracked (the run itself reports it).
+/// A corrupt frame or one of another size is left out, as the run itself skips it (the
+/// tracker then links the frames either side; the fit uses their timestamps): one bad
+/// file among the first frames had ended the estimation there, and the run of a
+/// rolling-shutter camera then assumed a global shutter (the TUM clip with its second
+/// frame truncated: 0 frame pairs instead of 117). Any other read error ends it.
 pub fn estimate_from_source(
     first: Frame,
     source: &mut dyn FrameSource,
@@ -189,12 +195,20 @@ pub fn estimate_from_source(
     for frame in frames.take(pipeline.readout_frames as usize) {
         let frame = match frame {
             Ok(frame) => frame,
+            Err(e @ SourceError::BadImage { .. }) => {
+                tracing::debug!(%e, "readout estimation leaves out a frame it cannot read");
+                continue;
+            }
             Err(e) => {
                 tracing::warn!(%e, "readout estimation stops at a frame it cannot read");
                 break;
             }
         };
-        // A frame the tracker refuses (another size) ends the estimation likewise.
+        let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
+        if (w, h) != (camera.width, camera.height) {
+            tracing::debug!(source = %frame.source, "readout estimation leaves out a {w}x{h} frame");
+            continue;
+        }
         if let Err(e) = tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
             tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
             break;
