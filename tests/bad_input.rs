@@ -188,6 +188,30 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
 }
 
 #[test]
+fn an_output_folder_that_cannot_be_made_fails_before_any_work() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 40);
+    // A folder inside a regular file cannot be made, even by root.
+    let file = dir.path().join("not_a_folder");
+    std::fs::write(&file, "x").expect("write");
+    let o = egoslam()
+        .args(["run", "--input"])
+        .arg(dir.path())
+        .arg("--out")
+        .arg(file.join("out"))
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !err.contains("panicked"), "{err}");
+    assert!(
+        err.contains("creating") && err.contains("not_a_folder"),
+        "{err}"
+    );
+    // Refused before the rolling-shutter pre-pass tracks the first frames.
+    assert!(!err.contains("readout estimated"), "{err}");
+}
+
+#[test]
 fn calibrate_readout_refuses_a_missing_input() {
     let out = egoslam()
         .args(["calibrate-readout", "--input", "/nonexistent/sequence"])

@@ -271,12 +271,14 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: no frames", input.display()))??;
     let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
+    // An output folder that cannot be made fails before the readout pre-pass, not after.
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
     let readout_report =
         resolve_readout(&mut args, &input, &layout, first, source.as_mut(), camera);
     drop(source);
 
     let out = &args.out;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     for stale in [
         "trajectory.tum",
         "keyframes.tum",
