@@ -190,10 +190,15 @@ fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
 fn stop_all(children: &mut [Supervised]) {
     for c in children.iter_mut() {
         // SIGTERM first: services finish their current item and release shared memory.
-        let _ = Command::new("kill")
-            .arg("-TERM")
-            .arg(c.child.id().to_string())
-            .status();
+        // Only to those still running: a service that has exited was reaped by `try_wait`,
+        // its process id may already be another process's (and `kill(1)` printed "No such
+        // process" for it under the service's own error).
+        if matches!(c.child.try_wait(), Ok(None)) {
+            if let Ok(pid) = libc::pid_t::try_from(c.child.id()) {
+                // SAFETY: kill(2) touches no memory; `pid` is our unreaped child.
+                unsafe { libc::kill(pid, libc::SIGTERM) };
+            }
+        }
     }
     let deadline = Instant::now() + Duration::from_secs(3);
     for c in children.iter_mut() {
