@@ -4,7 +4,7 @@
 //! known poses, then a pose-only refinement on the matches found by projecting the points
 //! of the candidates and their neighbours.
 
-use crate::absolute_pose::{solve_pnp, PnpOptions};
+use crate::absolute_pose::{solve_pnp, PnpError, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
 use crate::keyframe_database::KeyframeDatabase;
 use crate::patch_alignment::{align_patch, viewpoint_warp, AlignmentOptions, Patch};
@@ -519,8 +519,15 @@ impl Relocalizer {
                 result = ?solved.as_ref().map(|s| s.inliers.len()),
                 "candidate group"
             );
-            let Ok(solution) = solved else {
-                continue;
+            let solution = match solved {
+                Ok(solution) => solution,
+                Err(PnpError::TooFewInliers { inliers, .. }) => {
+                    // Reported in `NoPose`: "0 inliers" had hidden a pose short of the
+                    // minimum (the TUM clip's frames 43-50: 4-12 of 28-58).
+                    best_inliers = best_inliers.max(inliers);
+                    continue;
+                }
+                Err(_) => continue,
             };
             best_inliers = best_inliers.max(solution.inliers.len());
             // The known keyframe poses reject a pose no candidate could have seen the
