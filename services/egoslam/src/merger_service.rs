@@ -11,120 +11,27 @@ use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
 use crate::frame_poses;
 use crate::log_compaction;
-use crate::map_state::{self, MapState, Revisions};
+use crate::map_state::{MapState, Revisions};
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 
 #[path = "merger_journal_recovery.rs"]
 mod journal_recovery;
+#[path = "merger_outputs.rs"]
+mod outputs;
 #[path = "merger_relocalization.rs"]
 mod relocalization;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{
-    point_confidence, PointConfidence, PointConfidenceOptions, WindowInput, WindowOutcome,
-};
+use egoslam_merger::{PointConfidenceOptions, WindowInput, WindowOutcome};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
 use egoslam_solver::triangulation::TriangulationOptions;
 use nalgebra::Point2;
-use std::collections::{BTreeSet, HashMap, VecDeque};
-use std::path::Path;
-use std::sync::Arc;
-
-/// Files, stats and (when enabled) zenoh, from one snapshot of the map.
-struct Outputs {
-    egress: Option<Egress>,
-    revisions: Revisions,
-    /// Which map points map.ply holds (zenoh carries all, with their confidence).
-    point_confidence: PointConfidenceOptions,
-    /// The last scores of the map's points (recomputed when the files are written).
-    confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
-}
-
-impl Outputs {
-    #[allow(clippy::too_many_arguments)]
-    fn emit(
-        &mut self,
-        out: &Path,
-        merger: &MergerState,
-        camera: Option<&PinholeRadtan>,
-        changed_points: &[u64],
-        state: pb::ServiceState,
-        stats: &mut ServiceStats,
-        persist: bool,
-    ) -> anyhow::Result<()> {
-        if !persist && self.egress.is_none() {
-            return Ok(()); // nobody reads the poses of every frame now: don't compute them
-        }
-        let (map, index) = (&merger.map, &merger.frames);
-        let mut snapshot = MapState::of(map, index);
-        if let Some(camera) = camera {
-            // Scoring every point is a pass over every observation: done when the files
-            // are written (at most every 5 s, and at the end); in between, a new point
-            // goes out over zenoh without its figure and the last scores serve the rest.
-            if persist || self.confidence.is_none() {
-                let scored = stats.time("point_confidence", || {
-                    point_confidence(map, camera, &self.point_confidence)
-                });
-                self.confidence = Some(Arc::new(scored));
-            }
-        }
-        if let Some(confidence) = &self.confidence {
-            snapshot = snapshot.with_confidence(Arc::clone(confidence));
-        }
-        if persist {
-            let published = snapshot.write_files(out, &self.point_confidence)?;
-            stats
-                .counters
-                .insert("published_points".into(), published as u64);
-        }
-        stats.frames = index.frames.len() as u64;
-        stats.keyframes = snapshot.keyframes.len() as u64;
-        stats
-            .counters
-            .insert("posed_frames".into(), snapshot.frames.len() as u64);
-        stats
-            .counters
-            .insert("segments".into(), map.live_segments() as u64);
-        // Derived from the map (segments made, segments left), so that it survives a
-        // merger restart like the map itself.
-        stats.counters.insert(
-            "breaks_healed".into(),
-            u64::from(map.segments()).saturating_sub(map.live_segments() as u64),
-        );
-        stats
-            .counters
-            .insert("map_points".into(), snapshot.points.len() as u64);
-        if persist {
-            stats.write(out)?;
-        }
-        if let Some(egress) = &self.egress {
-            let status = pb::Status {
-                service: "merger".into(),
-                state: state as i32,
-                frames: snapshot.frames.len() as u64,
-                keyframes: snapshot.keyframes.len() as u64,
-                windows: stats.windows,
-                message: format!(
-                    "{} segment(s), {} map points",
-                    map.live_segments(),
-                    snapshot.points.len()
-                ),
-            };
-            map_state::publish(
-                egress,
-                &snapshot,
-                &mut self.revisions,
-                changed_points,
-                &status,
-            )?;
-        }
-        Ok(())
-    }
-}
+use outputs::Outputs;
+use std::collections::{BTreeSet, VecDeque};
 
 /// The merger at work: its durable state, where it writes, what it publishes.
 struct Merger {

@@ -9,6 +9,7 @@ pub mod absolute_pose;
 pub mod descriptors;
 pub mod keyframe_database;
 pub mod patch_alignment;
+pub mod relocalization_map;
 pub mod relocalizer;
 pub mod rolling_shutter_pose;
 pub mod rotation_relocalization;

@@ -7,59 +7,14 @@
 use crate::absolute_pose::{solve_pnp, PnpError, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
 use crate::keyframe_database::KeyframeDatabase;
-use crate::patch_alignment::{align_patch, viewpoint_warp, AlignmentOptions, Patch};
+use crate::patch_alignment::AlignmentOptions;
+pub use crate::relocalization_map::{MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap};
 use crate::rolling_shutter_pose::{refine_rolling_shutter_pose, RollingShutterPoseOptions};
 use crate::rotation_relocalization::relocalize_by_rotation;
 use crate::vocabulary::Vocabulary;
-use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_geometry::StampedPose;
 use nalgebra::{Point2, Vector3};
-use opencv::prelude::MatTraitConst;
 use std::collections::{BTreeMap, HashMap};
-
-/// A described track of a keyframe; it gives matches when the map has its track as a
-/// point, and makes the keyframe's bag of words either way.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MapFeature {
-    pub track_id: u64,
-    pub descriptor: Descriptor,
-    /// Undistorted pixel in the keyframe.
-    pub pixel: Point2<f32>,
-}
-
-/// A keyframe of a relocalization map.
-#[derive(Debug, Clone, PartialEq)]
-pub struct MapKeyframe {
-    pub keyframe_id: u64,
-    /// Map segment of the keyframe (poses of different segments are in different frames).
-    pub segment: u32,
-    /// world_from_camera, in the segment's frame.
-    pub pose: StampedPose,
-    pub features: Vec<MapFeature>,
-    /// The patches of the tracks first described in this keyframe (track id, patch), for placing
-    /// their points in a query image ([`crate::patch_alignment`]); empty in maps saved
-    /// before patches were kept.
-    pub patches: Vec<(u64, Patch)>,
-}
-
-/// What relocalization searches: keyframes with described features and the points.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RelocalizationMap {
-    /// Ideal pinhole camera of the undistorted pixels.
-    pub camera: PinholeRadtan,
-    pub keyframes: Vec<MapKeyframe>,
-    /// track id -> (segment, position).
-    pub points: HashMap<u64, (u32, Vector3<f64>)>,
-    /// Rolling-shutter readout the map's keyframes were corrected for, seconds (0: a global
-    /// shutter or unknown): the default for query frames from the same camera.
-    pub rolling_shutter_s: f64,
-}
-
-/// A query frame's features (undistorted pixels and their descriptors, same order).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct QueryFeatures {
-    pub pixels: Vec<Point2<f64>>,
-    pub descriptors: Vec<Descriptor>,
-}
 
 /// Settings; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -596,74 +551,7 @@ impl Relocalizer {
             best_inliers,
         })
     }
-
-    /// Places the points of `found`'s inliers in the query `image` (raw, 8-bit grey) by
-    /// their saved patches, and solves the pose again on those positions: a point is where
-    /// its track was, which the query's corners miss by a pixel or two
-    /// ([`crate::patch_alignment`]). `raw_camera` is the query's camera with its
-    /// distortion. `found` comes back unchanged when fewer than the PnP minimum of its
-    /// points align (maps saved without patches, a blurred frame).
-    pub fn refine_by_patches(
-        &self,
-        found: Relocalization,
-        image: &impl MatTraitConst,
-        raw_camera: &PinholeRadtan,
-        options: &RelocalizerOptions,
-    ) -> Relocalization {
-        let _span =
-            tracing::debug_span!("patch_alignment", inliers = found.inliers.len()).entered();
-        let camera = &self.map.camera;
-        let camera_from_world = found.pose.rotation.inverse();
-        let mut aligned = Vec::new();
-        let mut tracks = Vec::new();
-        let every = found
-            .inliers
-            .len()
-            .div_ceil(options.max_aligned.max(1))
-            .max(1);
-        for &(track, feature) in found.inliers.iter().step_by(every) {
-            let (Some(&(k, p, reference_pixel)), Some((_, point))) =
-                (self.patch_index.get(&track), self.map.points.get(&track))
-            else {
-                continue;
-            };
-            let keyframe = &self.map.keyframes[k];
-            let Some(warp) =
-                viewpoint_warp(camera, &keyframe.pose, reference_pixel, point, &found.pose)
-            else {
-                continue;
-            };
-            let Some(predicted) =
-                raw_camera.project_raw(&(camera_from_world * (point - found.pose.position)))
-            else {
-                continue;
-            };
-            let patch = &keyframe.patches[p].1;
-            if let Some(raw) = align_patch(image, patch, predicted, &warp, &options.alignment) {
-                aligned.push((*point, raw_camera.undistort_pixel(raw)));
-                tracks.push((track, feature));
-            }
-        }
-        let refine = PnpOptions {
-            min_inlier_ratio: 0.0,
-            ransac_iterations: 50,
-            ransac_threshold_px: options.aligned_threshold_px,
-            ..options.pnp
-        };
-        match solve_pnp(camera, &aligned, Some(&found.pose), &refine) {
-            Ok(solution) => Relocalization {
-                pose: StampedPose {
-                    timestamp: found.pose.timestamp,
-                    ..self.unrolled(
-                        solution.pose,
-                        solution.inliers.iter().map(|&i| aligned[i]),
-                        options,
-                    )
-                },
-                inliers: solution.inliers.iter().map(|&i| tracks[i]).collect(),
-                ..found
-            },
-            Err(_) => found,
-        }
-    }
 }
+
+#[path = "relocalizer_patches.rs"]
+mod patches;

@@ -9,6 +9,7 @@ pub mod bundle_adjustment;
 pub mod essential_refinement;
 mod huber;
 mod normal_equations;
+mod refinement_collapse;
 pub mod relative_pose;
 pub mod retriangulation;
 pub mod rotation_averaging;

@@ -1,0 +1,105 @@
+//! What the merger writes and publishes after a window: result files, stats and (when
+//! enabled) zenoh, all from one snapshot of the map.
+
+use crate::checkpoint::MergerState;
+use crate::map_state::{self, MapState, Revisions};
+use crate::stats::ServiceStats;
+use egoslam_egress::Egress;
+use egoslam_geometry::PinholeRadtan;
+use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
+use egoslam_messages::v1 as pb;
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Files, stats and (when enabled) zenoh, from one snapshot of the map.
+pub(super) struct Outputs {
+    pub(super) egress: Option<Egress>,
+    pub(super) revisions: Revisions,
+    /// Which map points map.ply holds (zenoh carries all, with their confidence).
+    pub(super) point_confidence: PointConfidenceOptions,
+    /// The last scores of the map's points (recomputed when the files are written).
+    pub(super) confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
+}
+
+impl Outputs {
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn emit(
+        &mut self,
+        out: &Path,
+        merger: &MergerState,
+        camera: Option<&PinholeRadtan>,
+        changed_points: &[u64],
+        state: pb::ServiceState,
+        stats: &mut ServiceStats,
+        persist: bool,
+    ) -> anyhow::Result<()> {
+        if !persist && self.egress.is_none() {
+            return Ok(()); // nobody reads the poses of every frame now: don't compute them
+        }
+        let (map, index) = (&merger.map, &merger.frames);
+        let mut snapshot = MapState::of(map, index);
+        if let Some(camera) = camera {
+            // Scoring every point is a pass over every observation: done when the files
+            // are written (at most every 5 s, and at the end); in between, a new point
+            // goes out over zenoh without its figure and the last scores serve the rest.
+            if persist || self.confidence.is_none() {
+                let scored = stats.time("point_confidence", || {
+                    point_confidence(map, camera, &self.point_confidence)
+                });
+                self.confidence = Some(Arc::new(scored));
+            }
+        }
+        if let Some(confidence) = &self.confidence {
+            snapshot = snapshot.with_confidence(Arc::clone(confidence));
+        }
+        if persist {
+            let published = snapshot.write_files(out, &self.point_confidence)?;
+            stats
+                .counters
+                .insert("published_points".into(), published as u64);
+        }
+        stats.frames = index.frames.len() as u64;
+        stats.keyframes = snapshot.keyframes.len() as u64;
+        stats
+            .counters
+            .insert("posed_frames".into(), snapshot.frames.len() as u64);
+        stats
+            .counters
+            .insert("segments".into(), map.live_segments() as u64);
+        // Derived from the map (segments made, segments left), so that it survives a
+        // merger restart like the map itself.
+        stats.counters.insert(
+            "breaks_healed".into(),
+            u64::from(map.segments()).saturating_sub(map.live_segments() as u64),
+        );
+        stats
+            .counters
+            .insert("map_points".into(), snapshot.points.len() as u64);
+        if persist {
+            stats.write(out)?;
+        }
+        if let Some(egress) = &self.egress {
+            let status = pb::Status {
+                service: "merger".into(),
+                state: state as i32,
+                frames: snapshot.frames.len() as u64,
+                keyframes: snapshot.keyframes.len() as u64,
+                windows: stats.windows,
+                message: format!(
+                    "{} segment(s), {} map points",
+                    map.live_segments(),
+                    snapshot.points.len()
+                ),
+            };
+            map_state::publish(
+                egress,
+                &snapshot,
+                &mut self.revisions,
+                changed_points,
+                &status,
+            )?;
+        }
+        Ok(())
+    }
+}

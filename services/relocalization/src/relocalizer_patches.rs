@@ -1,0 +1,81 @@
+//! The last step of a relocalization: the inliers' points placed in the query image by
+//! their saved patches, and the pose solved again on those positions
+//! ([`crate::patch_alignment`]).
+
+use super::{Relocalization, Relocalizer, RelocalizerOptions};
+use crate::absolute_pose::{solve_pnp, PnpOptions};
+use crate::patch_alignment::{align_patch, viewpoint_warp};
+use egoslam_geometry::{PinholeRadtan, StampedPose};
+use opencv::prelude::MatTraitConst;
+
+impl Relocalizer {
+    /// Places the points of `found`'s inliers in the query `image` (raw, 8-bit grey) by
+    /// their saved patches, and solves the pose again on those positions: a point is where
+    /// its track was, which the query's corners miss by a pixel or two
+    /// ([`crate::patch_alignment`]). `raw_camera` is the query's camera with its
+    /// distortion. `found` comes back unchanged when fewer than the PnP minimum of its
+    /// points align (maps saved without patches, a blurred frame).
+    pub fn refine_by_patches(
+        &self,
+        found: Relocalization,
+        image: &impl MatTraitConst,
+        raw_camera: &PinholeRadtan,
+        options: &RelocalizerOptions,
+    ) -> Relocalization {
+        let _span =
+            tracing::debug_span!("patch_alignment", inliers = found.inliers.len()).entered();
+        let camera = &self.map.camera;
+        let camera_from_world = found.pose.rotation.inverse();
+        let mut aligned = Vec::new();
+        let mut tracks = Vec::new();
+        let every = found
+            .inliers
+            .len()
+            .div_ceil(options.max_aligned.max(1))
+            .max(1);
+        for &(track, feature) in found.inliers.iter().step_by(every) {
+            let (Some(&(k, p, reference_pixel)), Some((_, point))) =
+                (self.patch_index.get(&track), self.map.points.get(&track))
+            else {
+                continue;
+            };
+            let keyframe = &self.map.keyframes[k];
+            let Some(warp) =
+                viewpoint_warp(camera, &keyframe.pose, reference_pixel, point, &found.pose)
+            else {
+                continue;
+            };
+            let Some(predicted) =
+                raw_camera.project_raw(&(camera_from_world * (point - found.pose.position)))
+            else {
+                continue;
+            };
+            let patch = &keyframe.patches[p].1;
+            if let Some(raw) = align_patch(image, patch, predicted, &warp, &options.alignment) {
+                aligned.push((*point, raw_camera.undistort_pixel(raw)));
+                tracks.push((track, feature));
+            }
+        }
+        let refine = PnpOptions {
+            min_inlier_ratio: 0.0,
+            ransac_iterations: 50,
+            ransac_threshold_px: options.aligned_threshold_px,
+            ..options.pnp
+        };
+        match solve_pnp(camera, &aligned, Some(&found.pose), &refine) {
+            Ok(solution) => Relocalization {
+                pose: StampedPose {
+                    timestamp: found.pose.timestamp,
+                    ..self.unrolled(
+                        solution.pose,
+                        solution.inliers.iter().map(|&i| aligned[i]),
+                        options,
+                    )
+                },
+                inliers: solution.inliers.iter().map(|&i| tracks[i]).collect(),
+                ..found
+            },
+            Err(_) => found,
+        }
+    }
+}
