@@ -134,6 +134,62 @@ fn tum_every_frame_relocalized_from_scratch_and_damaged_maps_refused() {
         &localize(&dir.path().join("map.egomap"), &input, &out, &with_other),
         "was built for vocabulary",
     );
+
+    // A localization killed on the way keeps what it had localized: the trajectory is
+    // written every 100 frames, before the progress line that says so (it had been written
+    // only at the end).
+    let partial = dir.path().join("partial");
+    let mut child = egoslam()
+        .arg("localize")
+        .arg("--map")
+        .arg(dir.path().join("map.egomap"))
+        .arg("--input")
+        .arg(&input)
+        .arg("--out")
+        .arg(&partial)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("localize");
+    let stderr = child.stderr.take().expect("stderr");
+    let progressed = std::io::BufRead::lines(std::io::BufReader::new(stderr))
+        .map_while(Result::ok)
+        .any(|line| line.contains("localizing"));
+    child.kill().expect("kill");
+    child.wait().expect("wait");
+    assert!(progressed, "no progress line");
+    let text = std::fs::read_to_string(partial.join("trajectory.tum")).expect("partial trajectory");
+    let poses = text.lines().filter(|l| !l.starts_with('#')).count();
+    // Of the first 100 frames ~90 relocalize; the 20 after them were not reached.
+    assert!((80..=100).contains(&poses), "{poses} poses");
+    assert!(!partial.join("report.json").exists());
+
+    // A frame of another size is skipped and counted (it had been localized with the
+    // first frame's camera).
+    use opencv::{core, imgcodecs, imgproc};
+    let folder = dir.path().join("images");
+    std::fs::create_dir_all(&folder).expect("mkdir");
+    let mut images: Vec<_> = std::fs::read_dir(input.join("rgb"))
+        .expect("rgb")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    images.sort();
+    for image in &images[..30] {
+        std::fs::copy(image, folder.join(image.file_name().expect("name"))).expect("copy");
+    }
+    std::fs::copy(input.join("camera.yaml"), folder.join("camera.yaml")).expect("calib");
+    let victim = folder.join(images[15].file_name().expect("name"));
+    let victim = victim.to_str().expect("utf-8");
+    let image = imgcodecs::imread(victim, imgcodecs::IMREAD_UNCHANGED).expect("read");
+    let mut small = core::Mat::default();
+    let size = core::Size::new(320, 240);
+    imgproc::resize(&image, &mut small, size, 0.0, 0.0, imgproc::INTER_AREA).expect("resize");
+    imgcodecs::imwrite(victim, &small, &core::Vector::new()).expect("write");
+    let out = dir.path().join("sizes");
+    let o = localize(&dir.path().join("map.egomap"), &folder, &out, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    assert_eq!(r["frames"], 29, "{r}");
+    assert_eq!(r["failures"]["frame of another size"], 1, "{r}");
 }
 
 #[test]

@@ -17,7 +17,7 @@ use opencv::core::Mat;
 use opencv::prelude::*;
 use serde_json::json;
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Args, Debug)]
@@ -215,6 +215,16 @@ fn relocalization_error(
     }))
 }
 
+/// Writes `out/trajectory.tum` (atomically): every localized frame, segment after segment.
+fn write_trajectory(out: &Path, localized: &BTreeMap<u32, Vec<StampedPose>>) -> anyhow::Result<()> {
+    let mut text = String::new();
+    for poses in localized.values() {
+        text.push_str(&crate::output::tum_text(poses));
+    }
+    write_atomically(&out.join("trajectory.tum"), text.as_bytes())?;
+    Ok(())
+}
+
 pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let vocabulary = load_vocabulary(args.vocabulary.as_deref())?;
     let map = read_map(&args.map, &vocabulary)?;
@@ -253,12 +263,18 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
                 continue;
             }
         };
-        frames += 1;
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
         let camera = match camera {
+            Some(c) if (c.width, c.height) != (w, h) => {
+                // As `run` does: the calibration is for the stream's first size.
+                tracing::warn!(source = %frame.source, "frame is {w}x{h}, the stream {}x{}: skipped", c.width, c.height);
+                *failures.entry("frame of another size".into()).or_default() += 1;
+                continue;
+            }
             Some(c) => c,
             None => *camera.insert(calibration.camera_for(w, h)?),
         };
+        frames += 1;
         let is_keyframe = keyframe_stamps
             .iter()
             .any(|t| (t - frame.timestamp).abs() < 1e-6);
@@ -281,17 +297,16 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
             Err(e) => *failures.entry(e.to_string()).or_default() += 1,
         }
         if frames % 100 == 0 {
+            // What is localized so far is kept, so a localization killed on a long input
+            // loses at most the last 100 frames (written before the progress line says so).
+            write_trajectory(&args.out, &localized)?;
             tracing::info!(frames, total = ?total, "localizing");
         }
     }
     if frames == 0 {
         bail!("{}: no frames", args.input.display());
     }
-    let mut text = String::new();
-    for poses in localized.values() {
-        text.push_str(&crate::output::tum_text(poses));
-    }
-    write_atomically(&args.out.join("trajectory.tum"), text.as_bytes())?;
+    write_trajectory(&args.out, &localized)?;
     query_ms.sort_by(f64::total_cmp);
     let count: usize = localized.values().map(Vec::len).sum();
     let mut report = json!({
