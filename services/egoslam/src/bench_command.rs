@@ -166,6 +166,16 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
         &["--rolling-shutter-ms", "30"],
         &[],
     );
+    // What a head-mounted camera films: a 20 ms readout and motion blur over each row's
+    // exposure (9 sub-poses: fewer leave ghost copies, which broke tracking;
+    // docs/synth.md, "Motion blur").
+    rendered(
+        "synth_walker_300_rs20_blur",
+        "walker",
+        300,
+        &["--rolling-shutter-ms", "20", "--blur-samples", "9"],
+        &[],
+    );
     // Long enough for stops and sharp turns to hand scale from window to window: the
     // chaining regressions a 300-frame walk does not show (docs/benchmarks.md, "Longer
     // rendered walks").

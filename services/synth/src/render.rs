@@ -26,9 +26,14 @@ pub struct RenderOptions {
     pub exposure_scale: f64,
     /// Rows exposed one after the other (default false: a global shutter). When set, the
     /// poses given to [`render_frame`] run from the first row's exposure to the last
-    /// row's, each row is rendered from the pose interpolated at its place, and nothing is
-    /// averaged (no motion blur).
+    /// row's, and each row is rendered from the pose interpolated at its place.
     pub rolling_shutter: bool,
+    /// With a rolling shutter and `blur_samples` > 1: the share of the poses' time span
+    /// that is one row's exposure, `E / (R + E)` for a readout R and an exposure E (default
+    /// 0: no blur). The poses then run from the first row's exposure start to the last
+    /// row's exposure end, and each row averages `blur_samples` poses over its own
+    /// exposure (a head-mounted camera's frames have both the shear and the blur).
+    pub rolling_exposure: f64,
 }
 
 impl Default for RenderOptions {
@@ -41,6 +46,7 @@ impl Default for RenderOptions {
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             exposure_scale: 1.0,
             rolling_shutter: false,
+            rolling_exposure: 0.0,
         }
     }
 }
@@ -347,9 +353,15 @@ pub fn render_frame(
             .map(|pose| planes_seen(scene, pose, camera))
             .collect()
     };
+    // Poses averaged per row with a rolling shutter (1 without blur).
+    let row_blur = if rolling && options.rolling_exposure > 0.0 {
+        options.blur_samples.max(1)
+    } else {
+        1
+    };
     // Poses averaged, and the one whose depth is kept.
     let (n, centre) = if rolling {
-        (1.0, 0)
+        (row_blur as f64, 0)
     } else {
         (poses.len().max(1) as f64, poses.len() / 2)
     };
@@ -386,9 +398,21 @@ pub fn render_frame(
                     if rolling {
                         for mut row in band.rows() {
                             let at = (row.first_row as f64 + 0.5) / h as f64;
-                            let pose = interpolate(poses, at);
-                            let planes = planes_seen(scene, &pose, camera);
-                            trace_band(&mut row, &planes, camera, ray_x, true, &mut cache);
+                            for k in 0..row_blur {
+                                // The row's place in the readout, then its exposure's
+                                // sample k (the middle one keeps the depth).
+                                let at = if row_blur > 1 {
+                                    let e = options.rolling_exposure;
+                                    let offset = k as f64 / (row_blur - 1) as f64 - 0.5;
+                                    e / 2.0 + at * (1.0 - e) + offset * e
+                                } else {
+                                    at
+                                };
+                                let pose = interpolate(poses, at);
+                                let planes = planes_seen(scene, &pose, camera);
+                                let depth_too = k == row_blur / 2;
+                                trace_band(&mut row, &planes, camera, ray_x, depth_too, &mut cache);
+                            }
                         }
                     }
                     for (k, planes) in views.iter().enumerate() {
@@ -481,6 +505,62 @@ mod tests {
         assert_eq!(
             render_frame(&scene, &camera, &still, 7, &rolling),
             render_frame(&scene, &camera, &still[..1], 7, &global)
+        );
+    }
+
+    #[test]
+    fn a_rolling_shutter_with_blur_averages_each_row_over_its_own_exposure() {
+        let camera =
+            PinholeRadtan::new(160, 121, [120.0, 120.0, 80.0, 60.5], [0.0; 5]).expect("camera");
+        let scene = Scene::room(3);
+        // The walker sampled 32 times per 30 fps frame interval, around a head turn.
+        let path = CameraPath::Walker(Default::default()).poses(400, 960.0);
+        let centre = path[200].timestamp;
+        let (readout, exposure) = (0.020, 0.5 / 30.0);
+        let clean = RenderOptions {
+            rolling_shutter: true,
+            noise_sigma: 0.0,
+            ..RenderOptions::default()
+        };
+        let blurred = RenderOptions {
+            blur_samples: 3,
+            rolling_exposure: exposure / (readout + exposure),
+            ..clean
+        };
+        let span = readout_poses(&path, centre, readout + exposure, 65);
+        let frame = render_frame(&scene, &camera, &span, 7, &blurred);
+        // Three sharp rolling-shutter frames whose readouts start at the exposure's start,
+        // middle and end: each row of the blurred frame is their average.
+        let sharp: Vec<Frame> = [-0.5, 0.0, 0.5]
+            .iter()
+            .map(|s| {
+                let poses = readout_poses(&path, centre + s * exposure, readout, 65);
+                render_frame(&scene, &camera, &poses, 7, &clean)
+            })
+            .collect();
+        let n = frame.grey.len();
+        let close = (0..n)
+            .filter(|&i| {
+                let mean = sharp.iter().map(|f| f64::from(f.grey[i])).sum::<f64>() / 3.0;
+                (f64::from(frame.grey[i]) - mean).abs() <= 1.0
+            })
+            .count();
+        assert!(close >= n * 98 / 100, "{close} of {n} within a grey level");
+        // It is blurred (the three differ), and its depth is the middle exposure's.
+        assert!(sharp[0].grey != sharp[2].grey && frame.grey != sharp[1].grey);
+        let depth_close = (0..n)
+            .filter(|&i| (frame.depth[i] - sharp[1].depth[i]).abs() < 1e-3)
+            .count();
+        assert!(depth_close >= n * 99 / 100, "{depth_close} of {n}");
+        // Without the exposure share the poses are a plain readout, as before.
+        let plain = RenderOptions {
+            rolling_exposure: 0.0,
+            ..blurred
+        };
+        let readout_only = readout_poses(&path, centre, readout, 65);
+        assert_eq!(
+            render_frame(&scene, &camera, &readout_only, 7, &plain),
+            sharp[1]
         );
     }
 
