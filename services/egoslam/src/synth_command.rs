@@ -400,11 +400,13 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
     drop(to_writer);
     ghosts.sort_by(f64::total_cmp);
     let median_ghost = ghosts.get(ghosts.len() / 2).copied().unwrap_or(0.0);
-    tracing::info!(
-        median_px = median_ghost,
-        max_px = ghosts.last().copied().unwrap_or(0.0),
-        "motion blur: gap between consecutive sub-poses' images"
-    );
+    if let Some(widest) = ghosts.last() {
+        tracing::info!(
+            median_px = median_ghost,
+            max_px = widest,
+            "motion blur: gap between consecutive sub-poses' images"
+        );
+    }
     if median_ghost > MAX_BLUR_GHOST_PX {
         tracing::warn!(
             "motion blur from {} sub-poses leaves copies of the image {:.1} px apart in the median frame: ghosts rather than a smear, which real video does not have and which broke tracking on a rendered walk; use --blur-samples {} or more",
