@@ -111,6 +111,14 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
             3,
             &["--rolling-shutter-ms", "20"],
         ));
+        // And with motion blur over each row's exposure as well: what a head-mounted
+        // camera films (docs/synth.md, "Motion blur").
+        entries.push(walk_1500(
+            args,
+            BLURRED_ROLLING_SHUTTER_WALK.into(),
+            3,
+            &["--rolling-shutter-ms", "20", "--blur-samples", "9"],
+        ));
         return entries;
     }
     for (name, dir) in [
@@ -326,15 +334,20 @@ fn markdown(rows: &[serde_json::Value]) -> String {
     s
 }
 
-/// Name of the walks suite's rolling-shutter walk, kept out of the seeds' spread.
+/// Names of the walks suite's rolling-shutter walks (without and with motion blur), kept
+/// out of the seeds' spread: they measure the camera model, not the seeds.
 const ROLLING_SHUTTER_WALK: &str = "synth_walker_1500_seed3_rs20";
+const BLURRED_ROLLING_SHUTTER_WALK: &str = "synth_walker_1500_seed3_rs20_blur";
 
 /// The median and range of the ATE as a share of the path over `rows` (the global-shutter
 /// walks), as a line under the table; `None` without two rows that have it.
 fn spread(rows: &[serde_json::Value]) -> Option<String> {
     let mut v: Vec<f64> = rows
         .iter()
-        .filter(|r| r["name"].as_str() != Some(ROLLING_SHUTTER_WALK))
+        .filter(|r| {
+            let name = r["name"].as_str();
+            name != Some(ROLLING_SHUTTER_WALK) && name != Some(BLURRED_ROLLING_SHUTTER_WALK)
+        })
         .filter_map(|r| r["ate_percent_of_path"].as_f64())
         .collect();
     if v.len() < 2 {
