@@ -345,8 +345,8 @@ fn spread(rows: &[serde_json::Value]) -> Option<String> {
     let mut v: Vec<f64> = rows
         .iter()
         .filter(|r| {
-            let name = r["name"].as_str();
-            name != Some(ROLLING_SHUTTER_WALK) && name != Some(BLURRED_ROLLING_SHUTTER_WALK)
+            let name = r["name"].as_str().unwrap_or_default();
+            ![ROLLING_SHUTTER_WALK, BLURRED_ROLLING_SHUTTER_WALK].contains(&name)
         })
         .filter_map(|r| r["ate_percent_of_path"].as_f64())
         .collect();

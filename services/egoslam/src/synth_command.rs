@@ -372,12 +372,13 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             ..options
         };
         if options.blur_samples > 1 {
-            let sub_poses = if rolling {
-                readout_poses(&fine, pose.timestamp, row_exposure_s, options.blur_samples)
+            ghosts.push(if rolling {
+                let row =
+                    readout_poses(&fine, pose.timestamp, row_exposure_s, options.blur_samples);
+                blur_ghost_px(&row, args.focal)
             } else {
-                shutter.clone()
-            };
-            ghosts.push(blur_ghost_px(&sub_poses, args.focal));
+                blur_ghost_px(&shutter, args.focal)
+            });
         }
         let frame = render_frame(&scene, &camera, &shutter, i as u64, &frame_options);
         render_s += render_start.elapsed().as_secs_f64();
