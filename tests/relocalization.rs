@@ -345,3 +345,50 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
         String::from_utf8_lossy(&refused.stderr)
     );
 }
+
+/// `timestamp -> position` of a TUM trajectory file.
+fn positions(path: &Path) -> std::collections::BTreeMap<String, [f64; 3]> {
+    std::fs::read_to_string(path)
+        .expect("trajectory")
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let v: Vec<&str> = l.split_whitespace().collect();
+            let p = |i: usize| v.get(i)?.parse::<f64>().ok();
+            Some((v.first()?.to_string(), [p(1)?, p(2)?, p(3)?]))
+        })
+        .collect()
+}
+
+/// The rendered egomotion profile (forward motion past planes at several depths), every
+/// frame relocalized from scratch: each relocalized frame must land where the run itself
+/// posed it (same map frame), so that a wrong pose cannot hide behind a good median. Two
+/// frames had been relocalized metres off (the refinement by projection had turned their
+/// poses 57 and 176 deg); frames whose appearance matches are too few alone are placed
+/// by the tentative pose's confirmation.
+#[test]
+fn egomotion_profile_relocalizes_without_a_wrong_pose() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sequence = rendered(dir.path(), &["--path", "egomotion", "--frames", "150"]);
+    let r = map_then_localize(&sequence, dir.path());
+    // Measured: 143 of 150 (139 before the tentative poses), median 0.75 cm / 0.166 deg.
+    assert!(f(&r["localized"]) >= 142.0, "{r}");
+    let acc = &r["accuracy"];
+    assert!(f(&acc["median_position_m"]) <= 0.01, "{acc}");
+    let run = positions(&dir.path().join("run/trajectory.tum"));
+    let localized = positions(&dir.path().join("localized/trajectory.tum"));
+    let path: f64 = run
+        .values()
+        .zip(run.values().skip(1))
+        .map(|(a, b)| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt())
+        .sum();
+    let worst = localized
+        .iter()
+        .filter_map(|(t, p)| {
+            let q = run.get(t)?;
+            Some((0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f64>().sqrt())
+        })
+        .fold(0.0, f64::max);
+    // Measured: 0.9 % of the path (104 % before: a frame 4 m off).
+    assert!(worst < 0.05 * path, "worst frame {worst} off, path {path}");
+}

@@ -53,9 +53,12 @@ impl Default for LinkOptions {
             max_queries: 12,
             only_newest: None,
             // A link is a similarity from relocalized positions; a frame placed by
-            // rotation at a keyframe's centre has none of its own.
+            // rotation at a keyframe's centre has none of its own. Tentative poses
+            // (weak appearance matches confirmed by projection) were measured on
+            // `localize` only, not on linking: off until they are.
             relocalizer: RelocalizerOptions {
                 place_by_rotation: false,
+                tentative: None,
                 ..RelocalizerOptions::default()
             },
         }

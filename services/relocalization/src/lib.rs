@@ -20,7 +20,7 @@ pub use descriptors::{hamming, Descriptor, OrbDescriber};
 pub use keyframe_database::{Candidate, KeyframeDatabase};
 pub use relocalizer::{
     MapFeature, MapKeyframe, QueryFeatures, Relocalization, RelocalizationError, RelocalizationMap,
-    Relocalizer, RelocalizerOptions,
+    Relocalizer, RelocalizerOptions, TentativePoseOptions,
 };
 pub use saved_map::{decode_map, encode_map, SavedMapError};
 pub use vocabulary::{
