@@ -27,8 +27,8 @@ fn localize(map: &Path, input: &Path, out: &Path, extra: &[&str]) -> Output {
 /// returns the localization report. The map is built assuming a global shutter: the
 /// queries are single frames, which relocalization cannot correct for a rolling shutter,
 /// and against a map corrected for one (`auto` finds 21 ms on the TUM clip) fewer of
-/// them relocalize (docs/relocalization.md: 112 of 120, 21 of 25 non-keyframes, against
-/// 114 and 23). The other sequences here are global-shutter, where `auto` gives 0.
+/// them relocalize (docs/relocalization.md: 114 of 120, 19 of 25 non-keyframes, against
+/// 118 and 23). The other sequences here are global-shutter, where `auto` gives 0.
 fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
     let map = dir.join("map.egomap");
     let status = egoslam_without_readout_pre_pass()
@@ -65,9 +65,10 @@ fn expect_refused(output: &Output, reason: &str) {
 fn tum_every_frame_relocalized_from_scratch_and_damaged_maps_refused() {
     let dir = tempfile::tempdir().expect("tempdir");
     let r = map_then_localize(&tum_fixture(), dir.path());
-    // Measured: 116 of 120 frames, 23 of the 25 that are not keyframes.
+    // Measured: 118 of 120 frames, 23 of the 25 that are not keyframes (114 before weak
+    // appearance poses confirmed by projection were accepted).
     assert_eq!(r["frames"], 120);
-    assert!(f(&r["localized"]) >= 112.0, "{r}");
+    assert!(f(&r["localized"]) >= 115.0, "{r}");
     assert!(
         f(&r["non_keyframes_localized"]) >= 0.85 * f(&r["non_keyframes"]),
         "{r}"
