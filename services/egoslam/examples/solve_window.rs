@@ -183,6 +183,36 @@ fn main() -> anyhow::Result<()> {
             .iter()
             .map(|(st, ms)| format!("{st} {ms:.0}"))
             .collect();
+        if std::env::var_os("DEPTHS").is_some() {
+            // Per posed keyframe: how many of the window's points it sees and their median
+            // depth, against the window's median (points at invented depths show here).
+            let positions: std::collections::HashMap<u64, nalgebra::Vector3<f64>> =
+                s.points.iter().map(|p| (p.track_id, p.position)).collect();
+            let depths_of = |k: usize| -> Vec<f64> {
+                let Some(i) = s.keyframes.iter().position(|&w| w == k) else {
+                    return Vec::new();
+                };
+                s.observations
+                    .iter()
+                    .filter(|(o, _, _)| *o == k)
+                    .filter_map(|(_, t, _)| positions.get(t))
+                    .map(|x| s.poses[i].to_camera(x).z)
+                    .collect()
+            };
+            let all: Vec<f64> = s.keyframes.iter().flat_map(|&k| depths_of(k)).collect();
+            let window_median = egoslam_geometry::median(all);
+            for &k in &s.keyframes {
+                let d = depths_of(k);
+                let n = d.len();
+                let m = egoslam_geometry::median(d);
+                println!(
+                    "  kf {} t {:.2} points {n} median depth {m:.4} ({:.3} of the window's)",
+                    kfs[k].keyframe_id,
+                    kfs[k].timestamp_s,
+                    m / window_median
+                );
+            }
+        }
         if std::env::var_os("PER_KEYFRAME").is_some() {
             // Per keyframe: the mean angle between the solution's direction to each
             // view-graph neighbour and the two-view direction of that edge.
