@@ -24,6 +24,15 @@ pub struct PnpOptions {
     pub ransac_iterations: i32,
 }
 
+impl PnpOptions {
+    /// Inliers a pose from `correspondences` needs: `min_inliers`, and `min_inlier_ratio`
+    /// of them.
+    pub fn inliers_needed(&self, correspondences: usize) -> usize {
+        self.min_inliers
+            .max((self.min_inlier_ratio * correspondences as f64).ceil() as usize)
+    }
+}
+
 /// Why no pose was found.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum PnpError {
@@ -123,10 +132,7 @@ pub fn solve_pnp(
         method,
     )
     .map_err(cv)?;
-    let needed = options
-        .min_inliers
-        .max((options.min_inlier_ratio * correspondences.len() as f64).ceil() as usize);
-    if !found || inliers.len() < needed {
+    if !found || inliers.len() < options.inliers_needed(correspondences.len()) {
         return Err(PnpError::TooFewInliers {
             inliers: inliers.len(),
             correspondences: correspondences.len(),

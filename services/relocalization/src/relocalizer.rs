@@ -518,9 +518,7 @@ impl Relocalizer {
                 correspondences,
                 solution,
             };
-            let needed = strict.min_inliers.max(
-                (strict.min_inlier_ratio * hypothesis.correspondences.len() as f64).ceil() as usize,
-            );
+            let needed = strict.inliers_needed(hypothesis.correspondences.len());
             if hypothesis.solution.inliers.len() < needed {
                 tentative.push(hypothesis);
                 continue;
