@@ -47,8 +47,8 @@ pub struct WindowSolverOptions {
     /// a rendered walk's stop had a window with 1 such edge of 98, whose centres were noise
     /// and whose scale, carried on by the merger, left the rest of the map 50x too small).
     pub min_translation_edges: usize,
-    /// ... and with fewer than this fraction of its edges carrying one (default 0.1). A
-    /// head turning in place on a rolling-shutter camera with motion blur (a rendered
+    /// A window with fewer than this fraction of its edges carrying a translation
+    /// direction is solved as rotation-only too (default 0.1). A head turning in place on a rolling-shutter camera with motion blur (a rendered
     /// walk at 20 ms with 9 blur sub-poses) gave a window 5 such edges of 99 (0.05),
     /// spurious parallax of the uncorrected remainder, from which 870 points were
     /// triangulated at invented depths; its motion then set the walking pace the merger
