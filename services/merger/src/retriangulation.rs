@@ -203,11 +203,6 @@ mod tests {
                 (1000 + k, Vector3::new(a.sin(), a.cos() - 0.5, 3.0))
             })
             .collect();
-        let pixel = |x: &Vector3<f64>, i: u64| {
-            camera
-                .project_undistorted(&(x - pose(i).position))
-                .expect("in front")
-        };
         let near = Vector3::new(0.0, 0.0, 0.05);
         let metre = Vector3::new(0.0, 0.0, 1.0);
         // Ten keyframes of 1 mm steps give the metre-away point's rays ~0.5 deg, under the
@@ -216,19 +211,27 @@ mod tests {
             position: Vector3::new(0.02 * i as f64, 0.0, 0.0),
             ..pose(i)
         };
-        let ids = 0..10u64;
-        let window = WindowInput {
-            poses: ids.clone().map(|i| (i, pose(i))).collect(),
-            points: scene.clone(),
-            observations: ids
-                .clone()
-                .flat_map(|i| scene.iter().map(move |(t, x)| (i, *t, *x)))
-                .map(|(i, t, x)| (i, t, pixel(&x, i)))
-                .collect(),
-            weak_observations: ids.clone().map(|i| (i, 77, pixel(&near, i))).collect(),
+        // Ten keyframes posed by `at`, seeing the scene's points and weak track `track` of
+        // the point `weak`.
+        let window = |at: &dyn Fn(u64) -> StampedPose, track: u64, weak: &Vector3<f64>| {
+            let pixel = |x: &Vector3<f64>, i: u64| {
+                camera
+                    .project_undistorted(&(x - at(i).position))
+                    .expect("in front")
+            };
+            WindowInput {
+                poses: (0..10).map(|i| (i, at(i))).collect(),
+                points: scene.clone(),
+                observations: (0..10)
+                    .flat_map(|i| scene.iter().map(move |(t, x)| (i, *t, *x)))
+                    .map(|(i, t, x)| (i, t, pixel(&x, i)))
+                    .collect(),
+                weak_observations: (0..10).map(|i| (i, track, pixel(weak, i))).collect(),
+            }
         };
+        let window_near = window(&pose, 77, &near);
         let mut map = MapBuilder::new();
-        map.add_window(&window);
+        map.add_window(&window_near);
         let options = TriangulationOptions::default();
         let report = map.retriangulate(&camera, &options, 0);
         assert_eq!((report.tried, report.added.len()), (1, 0), "{report:?}");
@@ -238,26 +241,12 @@ mod tests {
         bare.add_window(&WindowInput {
             points: Vec::new(),
             observations: Vec::new(),
-            ..window.clone()
+            ..window_near
         });
         assert_eq!(bare.retriangulate(&camera, &options, 0).added, vec![77]);
         // A metre away (a third of the scene depth) is real near structure: kept.
         let mut far = MapBuilder::new();
-        let pixel_wide = |x: &Vector3<f64>, i: u64| {
-            camera
-                .project_undistorted(&(x - wide(i).position))
-                .expect("in front")
-        };
-        far.add_window(&WindowInput {
-            poses: ids.clone().map(|i| (i, wide(i))).collect(),
-            points: scene.clone(),
-            observations: ids
-                .clone()
-                .flat_map(|i| scene.iter().map(move |(t, x)| (i, *t, *x)))
-                .map(|(i, t, x)| (i, t, pixel_wide(&x, i)))
-                .collect(),
-            weak_observations: ids.map(|i| (i, 78, pixel_wide(&metre, i))).collect(),
-        });
+        far.add_window(&window(&wide, 78, &metre));
         assert_eq!(far.retriangulate(&camera, &options, 0).added, vec![78]);
     }
 }
