@@ -188,21 +188,22 @@ fn main() -> anyhow::Result<()> {
             // depth, against the window's median (points at invented depths show here).
             let positions: std::collections::HashMap<u64, nalgebra::Vector3<f64>> =
                 s.points.iter().map(|p| (p.track_id, p.position)).collect();
-            let depths_of = |k: usize| -> Vec<f64> {
-                let Some(i) = s.keyframes.iter().position(|&w| w == k) else {
-                    return Vec::new();
-                };
-                s.observations
-                    .iter()
-                    .filter(|(o, _, _)| *o == k)
-                    .filter_map(|(_, t, _)| positions.get(t))
-                    .map(|x| s.poses[i].to_camera(x).z)
-                    .collect()
-            };
-            let all: Vec<f64> = s.keyframes.iter().flat_map(|&k| depths_of(k)).collect();
-            let window_median = egoslam_geometry::median(all);
-            for &k in &s.keyframes {
-                let d = depths_of(k);
+            // Each posed keyframe's point depths, in `s.keyframes` order.
+            let depths: Vec<Vec<f64>> = s
+                .keyframes
+                .iter()
+                .zip(&s.poses)
+                .map(|(&k, pose)| {
+                    s.observations
+                        .iter()
+                        .filter(|(o, _, _)| *o == k)
+                        .filter_map(|(_, t, _)| positions.get(t))
+                        .map(|x| pose.to_camera(x).z)
+                        .collect()
+                })
+                .collect();
+            let window_median = egoslam_geometry::median(depths.concat());
+            for (&k, d) in s.keyframes.iter().zip(depths) {
                 let n = d.len();
                 let m = egoslam_geometry::median(d);
                 println!(
