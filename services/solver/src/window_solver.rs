@@ -52,9 +52,10 @@ pub struct WindowSolverOptions {
     /// walk at 20 ms with 9 blur sub-poses) gave a window 5 such edges of 99 (0.05),
     /// spurious parallax of the uncorrected remainder, from which 870 points were
     /// triangulated at invented depths; its motion then set the walking pace the merger
-    /// resumed after the stop with, and the map after it came out 2.4x too small. Of 123
-    /// windows solved with translation on TUM, KITTI, the Aria replay and rendered walks
-    /// with stops, none had under 0.22.
+    /// resumed after the stop with, and the map after it came out 2.4x too small. Of 104
+    /// windows solved with translation (of 123 solved in all) on TUM, KITTI, the Aria
+    /// replay, the egomotion profile, the blackout and rendered walks with stops, none had
+    /// under 0.22.
     pub min_translation_edge_fraction: f64,
     /// A window whose view graph falls into pieces is solved on its largest piece if that
     /// holds at least this fraction of the keyframes, else it fails (default 0.5: on the
