@@ -332,14 +332,7 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
                 png::BitDepth::Eight,
                 &frame.grey,
             )?;
-            // 16-bit PNG samples are big-endian.
-            let depth: Vec<u8> = frame
-                .depth
-                .iter()
-                .flat_map(|z| {
-                    ((f64::from(*z) * 5000.0).round().clamp(0.0, 65535.0) as u16).to_be_bytes()
-                })
-                .collect();
+            let depth = frame.depth_png_samples();
             write_png(&depth_dir.join(&name), w, h, png::BitDepth::Sixteen, &depth)?;
         }
         Ok(())
