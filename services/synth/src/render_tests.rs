@@ -157,3 +157,20 @@ fn frames_have_texture_depth_and_follow_the_camera() {
         render_frame(&scene, &camera, &poses[..1], 0, &options)
     );
 }
+
+/// TUM's depth PNG convention: metres x 5000, rounded, clamped to 16 bits, big-endian.
+#[test]
+fn depth_png_samples_follow_the_tum_convention() {
+    let frame = Frame {
+        width: 5,
+        height: 1,
+        grey: vec![0; 5],
+        depth: vec![0.0, 1.0, 0.00011, 2.5002, 20.0],
+    };
+    let samples: Vec<u16> = frame
+        .depth_png_samples()
+        .chunks(2)
+        .map(|b| u16::from_be_bytes([b[0], b[1]]))
+        .collect();
+    assert_eq!(samples, vec![0, 5000, 1, 12501, 65535]);
+}
