@@ -48,8 +48,9 @@ pub struct WindowSolverOptions {
     /// and whose scale, carried on by the merger, left the rest of the map 50x too small).
     pub min_translation_edges: usize,
     /// A window with fewer than this fraction of its edges carrying a translation
-    /// direction is solved as rotation-only too (default 0.1). A head turning in place on a rolling-shutter camera with motion blur (a rendered
-    /// walk at 20 ms with 9 blur sub-poses) gave a window 5 such edges of 99 (0.05),
+    /// direction is solved as rotation-only too (default 0.1). A head turning in place on
+    /// a rolling-shutter camera with motion blur (a rendered walk at 20 ms with 9 blur
+    /// sub-poses) gave a window 5 such edges of 99 (0.05),
     /// spurious parallax of the uncorrected remainder, from which 870 points were
     /// triangulated at invented depths; its motion then set the walking pace the merger
     /// resumed after the stop with, and the map after it came out 2.4x too small. Of 104

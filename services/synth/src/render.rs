@@ -62,8 +62,8 @@ pub struct Frame {
 
 impl Frame {
     /// The depth as TUM's 16-bit depth PNG samples (metres x 5000, rounded, clamped to
-    /// 0-65535), big-endian as PNG stores them: what the structure metrics read back
-    /// (`egoslam eval`), so one definition next to the renderer that made the depth.
+    /// 0-65535), big-endian as PNG stores them: the convention `egoslam eval`'s structure
+    /// metrics decode (eval.rs divides by 5000), as for real TUM depth.
     pub fn depth_png_samples(&self) -> Vec<u8> {
         let mut bytes = Vec::with_capacity(2 * self.depth.len());
         for z in &self.depth {
