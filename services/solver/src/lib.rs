@@ -7,6 +7,7 @@
 
 pub mod bundle_adjustment;
 pub mod essential_refinement;
+pub mod focal_calibration;
 mod huber;
 mod normal_equations;
 mod refinement_collapse;

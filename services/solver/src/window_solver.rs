@@ -129,6 +129,10 @@ pub struct WindowSolution {
     /// re-triangulates them once other windows add views (paper, section 5).
     pub weak_observations: Vec<(usize, u64, Point2<f64>)>,
     pub rmse_px: f64,
+    /// The focal length over the calibrated one that bundle adjustment settled on when it
+    /// refined the intrinsics (`BundleAdjustmentOptions::refine_intrinsics`, used by
+    /// [`crate::focal_calibration`]); 1 otherwise.
+    pub focal_scale: f64,
     pub edges: usize,
     pub translation_edges: usize,
     /// (stage, milliseconds) in execution order.
@@ -159,6 +163,7 @@ impl WindowSolution {
             outlier_observations: 0,
             weak_observations: Vec::new(),
             rmse_px: 0.0,
+            focal_scale: 1.0,
             edges,
             translation_edges,
             timings_ms,
@@ -175,6 +180,7 @@ impl WindowSolution {
             outlier_observations: 0,
             weak_observations: Vec::new(),
             rmse_px: 0.0,
+            focal_scale: 1.0,
             edges,
             translation_edges: 0,
             timings_ms,
@@ -542,6 +548,7 @@ fn solve_connected(
         outlier_observations: adjusted.outliers.len(),
         weak_observations: weak,
         rmse_px: adjusted.rmse_px,
+        focal_scale: adjusted.focal_scale,
         edges: edges.len(),
         translation_edges: translation_edges.len(),
         timings_ms: timings,
