@@ -85,6 +85,12 @@ pub struct PipelineArgs {
     /// corrected from then on.
     #[arg(long, default_value_t = crate::readout::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
+    /// Self-calibrate the focal length: `egoslam run` solves the first windows of a
+    /// recorded input with the intrinsics free and scales the calibration's fx and fy when
+    /// they agree on a clearly different focal length (docs/config.md; a live camera runs
+    /// with the calibration as given).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub calibrate_focal: bool,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,

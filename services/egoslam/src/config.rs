@@ -39,6 +39,7 @@ pub struct FrontendSection {
     pub predict_motion: Option<bool>,
     pub rolling_shutter_ms: Option<crate::readout::Readout>,
     pub readout_frames: Option<u32>,
+    pub calibrate_focal: Option<bool>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -246,6 +247,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "readout_frames",
         &mut p.readout_frames,
         &c.frontend.readout_frames,
+    );
+    fill(
+        m,
+        "calibrate_focal",
+        &mut p.calibrate_focal,
+        &c.frontend.calibrate_focal,
     );
     fill(m, "window", &mut p.window, &c.solver.window);
     fill(m, "overlap", &mut p.overlap, &c.solver.overlap);

@@ -11,6 +11,7 @@ mod config;
 mod convert;
 mod eval;
 mod features_log;
+mod focal;
 mod frame_poses;
 mod frontend_service;
 #[cfg(test)]

@@ -1,0 +1,125 @@
+//! Focal-length self-calibration before a run (`--calibrate-focal`,
+//! `frontend.calibrate_focal`): `egoslam run` tracks the first frames of a recorded input,
+//! solves their first windows with the intrinsics free
+//! (`egoslam_solver::focal_calibration`) and, when they agree on a focal length clearly
+//! different from the calibration's, scales the calibration's fx and fy before any service
+//! starts, so that every process (tracker, solver, merger, relocalization) and the saved
+//! camera.yaml use the same camera. A live camera cannot be read ahead: it runs with the
+//! calibration as given.
+
+use crate::cli::PipelineArgs;
+use crate::readout::tracker_options;
+use anyhow::Context;
+use egoslam_frontend::{KeyframeTracks, Tracker};
+use egoslam_geometry::PinholeRadtan;
+use egoslam_solver::focal_calibration::{
+    estimate_focal_scale, FocalCalibrationOptions, FocalEstimate,
+};
+use egoslam_solver::view_graph::KeyframeObservations;
+use egoslam_solver::window_solver::WindowSolverOptions;
+use egoslam_sources::{FrameSource, SourceError};
+use nalgebra::Point2;
+use opencv::prelude::*;
+
+/// Frames tracked for the estimate (300: 10 s at 30 fps, 30 s of KITTI's 10 fps; enough
+/// keyframes for the 3-8 windows pooled on every sequence here, ~2.5 s of tracking).
+pub const FOCAL_FRAMES: usize = 300;
+
+/// `camera` with its focal lengths multiplied by `scale`.
+pub fn scaled(camera: &PinholeRadtan, scale: f64) -> PinholeRadtan {
+    PinholeRadtan {
+        fx: camera.fx * scale,
+        fy: camera.fy * scale,
+        ..*camera
+    }
+}
+
+/// Tracks the first [`FOCAL_FRAMES`] frames of `source` as the frontend does (with the
+/// run's readout, each keyframe's correction centred on the next frame) and returns their
+/// keyframes' undistorted tracks. Frames that cannot be read or are of another size are
+/// left out, as the run skips them.
+pub fn first_keyframes(
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+    pipeline: &PipelineArgs,
+    readout_s: f64,
+) -> anyhow::Result<Vec<KeyframeObservations>> {
+    let mut tracker = Tracker::new(camera, tracker_options(pipeline, readout_s));
+    let as_observations = |k: KeyframeTracks, timestamp: f64| KeyframeObservations {
+        id: k.keyframe_id,
+        timestamp,
+        tracks: k
+            .tracks
+            .iter()
+            .map(|p| {
+                let u = p.undistorted;
+                (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
+            })
+            .collect(),
+    };
+    let mut keyframes = Vec::new();
+    let mut pending: Option<(KeyframeTracks, f64)> = None;
+    for frame in std::iter::from_fn(|| source.next_frame()).take(FOCAL_FRAMES) {
+        let frame = match frame {
+            Ok(frame) => frame,
+            Err(SourceError::BadImage { .. }) => continue,
+            Err(e) => return Err(e).context("reading frames for the focal calibration"),
+        };
+        let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
+        if (w, h) != (camera.width, camera.height) {
+            continue;
+        }
+        let outcome = tracker.process_timed(frame.index, frame.timestamp, &frame.image)?;
+        if let Some((mut k, timestamp)) = pending.take() {
+            tracker.centre_keyframe(&mut k);
+            keyframes.push(as_observations(k, timestamp));
+        }
+        pending = outcome.keyframe.map(|k| (k, frame.timestamp));
+    }
+    keyframes.extend(pending.map(|(k, timestamp)| as_observations(k, timestamp)));
+    Ok(keyframes)
+}
+
+/// The focal estimate of a recorded input's first windows (module doc), logged.
+pub fn estimate_from_source(
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+    pipeline: &PipelineArgs,
+    readout_s: f64,
+) -> anyhow::Result<FocalEstimate> {
+    let keyframes = first_keyframes(source, camera, pipeline, readout_s)?;
+    let options = FocalCalibrationOptions {
+        window: usize::from(pipeline.window),
+        overlap: pipeline.overlap,
+        ..FocalCalibrationOptions::default()
+    };
+    let mut solver = WindowSolverOptions::default();
+    solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
+    let estimate = estimate_focal_scale(&camera, &keyframes, &options, &solver)
+        .with_context(|| format!("{} keyframes", keyframes.len()))?;
+    tracing::info!(
+        scale = estimate.scale,
+        standard_error = estimate.standard_error,
+        windows = estimate.per_window.len(),
+        applied = estimate.significant,
+        "focal length estimated from the input's first windows"
+    );
+    Ok(estimate)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scaling_keeps_everything_but_the_focal_lengths() {
+        let c =
+            PinholeRadtan::new(640, 480, [500.0, 502.0, 320.0, 240.0], [0.1; 5]).expect("camera");
+        let s = scaled(&c, 0.97);
+        assert!((s.fx - 485.0).abs() < 1e-9 && (s.fy - 486.94).abs() < 1e-9);
+        assert_eq!(
+            (s.cx, s.cy, s.distortion, s.width),
+            (320.0, 240.0, [0.1; 5], 640)
+        );
+    }
+}
