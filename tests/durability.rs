@@ -18,7 +18,7 @@ fn keyframes(out: &Path) -> String {
 }
 
 fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
-    let mut c = egoslam_without_readout_pre_pass();
+    let mut c = egoslam_without_pre_passes();
     // The background refinement folds in whenever it finishes, which varies from run to
     // run; without it the results are deterministic and can be compared byte for byte.
     c.args(["run", "--global-ba-px=inf", "--input"])
@@ -80,7 +80,7 @@ fn a_killed_merger_resumes_and_loses_nothing() {
 /// keyframes.tum.
 fn kill_mid_run(service: &str, after: Duration, realtime: bool) -> (serde_json::Value, usize) {
     let out = tempfile::tempdir().expect("tempdir");
-    let mut command = egoslam_without_readout_pre_pass();
+    let mut command = egoslam_without_pre_passes();
     command.arg("run");
     if realtime {
         command.arg("--realtime");
@@ -151,7 +151,7 @@ fn a_killed_frontend_or_solver_is_restarted_and_the_run_completes() {
 fn compacted_logs_still_recover_a_killed_merger_and_solver() {
     let _turn = one_test_at_a_time();
     let out = tempfile::tempdir().expect("tempdir");
-    let run = egoslam_without_readout_pre_pass()
+    let run = egoslam_without_pre_passes()
         .args(["run", "--global-ba-px=inf", "--input"])
         .arg(tum_fixture())
         .arg("--out")

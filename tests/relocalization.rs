@@ -32,7 +32,7 @@ fn localize(map: &Path, input: &Path, out: &Path, extra: &[&str]) -> Output {
 /// 118 and 23). The other sequences here are global-shutter, where `auto` gives 0.
 fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
     let map = dir.join("map.egomap");
-    let status = egoslam_without_readout_pre_pass()
+    let status = egoslam_without_pre_passes()
         .args(["run", "--input"])
         .arg(input)
         .arg("--out")

@@ -88,8 +88,9 @@ pub struct PipelineArgs {
     /// Self-calibrate the focal length: `egoslam run` solves the first windows of a
     /// recorded input with the intrinsics free and scales the calibration's fx and fy when
     /// they agree on a clearly different focal length (docs/config.md; a live camera runs
-    /// with the calibration as given).
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    /// with the calibration as given). Off by default: on TUM and KITTI it improves the
+    /// positions and worsens the rotations (docs/config.md has the figures).
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, env = "EGOSLAM_CALIBRATE_FOCAL")]
     pub calibrate_focal: bool,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]

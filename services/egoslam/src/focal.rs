@@ -34,6 +34,32 @@ pub fn scaled(camera: &PinholeRadtan, scale: f64) -> PinholeRadtan {
     }
 }
 
+/// The camera to localize a recording in a saved map with: the map's focal lengths when
+/// the map was built by the same camera with its focal length self-calibrated (same size,
+/// principal point and distortion; focal lengths in the same ratio, within the 20 % the
+/// self-calibration believes), so that queries use the focal their map was built with;
+/// else `calibrated` as given.
+pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> PinholeRadtan {
+    let same_camera = (calibrated.width, calibrated.height) == (map.width, map.height)
+        && calibrated.cx == map.cx
+        && calibrated.cy == map.cy
+        && calibrated.distortion == map.distortion;
+    let scale = map.fx / calibrated.fx;
+    let bound = FocalCalibrationOptions::default().max_correction;
+    if same_camera
+        && scale != 1.0
+        && (map.fy / calibrated.fy - scale).abs() < 1e-9
+        && scale.ln().abs() <= (1.0 + bound).ln()
+    {
+        tracing::info!(
+            scale,
+            "the map's focal lengths are the calibration's self-calibrated: queries use them"
+        );
+        return *map;
+    }
+    *calibrated
+}
+
 /// Tracks the first [`FOCAL_FRAMES`] frames of `source` as the frontend does (with the
 /// run's readout, each keyframe's correction centred on the next frame) and returns their
 /// keyframes' undistorted tracks. Frames that cannot be read or are of another size are

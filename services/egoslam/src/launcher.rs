@@ -96,7 +96,7 @@ fn resolve_readout(
     })
 }
 
-/// Under `--calibrate-focal` (the default) the camera with the focal length of the
+/// Under `--calibrate-focal true` the camera with the focal length of the
 /// input's first windows (focal.rs) when they clearly disagree with the calibration, else
 /// `camera`; and what was done, for the report. Reads the input again from its start.
 fn resolve_focal(

@@ -235,6 +235,7 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let readout_ms = args
         .rolling_shutter_ms
         .unwrap_or(map.rolling_shutter_s * 1000.0);
+    let map_camera = map.camera;
     let relocalizer = Relocalizer::new(vocabulary, map);
     let options = RelocalizerOptions {
         rolling_shutter_s: readout_ms / 1000.0,
@@ -272,7 +273,10 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
                 continue;
             }
             Some(c) => c,
-            None => *camera.insert(calibration.camera_for(w, h)?),
+            None => *camera.insert(crate::focal::with_the_maps_focal(
+                &calibration.camera_for(w, h)?,
+                &map_camera,
+            )),
         };
         frames += 1;
         let is_keyframe = keyframe_stamps
