@@ -105,7 +105,7 @@ pub fn estimate_focal_scale(
     solver: &WindowSolverOptions,
 ) -> Result<FocalEstimate, FocalCalibrationError> {
     let _span = tracing::debug_span!("focal_calibration", keyframes = keyframes.len()).entered();
-    let mut solver = solver.clone();
+    let mut solver = *solver;
     solver.bundle_adjustment.refine_intrinsics = true;
     let size = options.window.max(2);
     let step = size.saturating_sub(options.overlap).max(1);
