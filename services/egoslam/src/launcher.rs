@@ -339,17 +339,12 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         resolve_readout(&mut args, &input, &layout, first, source.as_mut(), camera);
     drop(source);
     let (camera, focal_report) = resolve_focal(&args, &input, &layout, camera);
-    let origin = if focal_report["applied_scale"]
-        .as_f64()
-        .is_some_and(|s| s != 1.0)
-    {
-        PathBuf::from(format!(
-            "{}, focal lengths x{:.4} (self-calibrated, report.json)",
-            calibration.origin.display(),
-            focal_report["applied_scale"].as_f64().unwrap_or(1.0)
-        ))
-    } else {
-        calibration.origin.clone()
+    let origin = match focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
+        Some(scale) => PathBuf::from(format!(
+            "{}, focal lengths x{scale:.4} (self-calibrated, report.json)",
+            calibration.origin.display()
+        )),
+        None => calibration.origin.clone(),
     };
 
     let out = &args.out;

@@ -28,8 +28,9 @@ pub struct FocalCalibrationOptions {
     pub window: usize,
     /// Keyframes consecutive windows share (default 5, the solver's).
     pub overlap: usize,
-    /// Most windows solved (default 8: ~3 s of solving in the dev build; the spread of
-    /// six KITTI windows was already 0.003 about their median).
+    /// Most windows solved (default 8: bounds the pre-pass, 1.8-3.4 s in all in the dev
+    /// build on six inputs; the spread of six KITTI windows was already 0.003 about their
+    /// median).
     pub max_windows: usize,
     /// Fewest windows solved with translation whose scales are pooled (default 3: a
     /// median of fewer is one window's word). Rotation-only windows carry no focal
