@@ -85,7 +85,43 @@ fn gaussian(frame: u64, pixel: u64) -> f64 {
         ((h >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
     let (a, b) = (next(), next());
-    (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+    (-2.0 * a.ln()).sqrt() * cos_turns(b)
+}
+
+/// `cos(2 pi b)` for `b` in [0, 1], within a few units in the last place of the library's
+/// `(TAU * b).cos()` (a rounded grey level differs only when a value falls within that of
+/// a half level: not once in the render bench's 9 million pixels), without its general
+/// range reduction, which was a tenth of the renderer's time. The reflections are exact
+/// in floating point (Sterbenz), so only the Taylor series of the last eighth of a turn
+/// (to the 18th power: its next term is below 1e-20) rounds.
+fn cos_turns(b: f64) -> f64 {
+    // cos(2 pi b) = cos(2 pi (1 - b)): fold onto half a turn.
+    let half = if b > 0.5 { 1.0 - b } else { b };
+    // cos(2 pi h) = -cos(2 pi (1/2 - h)): fold onto a quarter, keeping the sign.
+    let (quarter, sign) = if half > 0.25 {
+        (0.5 - half, -1.0)
+    } else {
+        (half, 1.0)
+    };
+    // Past an eighth of a turn the sine of the complement converges faster.
+    let value = if quarter > 0.125 {
+        let x = std::f64::consts::TAU * (0.25 - quarter);
+        let x2 = x * x;
+        let mut sum = 1.0;
+        for n in (1..=9).rev() {
+            sum = 1.0 - x2 / f64::from((2 * n) * (2 * n + 1)) * sum;
+        }
+        x * sum
+    } else {
+        let x = std::f64::consts::TAU * quarter;
+        let x2 = x * x;
+        let mut sum = 1.0;
+        for n in (1..=9).rev() {
+            sum = 1.0 - x2 / f64::from((2 * n - 1) * (2 * n)) * sum;
+        }
+        sum
+    };
+    sign * value
 }
 
 /// A plane expressed for one camera pose so that, for the unnormalised ray

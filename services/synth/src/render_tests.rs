@@ -174,3 +174,15 @@ fn depth_png_samples_follow_the_tum_convention() {
         .collect();
     assert_eq!(samples, vec![0, 5000, 1, 12501, 65535]);
 }
+
+#[test]
+fn cos_turns_is_the_library_cosine_to_the_last_place() {
+    let mut worst: f64 = 0.0;
+    for i in 0..=1_000_000u32 {
+        let b = f64::from(i) / 1_000_000.0 + f64::from(i % 7) * 1e-9;
+        let b = b.min(1.0);
+        let exact = (std::f64::consts::TAU * b).cos();
+        worst = worst.max((cos_turns(b) - exact).abs());
+    }
+    assert!(worst < 1e-15, "worst difference {worst:e}");
+}

@@ -52,7 +52,8 @@ struct CachedCell<const N: usize> {
 
 impl<const N: usize> CachedCell<N> {
     /// The values of cell `key` from `slot`, computed by `make` (and kept) if it holds
-    /// another cell.
+    /// another cell. Inlined: called per octave per pixel, the call was 7 % of rendering.
+    #[inline(always)]
     fn get(
         slot: &mut Option<Self>,
         key: (u64, i64, i64),
@@ -70,6 +71,7 @@ impl<const N: usize> CachedCell<N> {
 }
 
 /// Value noise in [0, 1] at (u, v) in lattice units; `slot` keeps the last cell's corners.
+#[inline(always)]
 fn value_noise(u: f64, v: f64, seed: u64, slot: &mut Option<CachedCell<4>>) -> f64 {
     let (x0, y0) = (fast_floor(u), fast_floor(v));
     let (fx, fy) = (smooth(u - x0), smooth(v - y0));
