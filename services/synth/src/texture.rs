@@ -93,21 +93,23 @@ fn value_noise(u: f64, v: f64, seed: u64, slot: &mut Option<CachedCell<4>>) -> f
 /// in [0, 1], its edges softened over `soft` (the pixel's footprint, same units): the
 /// posters' and the photographs' edges, band-limited alike.
 pub(crate) fn soft_coverage(u: f64, v: f64, rect: [f64; 4], soft: f64) -> f64 {
+    soft_coverage_scaled(u, v, rect, 1.0 / soft)
+}
+
+/// [`soft_coverage`] with the reciprocal of `soft` given: multiplied instead of divided by.
+#[inline(always)]
+fn soft_coverage_scaled(u: f64, v: f64, rect: [f64; 4], per_soft: f64) -> f64 {
     let [u0, v0, width, height] = rect;
-    let inside_u = ((u - u0).min(u0 + width - u) / soft).clamp(-0.5, 0.5) + 0.5;
-    let inside_v = ((v - v0).min(v0 + height - v) / soft).clamp(-0.5, 0.5) + 0.5;
+    let inside_u = ((u - u0).min(u0 + width - u) * per_soft).clamp(-0.5, 0.5) + 0.5;
+    let inside_v = ((v - v0).min(v0 + height - v) * per_soft).clamp(-0.5, 0.5) + 0.5;
     inside_u * inside_v
 }
 
-/// How much of a feature of `wavelength` survives at `footprint` (both metres): 1 when it
-/// spans many pixels, 0 below two pixels (Nyquist), smooth in between.
-fn keep(wavelength: f64, footprint: f64) -> f64 {
-    keep_ratio(wavelength / (2.0 * footprint.max(1e-9)))
-}
-
-/// [`keep`] from the ratio of wavelength to twice the footprint.
+/// How much of a feature survives, from the ratio `r` of its wavelength to twice the
+/// pixel's footprint on the plane: 1 when it spans many pixels, 0 below two pixels
+/// (Nyquist), linear in between.
 fn keep_ratio(r: f64) -> f64 {
-    ((r - 1.0) / 1.0).clamp(0.0, 1.0)
+    (r - 1.0).clamp(0.0, 1.0)
 }
 
 /// A plane's texture: seed and feature size.
@@ -128,37 +130,46 @@ impl Texture {
     }
 
     /// [`Texture::sample`] with the lattice values of the previous sample at hand.
+    ///
+    /// Two divisions per sample (the lattice scale's and the footprint's reciprocals)
+    /// where the formulas below read seven: called once per pixel, they were most of its
+    /// cost. Products by a reciprocal round differently from the quotients in the last
+    /// place only; every function of them here is continuous, so the grey levels are the
+    /// same (the render bench's checksum).
     pub fn sample_cached(&self, u: f64, v: f64, footprint: f64, cache: &mut SampleCache) -> f64 {
         // Noise: 5 octaves, each half the wavelength and amplitude of the previous.
         // Octave k's wavelength is scale_m / 2^k, so its lattice coordinates are u / scale_m
-        // times 2^k and its `keep` ratio the coarsest one's over 2^k: scaling by a power of
-        // two is exact, so one division each gives the values five gave.
-        let (lu, lv) = (u / self.scale_m, v / self.scale_m);
-        let mut ratio = self.scale_m / (2.0 * footprint.max(1e-9));
-        let (mut sum, mut norm) = (0.0, 0.0);
+        // times 2^k and its `keep` ratio (wavelength over twice the footprint) the
+        // coarsest one's over 2^k: scaling by a power of two is exact.
+        let per_metre = 1.0 / self.scale_m;
+        let per_footprint = 1.0 / footprint.max(1e-9);
+        let (lu, lv) = (u * per_metre, v * per_metre);
+        let coarsest_ratio = 0.5 * self.scale_m * per_footprint;
+        let mut ratio = coarsest_ratio;
+        let mut sum = 0.0;
         let (mut lattice, mut amplitude) = (1.0, 0.5);
         for (octave, slot) in cache.octaves.iter_mut().enumerate() {
             let k = keep_ratio(ratio);
-            let n = if k > 0.0 {
-                value_noise(
+            if k > 0.0 {
+                let n = value_noise(
                     lu * lattice,
                     lv * lattice,
                     self.seed.wrapping_add(octave as u64),
                     slot,
-                )
+                );
+                sum += amplitude * (k * n + (1.0 - k) * 0.5);
             } else {
-                0.5 // unresolved: its mean, without computing it
-            };
-            sum += amplitude * (k * n + (1.0 - k) * 0.5);
-            norm += amplitude;
+                sum += amplitude * 0.5; // unresolved: its mean, without computing it
+            }
             ratio *= 0.5;
             lattice *= 2.0;
             amplitude *= 0.5;
         }
-        let noise = sum / norm;
-        // Posters: in each cell of the poster lattice, with probability 0.6, a rectangle
-        // of random size and grey level, edges softened over one footprint.
-        let cell = self.scale_m;
+        // The amplitudes sum to 31/32.
+        let noise = sum * (32.0 / 31.0);
+        // Posters: in each cell of the poster lattice (the coarsest octave's), with
+        // probability 0.6, a rectangle of random size and grey level, edges softened over
+        // one footprint.
         let (cx, cy) = (fast_floor(lu), fast_floor(lv));
         let (ix, iy) = (cx as i64, cy as i64);
         let salt = self.seed.wrapping_mul(31).wrapping_add(7);
@@ -171,10 +182,11 @@ impl Texture {
             let h = 0.25 + 0.5 * poster[2];
             let x0 = cx + (1.0 - w) * poster[3];
             let y0 = cy + (1.0 - h) * poster[4];
-            let soft = (footprint / cell).max(1e-6);
-            let coverage = soft_coverage(lu, lv, [x0, y0, w, h], soft);
+            // Cells per footprint, and its inverse (`soft_coverage`'s edge softening).
+            let per_soft = (self.scale_m * per_footprint).min(1e6);
+            let coverage = soft_coverage_scaled(lu, lv, [x0, y0, w, h], per_soft);
             // Posters too small to resolve fade to their mean.
-            let k = keep(cell * w.min(h), footprint);
+            let k = keep_ratio(w.min(h) * coarsest_ratio);
             let grey = 0.1 + 0.8 * poster[5];
             value = value * (1.0 - k * coverage) + k * coverage * grey;
         }
