@@ -184,24 +184,6 @@ impl<'a> PlaneInView<'a> {
         }
         Some([b[0] - 1.0, b[1] + 1.0, b[2] - 1.0, b[3] + 1.0])
     }
-
-    /// `(t, u, v, n . d)` of the hit, if the ray meets the rectangle in front (> 1 cm).
-    fn intersect(&self, d: &Vector3<f64>) -> Option<(f64, f64, f64, f64)> {
-        let n_d = self.n_c.dot(d);
-        if n_d.abs() < 1e-12 {
-            return None;
-        }
-        let t = self.k / n_d;
-        if t <= 0.01 {
-            return None;
-        }
-        let u = self.u0 + t * self.u_c.dot(d);
-        if u < 0.0 || u > self.plane.width {
-            return None;
-        }
-        let v = self.v0 + t * self.v_c.dot(d);
-        (v >= 0.0 && v <= self.plane.height).then_some((t, u, v, n_d))
-    }
 }
 
 /// Rows per band of work handed to a rendering thread.
@@ -312,9 +294,25 @@ fn interpolate(poses: &[StampedPose], at: f64) -> StampedPose {
     }
 }
 
+/// A plane as one row of pixels meets it: with the row's ray slope `y'` fixed, each dot
+/// product of a pixel's ray with the plane's axes is `a x' + b`, and `b` is the same for the whole
+/// row.
+struct PlaneInRow<'p, 's> {
+    view: &'p PlaneInView<'s>,
+    /// The columns' pixel-centre range outside which the ray misses the plane.
+    x0: f64,
+    x1: f64,
+    /// `n_c . d`, `u_c . d`, `v_c . d` as (coefficient of x', rest).
+    normal: (f64, f64),
+    along_u: (f64, f64),
+    along_v: (f64, f64),
+}
+
 /// Adds one pose's radiance to every pixel of `band` (and its z-depth when `depth_too`):
 /// each pixel's ray against the planes its row can meet, the nearest hit's texture and
-/// pictures at the pixel's footprint, 0.5 where nothing is hit.
+/// pictures at the pixel's footprint, 0.5 where nothing is hit. Row by row: the row's part
+/// of each ray-plane product is formed once, and a hit no nearer than the best so far is
+/// not tested against the plane's edges.
 fn trace_band(
     band: &mut Band,
     planes: &[(PlaneInView, Option<[f64; 4]>)],
@@ -325,55 +323,75 @@ fn trace_band(
 ) {
     let w = ray_x.len();
     // The planes a row can meet, in scene order (ties resolve as without the boxes).
-    let mut row_planes: Vec<(&PlaneInView, f64, f64)> = Vec::new();
-    let mut row = usize::MAX;
-    let mut ray_y = 0.0;
-    for (i, (value, z)) in band
-        .radiance
-        .iter_mut()
-        .zip(band.depth.iter_mut())
-        .enumerate()
-    {
-        let (x, y) = ((i % w) as f64 + 0.5, (band.first_row + i / w) as f64 + 0.5);
-        if i / w != row {
-            row = i / w;
-            ray_y = (y - camera.cy) / camera.fy;
-            row_planes.clear();
-            row_planes.extend(planes.iter().filter_map(|(p, b)| match b {
-                None => Some((p, f64::NEG_INFINITY, f64::INFINITY)),
-                Some([x0, x1, y0, y1]) => (y >= *y0 && y <= *y1).then_some((p, *x0, *x1)),
-            }));
-        }
-        let d = Vector3::new(ray_x[i % w], ray_y, 1.0);
-        let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
-        for &(p, x0, x1) in &row_planes {
-            if x < x0 || x > x1 {
-                continue;
-            }
-            if let Some((t, u, v, n_d)) = p.intersect(&d) {
-                if best.is_none_or(|b| t < b.0) {
-                    best = Some((t, u, v, n_d, p));
+    let mut row_planes: Vec<PlaneInRow> = Vec::new();
+    let rows = band.radiance.chunks_mut(w).zip(band.depth.chunks_mut(w));
+    for (r, (values, depths)) in rows.enumerate() {
+        let y = (band.first_row + r) as f64 + 0.5;
+        let ray_y = (y - camera.cy) / camera.fy;
+        row_planes.clear();
+        row_planes.extend(planes.iter().filter_map(|(p, b)| {
+            let (x0, x1) = match b {
+                None => (f64::NEG_INFINITY, f64::INFINITY),
+                Some([x0, x1, y0, y1]) => (y >= *y0 && y <= *y1).then_some((*x0, *x1))?,
+            };
+            let row_part = |a: &Vector3<f64>| (a.x, a.y * ray_y + a.z);
+            Some(PlaneInRow {
+                view: p,
+                x0,
+                x1,
+                normal: row_part(&p.n_c),
+                along_u: row_part(&p.u_c),
+                along_v: row_part(&p.v_c),
+            })
+        }));
+        let row_norm2 = ray_y * ray_y + 1.0;
+        for (c, (value, z)) in values.iter_mut().zip(depths.iter_mut()).enumerate() {
+            let (x, rx) = (c as f64 + 0.5, ray_x[c]);
+            // (t, u, v, n . d, plane) of the nearest hit in front (> 1 cm) on the plane.
+            let mut best: Option<(f64, f64, f64, f64, &PlaneInView)> = None;
+            for rp in &row_planes {
+                if x < rp.x0 || x > rp.x1 {
+                    continue;
+                }
+                let n_d = rp.normal.0 * rx + rp.normal.1;
+                if n_d.abs() < 1e-12 {
+                    continue;
+                }
+                let t = rp.view.k / n_d;
+                if t <= 0.01 || best.is_some_and(|b| t >= b.0) {
+                    continue;
+                }
+                let u = rp.view.u0 + t * (rp.along_u.0 * rx + rp.along_u.1);
+                if u < 0.0 || u > rp.view.plane.width {
+                    continue;
+                }
+                let v = rp.view.v0 + t * (rp.along_v.0 * rx + rp.along_v.1);
+                if v >= 0.0 && v <= rp.view.plane.height {
+                    best = Some((t, u, v, n_d, rp.view));
                 }
             }
-        }
-        let Some((t, u, v, n_d, p)) = best else {
-            *value += 0.5;
-            continue;
-        };
-        // Metres per pixel on the plane: distance over focal, stretched by the slant of the
-        // surface (|cos| = |n.d| / |d|).
-        let norm = d.norm();
-        let cos = (n_d.abs() / norm).max(0.15);
-        let footprint = t * norm / (camera.fx * cos);
-        let mut here = p.plane.texture.sample_cached(u, v, footprint, cache);
-        for picture in &p.plane.pictures {
-            if let Some((coverage, bright)) = picture.sample(u, v, footprint) {
-                here = here * (1.0 - coverage) + bright * coverage;
+            let Some((t, u, v, n_d, p)) = best else {
+                *value += 0.5;
+                continue;
+            };
+            // Metres per pixel on the plane: distance over focal, stretched by the slant
+            // of the surface (|cos| = |n.d| / |d|, at least 0.15).
+            let norm = (rx * rx + row_norm2).sqrt();
+            let footprint = if n_d.abs() >= 0.15 * norm {
+                t * norm * norm / (camera.fx * n_d.abs())
+            } else {
+                t * norm / (camera.fx * 0.15)
+            };
+            let mut here = p.plane.texture.sample_cached(u, v, footprint, cache);
+            for picture in &p.plane.pictures {
+                if let Some((coverage, bright)) = picture.sample(u, v, footprint) {
+                    here = here * (1.0 - coverage) + bright * coverage;
+                }
             }
-        }
-        *value += here;
-        if depth_too {
-            *z = t as f32; // d has z = 1: t is the z-depth
+            *value += here;
+            if depth_too {
+                *z = t as f32; // d has z = 1: t is the z-depth
+            }
         }
     }
 }
