@@ -509,8 +509,11 @@ pub fn render_frame(
                         trace_band(&mut band, planes, camera, ray_x, depth_too, &mut cache);
                     }
                     let first = band.first_row * w;
+                    // Grey levels per unit of summed radiance: a product per pixel, not a
+                    // quotient (the last place differs; no grey level in the bench did).
+                    let grey_per_radiance = 255.0 * gain / n;
                     for (i, (g, r)) in band.grey.iter_mut().zip(band.radiance.iter()).enumerate() {
-                        let v = 255.0 * gain * r / n
+                        let v = grey_per_radiance * r
                             + options.noise_sigma * gaussian(index, (first + i) as u64);
                         // Rounded half away from zero as `f64::round`, without its library
                         // call; the same for every value the clamp keeps.
