@@ -316,8 +316,8 @@ fn interpolate(poses: &[StampedPose], at: f64) -> StampedPose {
 }
 
 /// A plane as one row of pixels meets it: with the row's ray slope `y'` fixed, each dot
-/// product of a pixel's ray with the plane's axes is `a x' + b`, and `b` is the same for the whole
-/// row.
+/// product of a pixel's ray with the plane's axes is `a x' + b`, with `b` the same for
+/// the whole row.
 struct PlaneInRow<'p, 's> {
     view: &'p PlaneInView<'s>,
     /// The columns' pixel-centre range outside which the ray misses the plane.
