@@ -230,8 +230,14 @@ fn egoslam() -> anyhow::Result<Command> {
     Ok(c)
 }
 
-/// Runs one entry; returns its table row as JSON.
-fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
+/// Runs one entry; returns its table row as JSON. `config` (the bench's own `--config`)
+/// is handed to the run, not to the rendering: rendered sequences are cached by the
+/// renderer's revision alone, so a configuration must not change them.
+fn measure(
+    entry: &Entry,
+    out: &Path,
+    config: Option<&Path>,
+) -> anyhow::Result<serde_json::Value> {
     if let Some(synth) = &entry.synth {
         // Rendered again when missing or drawn by an earlier revision of the renderer.
         let revision = format!("renderer revision {}.", egoslam_synth::RENDER_REVISION);
@@ -251,7 +257,11 @@ fn measure(entry: &Entry, out: &Path) -> anyhow::Result<serde_json::Value> {
         }
     }
     let start = Instant::now();
-    let status = egoslam()?
+    let mut run = egoslam()?;
+    if let Some(config) = config {
+        run.arg("--config").arg(config);
+    }
+    let status = run
         .arg("run")
         .arg("--input")
         .arg(&entry.input)
@@ -384,14 +394,17 @@ fn write_section(path: &Path, table: &str, section: &Section) -> anyhow::Result<
     crate::output::write_atomically(path, new.as_bytes())
 }
 
-pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+/// Runs the suite; every `egoslam run` of it reads `config` when given (the command line's
+/// `--config`: the runs are child processes, which did not see it before), with the
+/// suite's own flags for an entry winning over it.
+pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     let entries = suite(&args);
     std::fs::create_dir_all(&args.out)?;
     let mut rows = Vec::new();
     for (i, entry) in entries.iter().enumerate() {
         eprintln!("[{}/{}] {} ...", i + 1, entries.len(), entry.name);
         let started = Instant::now();
-        let row = measure(entry, &args.out.join(&entry.name))?;
+        let row = measure(entry, &args.out.join(&entry.name), config)?;
         eprintln!(
             "[{}/{}] {}: ATE {} m, breaks {} ({:.0} s)",
             i + 1,

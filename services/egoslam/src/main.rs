@@ -60,7 +60,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Eval(args) => eval::run(args),
         cli::Command::Synth(args) => synth_command::run(args),
         cli::Command::CalibrateReadout(args) => readout::calibrate(args),
-        cli::Command::Bench(args) => bench_command::run(args),
+        cli::Command::Bench(args) => bench_command::run(args, cli.config.as_deref()),
         cli::Command::Localize(args) => relocalization_commands::localize(args),
         cli::Command::Vocab(cli::VocabCommand::Train(args)) => {
             relocalization_commands::vocab_train(args)
