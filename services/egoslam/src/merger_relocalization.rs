@@ -23,8 +23,9 @@ const LINK_RETRY_WINDOWS: u64 = 10;
 const LINK_RETRY_KEYFRAMES: usize = 20;
 
 /// The segment new windows go to is searched for a loop every this many windows (each
-/// attempt relocalizes its newest 12 keyframes, ~20 ms each), while no background
-/// refinement is running (its result, folded later, would undo the correction).
+/// attempt relocalizes its newest 12 keyframes, ~20 ms each); an attempt due while a
+/// background refinement runs (its result, folded later, would undo the correction) is
+/// made at the first window after it is folded in.
 const LOOP_ATTEMPT_WINDOWS: u64 = 5;
 
 /// The merger's map, descriptors and index as relocalization reads them (a function of
@@ -119,12 +120,18 @@ impl Merger {
         let Some(camera) = self.camera else {
             return;
         };
-        if !self.args.pipeline.loop_closure
-            || !window_id.is_multiple_of(LOOP_ATTEMPT_WINDOWS)
-            || self.refiner.is_running()
-        {
+        let due = window_id.is_multiple_of(LOOP_ATTEMPT_WINDOWS) || self.loop_attempt_owed;
+        if !self.args.pipeline.loop_closure || !due {
             return;
         }
+        if self.refiner.is_running() {
+            // Not now (the refinement's result would undo the correction), but not
+            // skipped either: refinements ran through every attempt of a walk whose
+            // cross-window error stayed high, and it closed no loop at all.
+            self.loop_attempt_owed = true;
+            return;
+        }
+        self.loop_attempt_owed = false;
         let options = LoopOptions::default();
         let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
         let closure = self

@@ -50,6 +50,9 @@ struct Merger {
     features_log: RecordLog,
     /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
     database: KeyframeDatabase,
+    /// A loop attempt fell due while a background refinement ran: it is made at the first
+    /// window after the refinement is folded in (not checkpointed: a restart skips it).
+    loop_attempt_owed: bool,
 }
 
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
@@ -286,6 +289,10 @@ impl Merger {
                 *segment
             }
         };
+        // Before the cross-window error may start a background refinement below: an
+        // attempt is not made while one runs, and when each window started one (the error
+        // staying high), every attempt fell into a run and no loop was ever closed.
+        self.try_close_loop(w.window_id, segment);
         match outcome {
             WindowOutcome::NewSegment { segment } => {
                 tracing::info!(window = w.window_id, segment, "new map segment")
@@ -315,7 +322,6 @@ impl Merger {
             }
         }
         self.try_link(w.window_id, segment);
-        self.try_close_loop(w.window_id, segment);
     }
 }
 
@@ -425,6 +431,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         vocabulary,
         features_log,
         database: KeyframeDatabase::new(),
+        loop_attempt_owed: false,
     };
     let fault = if resumed.is_none() {
         injected_fault()
