@@ -233,11 +233,7 @@ fn egoslam() -> anyhow::Result<Command> {
 /// Runs one entry; returns its table row as JSON. `config` (the bench's own `--config`)
 /// is handed to the run, not to the rendering: rendered sequences are cached by the
 /// renderer's revision alone, so a configuration must not change them.
-fn measure(
-    entry: &Entry,
-    out: &Path,
-    config: Option<&Path>,
-) -> anyhow::Result<serde_json::Value> {
+fn measure(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<serde_json::Value> {
     if let Some(synth) = &entry.synth {
         // Rendered again when missing or drawn by an earlier revision of the renderer.
         let revision = format!("renderer revision {}.", egoslam_synth::RENDER_REVISION);
