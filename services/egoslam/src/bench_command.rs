@@ -230,6 +230,22 @@ fn egoslam() -> anyhow::Result<Command> {
     Ok(c)
 }
 
+/// The `egoslam run` of one entry: the bench's `config` first, so that the entry's own
+/// flags, given after it, win.
+fn run_command(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<Command> {
+    let mut run = egoslam()?;
+    if let Some(config) = config {
+        run.arg("--config").arg(config);
+    }
+    run.arg("run")
+        .arg("--input")
+        .arg(&entry.input)
+        .arg("--out")
+        .arg(out)
+        .args(&entry.run);
+    Ok(run)
+}
+
 /// Runs one entry; returns its table row as JSON. `config` (the bench's own `--config`)
 /// is handed to the run, not to the rendering: rendered sequences are cached by the
 /// renderer's revision alone, so a configuration must not change them.
@@ -253,17 +269,7 @@ fn measure(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<s
         }
     }
     let start = Instant::now();
-    let mut run = egoslam()?;
-    if let Some(config) = config {
-        run.arg("--config").arg(config);
-    }
-    let status = run
-        .arg("run")
-        .arg("--input")
-        .arg(&entry.input)
-        .arg("--out")
-        .arg(out)
-        .args(&entry.run)
+    let status = run_command(entry, out, config)?
         .stdout(std::process::Stdio::null())
         .status()?;
     let wall = start.elapsed().as_secs_f64();
@@ -449,6 +455,38 @@ mod tests {
         assert!(!text.contains("v1"), "{text}");
         assert_eq!(text.matches(QUICK_SECTION.begin).count(), 1);
         assert_eq!(text.matches(WALKS_SECTION.begin).count(), 1);
+    }
+
+    #[test]
+    fn every_run_reads_the_bench_configuration() {
+        let entry = Entry {
+            name: "seq".into(),
+            input: PathBuf::from("data/seq"),
+            synth: None,
+            run: vec!["--rolling-shutter-ms".into(), "20".into()],
+        };
+        let args = |config: Option<&Path>| -> Vec<String> {
+            run_command(&entry, Path::new("out/seq"), config)
+                .expect("command")
+                .get_args()
+                .map(|a| a.to_string_lossy().into_owned())
+                .collect()
+        };
+        assert_eq!(
+            args(Some(Path::new("walks.toml"))),
+            [
+                "--config",
+                "walks.toml",
+                "run",
+                "--input",
+                "data/seq",
+                "--out",
+                "out/seq",
+                "--rolling-shutter-ms",
+                "20"
+            ]
+        );
+        assert_eq!(args(None)[0], "run");
     }
 
     #[test]
