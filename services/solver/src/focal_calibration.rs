@@ -18,6 +18,7 @@
 
 use crate::view_graph::{EdgeCache, KeyframeObservations};
 use crate::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
+use crate::windowing::{WindowBuilder, WindowOptions, WindowOptionsError};
 use egoslam_geometry::PinholeRadtan;
 
 /// Options; defaults with their reason.
@@ -87,7 +88,7 @@ impl FocalEstimate {
 }
 
 /// Why no focal estimate was made.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[derive(Debug, PartialEq, thiserror::Error)]
 pub enum FocalCalibrationError {
     /// Too few windows had translation (a still or rotating start, or a short input).
     #[error("only {solved} windows solved with translation (need {needed})")]
@@ -95,6 +96,9 @@ pub enum FocalCalibrationError {
     /// The windows agree on a focal length too far from the calibration's to be believed.
     #[error("the windows put the focal length at {scale:.3}x the calibration's: check the calibration file and the image size")]
     Implausible { scale: f64 },
+    /// The window size and overlap do not make windows (`WindowBuilder::new`).
+    #[error(transparent)]
+    Windows(#[from] WindowOptionsError),
 }
 
 /// Solves the first windows of `keyframes` with the focal length and a radial term free
@@ -108,25 +112,35 @@ pub fn estimate_focal_scale(
     let _span = tracing::debug_span!("focal_calibration", keyframes = keyframes.len()).entered();
     let mut solver = *solver;
     solver.bundle_adjustment.refine_intrinsics = true;
-    let size = options.window.max(2);
-    let step = size.saturating_sub(options.overlap).max(1);
-    let mut cache = EdgeCache::new();
-    let mut per_window = Vec::new();
-    let mut start = 0;
-    for _ in 0..options.max_windows {
-        if start + 2 > keyframes.len() {
+    // The run's windows (without its adaptive ends), from the solver's own builder, as
+    // ranges of keyframe indices (a window is a run of consecutive keyframes).
+    let mut builder = WindowBuilder::new(WindowOptions {
+        size: options.window,
+        overlap: options.overlap,
+        ..WindowOptions::default()
+    })?;
+    let mut windows: Vec<Vec<usize>> = Vec::new();
+    for k in 0..keyframes.len() {
+        if windows.len() == options.max_windows {
             break;
         }
-        let end = (start + size).min(keyframes.len());
-        let s = solve_window(camera, &keyframes[start..end], &solver, &mut cache);
-        tracing::debug!(start, end, status = ?s.status, focal_scale = s.focal_scale, "window");
+        windows.extend(builder.push(k).map(|w| w.keyframes));
+    }
+    if windows.len() < options.max_windows {
+        windows.extend(builder.finish().map(|w| w.keyframes));
+    }
+    let mut cache = EdgeCache::new();
+    let mut per_window = Vec::new();
+    for indices in &windows {
+        let (Some(&first), Some(&last)) = (indices.first(), indices.last()) else {
+            continue;
+        };
+        let window = &keyframes[first..=last];
+        let s = solve_window(camera, window, &solver, &mut cache);
+        tracing::debug!(keyframes = window.len(), status = ?s.status, focal_scale = s.focal_scale, "window");
         if s.status == WindowStatus::Solved && s.focal_scale.is_finite() && s.focal_scale > 0.0 {
             per_window.push(s.focal_scale);
         }
-        if end == keyframes.len() {
-            break;
-        }
-        start += step;
     }
     if per_window.len() < options.min_windows.max(1) {
         return Err(FocalCalibrationError::TooFewWindows {
