@@ -456,6 +456,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "breaks_healed": counter(merger, "breaks_healed"),
         // Loops closed inside a segment (docs/merger.md, "Loop closure").
         "loops_closed": counter(merger, "loops_closed"),
+        // The closed loops' sightings of old points kept as observations (the loop's
+        // constraint in later refinements; docs/merger.md, "Loop closure").
+        "loop_sightings": counter(merger, "loop_sightings"),
         "blind_frames": counter(frontend, "blind_frames"),
         "window_translations": solver.window_translations,
         "map_points": counter(merger, "map_points"),

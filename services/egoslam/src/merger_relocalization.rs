@@ -151,11 +151,13 @@ impl Merger {
             return;
         };
         self.stats.count("loops_closed", 1);
+        self.loop_sightings = closure.sightings.clone();
         tracing::info!(
             window = window_id,
             anchor = closure.anchor_keyframe,
             keyframes = report.keyframes,
             points = report.points,
+            sightings = closure.sightings.len(),
             correction = report.correction,
             path = report.path,
             scale = closure.transform.scale,

@@ -53,6 +53,9 @@ struct Merger {
     /// A loop attempt fell due while a background refinement ran: it is made at the first
     /// window after the refinement is folded in (not checkpointed: a restart skips it).
     loop_attempt_owed: bool,
+    /// The sightings of the loop this window closed, added to the map after the window's
+    /// cross-window error is measured (`MapBuilder::add_loop_sightings`).
+    loop_sightings: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
 /// Longest time between rewrites of the result files and the checkpoint. Rewriting both
@@ -321,6 +324,11 @@ impl Merger {
                 }
             }
         }
+        let sightings = std::mem::take(&mut self.loop_sightings);
+        if !sightings.is_empty() {
+            let added = self.state.map.add_loop_sightings(segment, &sightings);
+            self.stats.count("loop_sightings", added as u64);
+        }
         self.try_link(w.window_id, segment);
     }
 }
@@ -432,6 +440,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         features_log,
         database: KeyframeDatabase::new(),
         loop_attempt_owed: false,
+        loop_sightings: Vec::new(),
     };
     let fault = if resumed.is_none() {
         injected_fault()

@@ -16,8 +16,11 @@
 //! `a` of the loop's path, turns by `a` of the loop's rotation and scales by `scale^a`
 //! (each step of the chain is re-integrated with those), and the position left over at
 //! the end is spread linearly. Keyframes before the loop do not move; points move with
-//! the keyframe that first saw them. The background refinement then adjusts the result
-//! against the observations. A scale change beyond drift is a break in the chain, not
+//! the keyframe that first saw them. The newest keyframes' sightings of the old points
+//! they were relocalized against are kept as observations of those points (as ORB-SLAM's
+//! loop fusion makes the old map points the new keyframes' own): the background
+//! refinement then adjusts the result against the observations, the loop among them, so
+//! it does not pull the loop open again toward the chain. A scale change beyond drift is a break in the chain, not
 //! drift: the keyframes after the one where the map's walking pace jumps (within 1.5x of
 //! the loop's factor) take that jump as a step, a second jump takes what the first leaves
 //! beyond 1.25x, and the rest is spread as drift ([`crate::scale_break`]); where the pace
@@ -100,6 +103,11 @@ pub struct LoopClosure {
     /// break for what a first leaves beyond drift ([`crate::scale_break`]); the rest is
     /// spread along the loop as drift. Empty: all of it is drift.
     pub scale_steps: Vec<ScaleStep>,
+    /// `(newest keyframe, old track, undistorted pixel)`: the older points the agreeing
+    /// newest keyframes matched, where they see them. Kept as observations, they are the
+    /// loop's constraint in a later bundle adjustment of the map (without them the
+    /// refinement sees only the chain and pulls the loop open again).
+    pub sightings: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
 /// A scale break a loop undoes as a step.
@@ -205,6 +213,7 @@ pub fn find_loop(
         keyframes: agreement.keyframes,
         shared_points: agreement.shared_points,
         scale_steps,
+        sightings: agreement.sightings,
     })
 }
 
@@ -321,6 +330,32 @@ impl MapBuilder {
             path,
         })
     }
+    /// Keeps a closed loop's sightings (`LoopClosure::sightings`) as observations of the
+    /// old points, where both keyframe and point are in `segment` and the keyframe has no
+    /// observation of that track yet; returns how many were added. Separate from
+    /// [`Self::close_loop`] so that the merger can add them after it measured the
+    /// window's cross-window error, which compares what windows chained and would read a
+    /// loop's own residual as drift.
+    pub fn add_loop_sightings(
+        &mut self,
+        segment: u32,
+        sightings: &[(u64, u64, nalgebra::Point2<f64>)],
+    ) -> usize {
+        let mut added = 0;
+        for &(keyframe, track, pixel) in sightings {
+            let point_in = self.points.get(&track).map(|(s, _)| *s);
+            let keyframe_in = self.keyframes.get(&keyframe).map(|(s, _)| *s);
+            if point_in == Some(segment) && keyframe_in == Some(segment) {
+                if let std::collections::btree_map::Entry::Vacant(e) =
+                    self.observations.entry((keyframe, track))
+                {
+                    e.insert(pixel);
+                    added += 1;
+                }
+            }
+        }
+        added
+    }
 }
 
 #[cfg(test)]
@@ -387,6 +422,13 @@ mod tests {
             keyframes: 3,
             shared_points: 50,
             scale_steps: Vec::new(),
+            // Keyframe 80 sees point 7; track 99 is no point; keyframe 79's own
+            // observation of 7 stays as the window measured it.
+            sightings: vec![
+                (80, 7, Point2::new(300.0, 200.0)),
+                (80, 99, Point2::new(10.0, 10.0)),
+                (79, 7, Point2::new(1.0, 1.0)),
+            ],
         };
         let before: f64 = (0..n)
             .map(|i| (drifted(i).position - square_pose(i).position).norm_squared())
@@ -394,6 +436,10 @@ mod tests {
         let report = map.close_loop(&closure, 0.002).expect("closed");
         assert_eq!(report.keyframes, 80);
         assert_eq!(report.points, 1);
+        assert_eq!(map.add_loop_sightings(0, &closure.sightings), 1);
+        assert_eq!(map.observations[&(80, 7)], Point2::new(300.0, 200.0));
+        assert_eq!(map.observations[&(79, 7)], Point2::new(320.0, 240.0));
+        assert!(!map.observations.contains_key(&(80, 99)));
         let (_, end) = map.keyframe(n - 1).expect("end");
         assert!((end.position - truth_end.position).norm() < 1e-9);
         assert!(end.rotation.angle_to(&truth_end.rotation) < 1e-9);
@@ -462,6 +508,7 @@ mod tests {
                 after_keyframe: last_before,
                 factor: 1.0 / factor,
             }],
+            sightings: Vec::new(),
         };
         let error = |map: &MapBuilder| {
             (0..n)
@@ -481,7 +528,7 @@ mod tests {
         let mut spread = build();
         let as_drift = LoopClosure {
             scale_steps: Vec::new(),
-            ..closure
+            ..closure.clone()
         };
         spread.close_loop(&as_drift, 0.002).expect("closed");
         assert!(error(&spread) > 0.5, "{}", error(&spread));

@@ -90,6 +90,9 @@ struct Relocalized {
     pairs: Vec<(Vector3<f64>, Vector3<f64>)>,
     /// Distances from the relocalized camera to its inlier old points.
     depths: Vec<f64>,
+    /// The query keyframe's id and, per inlier, (old point's track, the query's undistorted
+    /// pixel of it).
+    sightings: (u64, Vec<(u64, Point2<f64>)>),
 }
 
 fn query_of(features: &[MapFeature]) -> QueryFeatures {
@@ -188,6 +191,9 @@ pub(crate) struct Agreement {
     pub shared_points: usize,
     /// The older keyframes they were relocalized against.
     pub old_keyframes: Vec<u64>,
+    /// `(query keyframe, old track, undistorted pixel)`: where the agreeing queries see
+    /// the older points they matched.
+    pub sightings: Vec<(u64, u64, Point2<f64>)>,
 }
 
 /// Relocalizes the `queries` (keyframes with their poses in their own frame) against the
@@ -294,6 +300,14 @@ pub(crate) fn relocalize_consistently(
             .filter_map(|(old_track, _)| relocalizer.map().points.get(old_track))
             .map(|(_, x)| (x - r.pose.position).norm())
             .collect();
+        let sightings = r
+            .inliers
+            .iter()
+            .map(|(old_track, qi)| {
+                let p = kf_features[*qi].pixel;
+                (*old_track, Point2::new(f64::from(p.x), f64::from(p.y)))
+            })
+            .collect();
         found.push(Relocalized {
             in_new,
             in_old: r.pose,
@@ -301,6 +315,7 @@ pub(crate) fn relocalize_consistently(
             old_keyframe: r.keyframe_id,
             pairs,
             depths,
+            sightings: (id, sightings),
         });
     }
     // The older segment most keyframes relocalized into.
@@ -346,6 +361,14 @@ pub(crate) fn relocalize_consistently(
                 keyframes: group.len(),
                 shared_points: shared,
                 old_keyframes: group.iter().map(|f| f.old_keyframe).collect(),
+                sightings: group
+                    .iter()
+                    .flat_map(|f| {
+                        let (keyframe, seen) = &f.sightings;
+                        seen.iter()
+                            .map(move |(track, pixel)| (*keyframe, *track, *pixel))
+                    })
+                    .collect(),
             });
         }
         group = consistent;
