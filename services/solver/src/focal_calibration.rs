@@ -17,7 +17,7 @@
 //! 0.971).
 
 use crate::view_graph::{EdgeCache, KeyframeObservations};
-use crate::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
+use crate::window_solver::{solve_window, WindowSolution, WindowSolverOptions, WindowStatus};
 use crate::windowing::{WindowBuilder, WindowOptions, WindowOptionsError};
 use egoslam_geometry::PinholeRadtan;
 
@@ -46,6 +46,14 @@ pub struct FocalCalibrationOptions {
     /// Largest correction believed, as a fraction (default 0.2): a calibration that far off
     /// is the wrong file or the wrong resolution, which a focal scale should not hide.
     pub max_correction: f64,
+    /// Smallest radial term applied ([`estimate_radial_term`]; default 0.005: at the corner
+    /// of a 65 deg view, r^2 = 0.64, it moves a point 0.3 % of its distance from the
+    /// centre, ~1 px at VGA; the windows of rendered walks, which have no distortion,
+    /// scatter within +-0.003 about 0).
+    pub min_radial_correction: f64,
+    /// Largest radial term believed (default 0.1: 6 % at such a corner, a lens the
+    /// calibration did not describe at all, which a residual term should not hide).
+    pub max_radial_correction: f64,
 }
 
 impl Default for FocalCalibrationOptions {
@@ -58,6 +66,8 @@ impl Default for FocalCalibrationOptions {
             min_correction: 0.01,
             min_significance: 2.0,
             max_correction: 0.2,
+            min_radial_correction: 0.005,
+            max_radial_correction: 0.1,
         }
     }
 }
@@ -87,7 +97,34 @@ impl FocalEstimate {
     }
 }
 
-/// Why no focal estimate was made.
+/// What the first windows said about a radial distortion the calibration leaves
+/// ([`estimate_radial_term`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RadialEstimate {
+    /// Median radial term, `k` of `(1 + k r^2)` on the calibration's undistorted
+    /// normalized coordinates (to first order, what adds to the calibration's `k1`).
+    pub k: f64,
+    /// Each window's term, in order (windows solved with translation only).
+    pub per_window: Vec<f64>,
+    /// Standard error of the median, 1.4826 x MAD / sqrt(n).
+    pub standard_error: f64,
+    /// Whether the term is clear enough to apply (`min_radial_correction`,
+    /// `min_significance`).
+    pub significant: bool,
+}
+
+impl RadialEstimate {
+    /// The term to apply: the estimate when significant, else 0.
+    pub fn applied(&self) -> f64 {
+        if self.significant {
+            self.k
+        } else {
+            0.0
+        }
+    }
+}
+
+/// Why no focal (or radial) estimate was made.
 #[derive(Debug, PartialEq, thiserror::Error)]
 pub enum FocalCalibrationError {
     /// Too few windows had translation (a still or rotating start, or a short input).
@@ -96,6 +133,10 @@ pub enum FocalCalibrationError {
     /// The windows agree on a focal length too far from the calibration's to be believed.
     #[error("the windows put the focal length at {scale:.3}x the calibration's: check the calibration file and the image size")]
     Implausible { scale: f64 },
+    /// The windows agree on a radial distortion too strong to be a residual of the
+    /// calibration.
+    #[error("the windows find a radial distortion k = {k:.3} the calibration does not describe: check the calibration's distortion")]
+    ImplausibleRadial { k: f64 },
     /// The window size and overlap do not make windows (`WindowBuilder::new`).
     #[error(transparent)]
     Windows(#[from] WindowOptionsError),
@@ -112,8 +153,69 @@ pub fn estimate_focal_scale(
     let _span = tracing::debug_span!("focal_calibration", keyframes = keyframes.len()).entered();
     let mut solver = *solver;
     solver.bundle_adjustment.refine_intrinsics = true;
-    // The run's windows (without its adaptive ends), from the solver's own builder, as
-    // ranges of keyframe indices (a window is a run of consecutive keyframes).
+    let per_window: Vec<f64> = first_windows(camera, keyframes, options, &solver)?
+        .iter()
+        .map(|s| s.focal_scale)
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .collect();
+    let (scale, standard_error) = pooled(&per_window, options)?;
+    if scale.ln().abs() > (1.0 + options.max_correction).ln() {
+        return Err(FocalCalibrationError::Implausible { scale });
+    }
+    let correction = (scale - 1.0).abs();
+    let significant = correction >= options.min_correction
+        && correction >= options.min_significance * standard_error;
+    Ok(FocalEstimate {
+        scale,
+        per_window,
+        standard_error,
+        significant,
+    })
+}
+
+/// Solves the first windows of `keyframes` with the focal length held and a radial term
+/// free (`BundleAdjustmentOptions::hold_focal`: under forward motion a free focal trades
+/// off against the translation) and pools their terms: a lens distortion the calibration
+/// leaves, as the paper's 7-parameter camera refines one radial term.
+pub fn estimate_radial_term(
+    camera: &PinholeRadtan,
+    keyframes: &[KeyframeObservations],
+    options: &FocalCalibrationOptions,
+    solver: &WindowSolverOptions,
+) -> Result<RadialEstimate, FocalCalibrationError> {
+    let _span = tracing::debug_span!("radial_calibration", keyframes = keyframes.len()).entered();
+    let mut solver = *solver;
+    solver.bundle_adjustment.refine_intrinsics = true;
+    solver.bundle_adjustment.hold_focal = true;
+    let per_window: Vec<f64> = first_windows(camera, keyframes, options, &solver)?
+        .iter()
+        .map(|s| s.radial_k)
+        .filter(|k| k.is_finite())
+        .collect();
+    let (k, standard_error) = pooled(&per_window, options)?;
+    if k.abs() > options.max_radial_correction {
+        return Err(FocalCalibrationError::ImplausibleRadial { k });
+    }
+    let significant = k.abs() >= options.min_radial_correction
+        && k.abs() >= options.min_significance * standard_error;
+    Ok(RadialEstimate {
+        k,
+        per_window,
+        standard_error,
+        significant,
+    })
+}
+
+/// The run's first windows of `keyframes` (without its adaptive ends), solved with
+/// `solver`; those solved with translation, in order.
+fn first_windows(
+    camera: &PinholeRadtan,
+    keyframes: &[KeyframeObservations],
+    options: &FocalCalibrationOptions,
+    solver: &WindowSolverOptions,
+) -> Result<Vec<WindowSolution>, FocalCalibrationError> {
+    // From the solver's own builder, as ranges of keyframe indices (a window is a run of
+    // consecutive keyframes).
     let mut builder = WindowBuilder::new(WindowOptions {
         size: options.window,
         overlap: options.overlap,
@@ -130,39 +232,37 @@ pub fn estimate_focal_scale(
         windows.extend(builder.finish().map(|w| w.keyframes));
     }
     let mut cache = EdgeCache::new();
-    let mut per_window = Vec::new();
+    let mut solved = Vec::new();
     for indices in &windows {
         let (Some(&first), Some(&last)) = (indices.first(), indices.last()) else {
             continue;
         };
         let window = &keyframes[first..=last];
-        let s = solve_window(camera, window, &solver, &mut cache);
-        tracing::debug!(keyframes = window.len(), status = ?s.status, focal_scale = s.focal_scale, "window");
-        if s.status == WindowStatus::Solved && s.focal_scale.is_finite() && s.focal_scale > 0.0 {
-            per_window.push(s.focal_scale);
+        let s = solve_window(camera, window, solver, &mut cache);
+        tracing::debug!(keyframes = window.len(), status = ?s.status, focal_scale = s.focal_scale, radial_k = s.radial_k, "window");
+        if s.status == WindowStatus::Solved {
+            solved.push(s);
         }
     }
+    Ok(solved)
+}
+
+/// Median of the windows' values and its standard error (1.4826 x MAD / sqrt(n)); an
+/// error with fewer than `min_windows`.
+fn pooled(
+    per_window: &[f64],
+    options: &FocalCalibrationOptions,
+) -> Result<(f64, f64), FocalCalibrationError> {
     if per_window.len() < options.min_windows.max(1) {
         return Err(FocalCalibrationError::TooFewWindows {
             solved: per_window.len(),
             needed: options.min_windows.max(1),
         });
     }
-    let scale = median(&per_window);
-    let deviations: Vec<f64> = per_window.iter().map(|s| (s - scale).abs()).collect();
+    let centre = median(per_window);
+    let deviations: Vec<f64> = per_window.iter().map(|v| (v - centre).abs()).collect();
     let standard_error = 1.4826 * median(&deviations) / (per_window.len() as f64).sqrt();
-    if scale.ln().abs() > (1.0 + options.max_correction).ln() {
-        return Err(FocalCalibrationError::Implausible { scale });
-    }
-    let correction = (scale - 1.0).abs();
-    let significant = correction >= options.min_correction
-        && correction >= options.min_significance * standard_error;
-    Ok(FocalEstimate {
-        scale,
-        per_window,
-        standard_error,
-        significant,
-    })
+    Ok((centre, standard_error))
 }
 
 /// Median of a non-empty slice (the mean of the middle two for an even count).
@@ -274,5 +374,47 @@ mod tests {
     fn median_of_odd_and_even_counts() {
         assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
         assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), 2.5);
+    }
+
+    /// `keyframes` seen through a lens with radial distortion `k` the calibration
+    /// (`camera_with_focal(520.0)`) does not describe.
+    fn distorted(keyframes: &[KeyframeObservations], k: f64) -> Vec<KeyframeObservations> {
+        let c = camera_with_focal(520.0);
+        keyframes
+            .iter()
+            .map(|kf| KeyframeObservations {
+                tracks: kf
+                    .tracks
+                    .iter()
+                    .map(|(id, p)| {
+                        let (x, y) = ((p.x - c.cx) / c.fx, (p.y - c.cy) / c.fy);
+                        let d = 1.0 + k * (x * x + y * y);
+                        (
+                            *id,
+                            nalgebra::Point2::new(c.cx + c.fx * d * x, c.cy + c.fy * d * y),
+                        )
+                    })
+                    .collect(),
+                ..kf.clone()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_radial_distortion_the_calibration_leaves_is_found_and_none_is_left_alone() {
+        let kf = keyframes(5);
+        let options = FocalCalibrationOptions::default();
+        let solver = WindowSolverOptions::default();
+        let camera = camera_with_focal(520.0);
+        let pincushion = estimate_radial_term(&camera, &distorted(&kf, 0.03), &options, &solver)
+            .expect("estimate");
+        assert!(pincushion.per_window.len() >= 3, "{pincushion:?}");
+        assert!((pincushion.k - 0.03).abs() < 0.005, "{pincushion:?}");
+        assert!(pincushion.significant, "{pincushion:?}");
+        assert_eq!(pincushion.applied(), pincushion.k);
+        let none = estimate_radial_term(&camera, &kf, &options, &solver).expect("estimate");
+        assert!(none.k.abs() < 0.003, "{none:?}");
+        assert!(!none.significant, "{none:?}");
+        assert_eq!(none.applied(), 0.0);
     }
 }

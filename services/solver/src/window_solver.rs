@@ -133,6 +133,10 @@ pub struct WindowSolution {
     /// refined the intrinsics (`BundleAdjustmentOptions::refine_intrinsics`, used by
     /// [`crate::focal_calibration`]); 1 otherwise.
     pub focal_scale: f64,
+    /// The radial term bundle adjustment settled on with the intrinsics refined (in the
+    /// ideal camera's normalized coordinates, as `k1` of the calibration; used by
+    /// [`crate::focal_calibration`]); 0 otherwise.
+    pub radial_k: f64,
     pub edges: usize,
     pub translation_edges: usize,
     /// (stage, milliseconds) in execution order.
@@ -164,6 +168,7 @@ impl WindowSolution {
             weak_observations: Vec::new(),
             rmse_px: 0.0,
             focal_scale: 1.0,
+            radial_k: 0.0,
             edges,
             translation_edges,
             timings_ms,
@@ -181,6 +186,7 @@ impl WindowSolution {
             weak_observations: Vec::new(),
             rmse_px: 0.0,
             focal_scale: 1.0,
+            radial_k: 0.0,
             edges,
             translation_edges: 0,
             timings_ms,
@@ -549,6 +555,7 @@ fn solve_connected(
         weak_observations: weak,
         rmse_px: adjusted.rmse_px,
         focal_scale: adjusted.focal_scale,
+        radial_k: adjusted.radial_k,
         edges: edges.len(),
         translation_edges: translation_edges.len(),
         timings_ms: timings,
