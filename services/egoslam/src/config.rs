@@ -40,6 +40,7 @@ pub struct FrontendSection {
     pub rolling_shutter_ms: Option<crate::readout::Readout>,
     pub readout_frames: Option<u32>,
     pub calibrate_focal: Option<bool>,
+    pub calibrate_radial: Option<bool>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -253,6 +254,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "calibrate_focal",
         &mut p.calibrate_focal,
         &c.frontend.calibrate_focal,
+    );
+    fill(
+        m,
+        "calibrate_radial",
+        &mut p.calibrate_radial,
+        &c.frontend.calibrate_radial,
     );
     fill(m, "window", &mut p.window, &c.solver.window);
     fill(m, "overlap", &mut p.overlap, &c.solver.overlap);

@@ -1,11 +1,12 @@
-//! Focal-length self-calibration before a run (`--calibrate-focal`,
-//! `frontend.calibrate_focal`): `egoslam run` tracks the first frames of a recorded input,
-//! solves their first windows with the intrinsics free
+//! Focal-length and radial self-calibration before a run (`--calibrate-focal`,
+//! `--calibrate-radial`, `frontend.calibrate_*`): `egoslam run` tracks the first frames of a
+//! recorded input, solves their first windows with the intrinsics free
 //! (`egoslam_solver::focal_calibration`) and, when they agree on a focal length clearly
-//! different from the calibration's, scales the calibration's fx and fy before any service
-//! starts, so that every process (tracker, solver, merger, relocalization) and the saved
-//! camera.yaml use the same camera. A live camera cannot be read ahead: it runs with the
-//! calibration as given.
+//! different from the calibration's, scales the calibration's fx and fy (or, on a clear
+//! radial distortion the calibration leaves, adds it to k1) before any service starts, so
+//! that every process (tracker, solver, merger, relocalization) and the saved camera.yaml
+//! use the same camera. A live camera cannot be read ahead: it runs with the calibration
+//! as given.
 
 use crate::cli::PipelineArgs;
 use crate::readout::tracker_options;
@@ -13,7 +14,8 @@ use anyhow::Context;
 use egoslam_frontend::{KeyframeTracks, Tracker};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_solver::focal_calibration::{
-    estimate_focal_scale, FocalCalibrationOptions, FocalEstimate,
+    estimate_focal_scale, estimate_radial_term, FocalCalibrationOptions, FocalEstimate,
+    RadialEstimate,
 };
 use egoslam_solver::view_graph::KeyframeObservations;
 use egoslam_solver::window_solver::WindowSolverOptions;
@@ -35,11 +37,23 @@ pub fn scaled(camera: &PinholeRadtan, scale: f64) -> PinholeRadtan {
     }
 }
 
+/// `camera` with `k` added to its first radial coefficient: to first order the residual
+/// distortion `(1 + k r^2)` the radial self-calibration measures on its undistorted points.
+pub fn with_radial(camera: &PinholeRadtan, k: f64) -> PinholeRadtan {
+    let mut distortion = camera.distortion;
+    distortion[0] += k;
+    PinholeRadtan {
+        distortion,
+        ..*camera
+    }
+}
+
 /// The camera to localize a recording in a saved map with: the map's focal lengths when
 /// the map was built by the same camera with its focal length self-calibrated (same size,
 /// principal point and distortion; focal lengths in the same ratio, within the 20 % the
 /// self-calibration believes), so that queries use the focal their map was built with;
-/// else `calibrated` as given.
+/// else `calibrated` as given. (A saved map records the ideal pinhole its features are in,
+/// not a distortion: a radial term `--calibrate-radial` added is not carried to queries.)
 pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> PinholeRadtan {
     let same_camera = (calibrated.width, calibrated.height) == (map.width, map.height)
         && calibrated.cx == map.cx
@@ -134,9 +148,52 @@ pub fn estimate_from_source(
     Ok(estimate)
 }
 
+/// The radial estimate of a recorded input's first windows (module doc), logged.
+pub fn radial_from_source(
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+    pipeline: &PipelineArgs,
+    readout_s: f64,
+) -> anyhow::Result<RadialEstimate> {
+    let keyframes = first_keyframes(source, camera, pipeline, readout_s)?;
+    let options = FocalCalibrationOptions {
+        window: usize::from(pipeline.window),
+        overlap: pipeline.overlap,
+        ..FocalCalibrationOptions::default()
+    };
+    let mut solver = WindowSolverOptions::default();
+    solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
+    let estimate = estimate_radial_term(&camera, &keyframes, &options, &solver)
+        .with_context(|| format!("{} keyframes", keyframes.len()))?;
+    tracing::info!(
+        k = estimate.k,
+        standard_error = estimate.standard_error,
+        windows = estimate.per_window.len(),
+        applied = estimate.significant,
+        "radial distortion estimated from the input's first windows"
+    );
+    Ok(estimate)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_radial_term_adds_to_k1_only() {
+        let c =
+            PinholeRadtan::new(640, 480, [500.0, 502.0, 320.0, 240.0], [0.1; 5]).expect("camera");
+        let r = with_radial(&c, 0.02);
+        assert!((r.distortion[0] - 0.12).abs() < 1e-12);
+        assert_eq!(r.distortion[1..], c.distortion[1..]);
+        assert_eq!(
+            PinholeRadtan {
+                distortion: c.distortion,
+                ..r
+            },
+            c
+        );
+    }
 
     #[test]
     fn scaling_keeps_everything_but_the_focal_lengths() {

@@ -96,62 +96,6 @@ fn resolve_readout(
     })
 }
 
-/// Under `--calibrate-focal true` the camera with the focal length of the
-/// input's first windows (focal.rs) when they clearly disagree with the calibration, else
-/// `camera`; and what was done, for the report. Reads the input again from its start.
-fn resolve_focal(
-    args: &RunArgs,
-    input: &Path,
-    layout: &Layout,
-    camera: PinholeRadtan,
-) -> (PinholeRadtan, serde_json::Value) {
-    use crate::readout::Readout;
-    if !args.pipeline.calibrate_focal {
-        return (camera, json!({ "setting": false }));
-    }
-    if matches!(layout, Layout::Camera { .. }) {
-        tracing::info!("focal self-calibration needs a recorded input: the live camera runs with its calibration as given");
-        return (
-            camera,
-            json!({ "setting": true, "error": "a live camera cannot be read ahead" }),
-        );
-    }
-    let started = Instant::now();
-    let readout_s = match args.pipeline.rolling_shutter_ms {
-        Readout::Millis(ms) => ms / 1000.0,
-        Readout::Auto => 0.0,
-    };
-    let estimate = open_source(input, args.fps)
-        .map_err(anyhow::Error::from)
-        .and_then(|mut source| {
-            crate::focal::estimate_from_source(source.as_mut(), camera, &args.pipeline, readout_s)
-        });
-    let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
-    match estimate {
-        Ok(e) => {
-            let applied = e.applied();
-            (
-                crate::focal::scaled(&camera, applied),
-                json!({
-                    "setting": true,
-                    "scale": e.scale,
-                    "applied_scale": applied,
-                    "standard_error": e.standard_error,
-                    "per_window": e.per_window,
-                    "estimation_ms": elapsed_ms,
-                }),
-            )
-        }
-        Err(e) => {
-            tracing::info!("no focal estimate ({e:#}): the calibration is used as given");
-            (
-                camera,
-                json!({ "setting": true, "error": format!("{e:#}"), "estimation_ms": elapsed_ms }),
-            )
-        }
-    }
-}
-
 /// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
 /// Image folders and videos carry no clock of their own (their timestamps are frame index /
 /// fps), so nothing found near them could be associated: they need `--gt` and real stamps.
@@ -338,14 +282,18 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let readout_report =
         resolve_readout(&mut args, &input, &layout, first, source.as_mut(), camera);
     drop(source);
-    let (camera, focal_report) = resolve_focal(&args, &input, &layout, camera);
-    let origin = match focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
-        Some(scale) => PathBuf::from(format!(
-            "{}, focal lengths x{scale:.4} (self-calibrated, report.json)",
-            calibration.origin.display()
-        )),
-        None => calibration.origin.clone(),
-    };
+    let (camera, focal_report) =
+        crate::self_calibration::resolve_focal(&args, &input, &layout, camera);
+    let (camera, radial_report) =
+        crate::self_calibration::resolve_radial(&args, &input, &layout, camera);
+    let mut origin = calibration.origin.display().to_string();
+    if let Some(scale) = focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
+        origin += &format!(", focal lengths x{scale:.4} (self-calibrated, report.json)");
+    }
+    if let Some(k) = radial_report["applied_k"].as_f64().filter(|k| *k != 0.0) {
+        origin += &format!(", k1 {k:+.4} (self-calibrated, report.json)");
+    }
+    let origin = PathBuf::from(origin);
 
     let out = &args.out;
     for stale in [
@@ -471,6 +419,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "timings_ms": timings,
         "rolling_shutter": readout_report,
         "focal_calibration": focal_report,
+        "radial_calibration": radial_report,
         "accuracy": accuracy,
     });
     write_atomically(

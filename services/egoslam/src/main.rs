@@ -26,6 +26,7 @@ mod readout;
 mod record_log;
 mod relocalization_commands;
 mod replay;
+mod self_calibration;
 mod solver_resume;
 mod solver_service;
 mod stats;
