@@ -95,10 +95,11 @@ pub struct PipelineArgs {
     /// Self-calibrate a radial distortion the calibration leaves: `egoslam run` solves the
     /// first windows of a recorded input with one radial term free (the focal held) and
     /// adds it to the calibration's k1 when they agree on a clear one (docs/config.md; a
-    /// live camera runs with the calibration as given). On by default: kitti_odometry_00
-    /// 0.479 -> 0.246 m; no term is applied on the other sequences here.
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set, env = "EGOSLAM_CALIBRATE_RADIAL")]
-    pub calibrate_radial: bool,
+    /// live camera runs with the calibration as given). `auto` (the default): only for a
+    /// calibration without distortion terms (rectified images, a datasheet's pinhole);
+    /// kitti_odometry_00 0.479 -> 0.246 m.
+    #[arg(long, default_value_t = crate::self_calibration::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
+    pub calibrate_radial: crate::self_calibration::RadialSetting,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,

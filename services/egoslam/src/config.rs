@@ -40,7 +40,7 @@ pub struct FrontendSection {
     pub rolling_shutter_ms: Option<crate::readout::Readout>,
     pub readout_frames: Option<u32>,
     pub calibrate_focal: Option<bool>,
-    pub calibrate_radial: Option<bool>,
+    pub calibrate_radial: Option<crate::self_calibration::RadialSetting>,
 }
 
 /// `[solver]`: temporal windows and the view graph.

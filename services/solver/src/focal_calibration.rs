@@ -59,11 +59,11 @@ pub struct FocalCalibrationOptions {
     /// calibration did not describe at all, which a residual term should not hide).
     pub max_radial_correction: f64,
     /// The radial term must exceed this many standard errors of the median (default 3,
-    /// stricter than the focal's 2: the radial self-calibration is on by default, and a
-    /// term applied wrongly bends every map of that camera: tum_fr1_rpy's five windows
-    /// gave -0.0076 at 1.97 standard errors, and applied it took that sequence from 1.97
-    /// to 3.02 cm, while kitti_odometry_00's six gave 0.0135 at 3.4, which took it from 0.479
-    /// to 0.246 m).
+    /// stricter than the focal's 2: `egoslam run` estimates it by default for a
+    /// calibration without distortion terms, and a term applied wrongly bends every map of
+    /// that camera: tum_fr1_rpy's five windows gave -0.0076 at 1.97 standard errors, and
+    /// applied it took that sequence from 1.97 to 3.02 cm, while kitti_odometry_00's six
+    /// gave 0.0135 at 3.4, which took it from 0.479 to 0.246 m).
     pub min_radial_significance: f64,
 }
 
