@@ -31,10 +31,16 @@ fn localize(map: &Path, input: &Path, out: &Path, extra: &[&str]) -> Output {
 /// them relocalize (docs/relocalization.md: 114 of 120, 19 of 25 non-keyframes, against
 /// 118 and 23). The other sequences here are global-shutter, where `auto` gives 0.
 fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
+    map_then_localize_with(input, dir, &[])
+}
+
+/// [`map_then_localize`] with `run_args` added to the map's run.
+fn map_then_localize_with(input: &Path, dir: &Path, run_args: &[&str]) -> serde_json::Value {
     let map = dir.join("map.egomap");
     let status = egoslam_without_pre_passes()
         .args(["run", "--input"])
         .arg(input)
+        .args(run_args)
         .arg("--out")
         .arg(dir.join("run"))
         .arg("--map-out")
@@ -208,12 +214,19 @@ fn kitti_every_frame_relocalized_from_scratch() {
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
-    let r = map_then_localize(&input.join("dataset/sequences/00"), dir.path());
-    // Measured: 148 of 150 (61 of 63 non-keyframes), median 0.38 m / 0.69 deg against a
-    // map whose keyframes are 0.35 m / 0.66 deg off.
+    // The map as `egoslam run` builds it by default, with the radial term its rectified
+    // calibration leaves self-calibrated (docs/config.md, `calibrate_radial`).
+    let r = map_then_localize_with(
+        &input.join("dataset/sequences/00"),
+        dir.path(),
+        &["--calibrate-radial", "auto"],
+    );
+    // Measured: 147 of 150 (56 of 59 non-keyframes), median 0.281 m / 0.669 deg (0.38 m /
+    // 0.69 deg in a map built without the radial term). Held to issue 7's targets: >= 95 %
+    // relocalized, median <= 0.3 m.
     assert!(f(&r["localized"]) >= 143.0, "{r}");
     let acc = &r["accuracy"];
-    assert!(f(&acc["median_position_m"]) < 0.5, "{acc}");
+    assert!(f(&acc["median_position_m"]) <= 0.3, "{acc}");
     assert!(f(&acc["median_rotation_deg"]) < 1.0, "{acc}");
 }
 
