@@ -48,27 +48,30 @@ pub fn with_radial(camera: &PinholeRadtan, k: f64) -> PinholeRadtan {
     }
 }
 
-/// The camera to localize a recording in a saved map with: the map's focal lengths when
-/// the map was built by the same camera with its focal length self-calibrated (same size,
-/// principal point and distortion; focal lengths in the same ratio, within the 20 % the
-/// self-calibration believes), so that queries use the focal their map was built with;
-/// else `calibrated` as given. (A saved map records the ideal pinhole its features are in,
-/// not a distortion: a radial term `--calibrate-radial` added is not carried to queries.)
+/// The camera to localize a recording in a saved map with: the map's intrinsics when the
+/// map was built by the same camera self-calibrated (same size and principal point; focal
+/// lengths in the same ratio, within the 20 % the focal self-calibration believes; the same
+/// distortion but for a first radial coefficient within the 0.1 the radial one believes),
+/// so that queries use the camera their map was built with; else `calibrated` as given.
+/// (Maps saved before they recorded their distortion read as distortion-free: for a lens
+/// with distortion terms they are another camera, and queries use the calibration.)
 pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> PinholeRadtan {
+    let options = FocalCalibrationOptions::default();
     let same_camera = (calibrated.width, calibrated.height) == (map.width, map.height)
         && calibrated.cx == map.cx
         && calibrated.cy == map.cy
-        && calibrated.distortion == map.distortion;
+        && calibrated.distortion[1..] == map.distortion[1..]
+        && (calibrated.distortion[0] - map.distortion[0]).abs() <= options.max_radial_correction;
     let scale = map.fx / calibrated.fx;
-    let bound = FocalCalibrationOptions::default().max_correction;
     if same_camera
-        && scale != 1.0
+        && map != calibrated
         && (map.fy / calibrated.fy - scale).abs() < 1e-9
-        && scale.ln().abs() <= (1.0 + bound).ln()
+        && scale.ln().abs() <= (1.0 + options.max_correction).ln()
     {
         tracing::info!(
             scale,
-            "the map's focal lengths are the calibration's self-calibrated: queries use them"
+            k1 = map.distortion[0],
+            "the map's camera is the calibration self-calibrated: queries use it"
         );
         return *map;
     }
@@ -220,5 +223,16 @@ mod tests {
         // Focal lengths in another ratio are not a self-calibration.
         let stretched = PinholeRadtan { fy: c.fy, ..map };
         assert_eq!(with_the_maps_focal(&c, &stretched), c);
+        // A self-calibrated radial term, with or without the focal: the map's camera; a
+        // first coefficient beyond the 0.1 bound, or another second one: as calibrated.
+        let radial = with_radial(&map, 0.02);
+        assert_eq!(with_the_maps_focal(&c, &radial), radial);
+        let radial_only = with_radial(&c, -0.02);
+        assert_eq!(with_the_maps_focal(&c, &radial_only), radial_only);
+        assert_eq!(with_the_maps_focal(&c, &with_radial(&c, 0.2)), c);
+        let mut other_k2 = with_radial(&c, 0.02);
+        other_k2.distortion[1] += 0.01;
+        assert_eq!(with_the_maps_focal(&c, &other_k2), c);
+        assert_eq!(with_the_maps_focal(&c, &c), c);
     }
 }

@@ -345,7 +345,10 @@ impl Merger {
 /// The ideal pinhole camera of a window's (undistorted) observations.
 fn window_camera(w: &pb::WindowSolution) -> Option<PinholeRadtan> {
     let i = w.intrinsics.as_ref()?;
-    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], [0.0; 5]).ok()
+    // The map's geometry uses the ideal pinhole only (the observations are undistorted);
+    // the lens model rides along for the saved map. Older messages carry none.
+    let distortion: [f64; 5] = i.distortion.as_slice().try_into().unwrap_or([0.0; 5]);
+    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], distortion).ok()
 }
 
 /// The geometry of a window message, as the map builder takes it.

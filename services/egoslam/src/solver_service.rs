@@ -282,10 +282,10 @@ fn solve(
             .iter()
             .map(keyframe_features)
             .collect(),
-        intrinsics: kfs[0].intrinsics.clone().map(|i| pb::Intrinsics {
-            distortion: Vec::new(),
-            ..i
-        }),
+        // The camera as the frontend had it, its lens model included: the window's
+        // observations are undistorted pixels of its ideal pinhole, and a saved map
+        // records the lens for queries from the same camera (focal.rs).
+        intrinsics: kfs[0].intrinsics.clone(),
     })
 }
 

@@ -121,7 +121,9 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
             fy: c.fy,
             cx: c.cx,
             cy: c.cy,
-            distortion: Vec::new(),
+            // The lens model the map's keyframes were undistorted with: what a query from
+            // the same camera needs, including a radial term `egoslam run` self-calibrated.
+            distortion: c.distortion.to_vec(),
         }),
         vocabulary_id,
         source: source.to_string(),
@@ -218,7 +220,14 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
     let c = message
         .camera
         .ok_or_else(|| SavedMapError::Invalid("no camera".into()))?;
-    let camera = PinholeRadtan::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], [0.0; 5])
+    // Maps written before the distortion was recorded carry none.
+    let distortion: [f64; 5] = match c.distortion.as_slice() {
+        [] => [0.0; 5],
+        d => d.try_into().map_err(|_| {
+            SavedMapError::Invalid(format!("camera: {} distortion terms, not 5", d.len()))
+        })?,
+    };
+    let camera = PinholeRadtan::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], distortion)
         .map_err(|e| SavedMapError::Invalid(format!("camera: {e}")))?;
     let readout_s = message.rolling_shutter_s;
     if !(0.0..=0.1).contains(&readout_s) {
@@ -282,8 +291,13 @@ mod tests {
     use super::*;
 
     fn small_map() -> RelocalizationMap {
-        let camera =
-            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+        let camera = PinholeRadtan::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            [0.0135, 0.0, 0.0, 0.0, 0.0],
+        )
+        .expect("camera");
         let keyframes = (0..3u64)
             .map(|k| MapKeyframe {
                 keyframe_id: k,
@@ -320,6 +334,7 @@ mod tests {
         let bytes = encode_map(&map, 42, "test");
         let (back, vocabulary) = decode_map(&bytes).expect("decode");
         assert_eq!(vocabulary, 42);
+        assert_eq!(back.camera, map.camera, "the lens model too");
         assert_eq!(back.keyframes.len(), 3);
         assert_eq!(back.points, map.points);
         assert_eq!(back.keyframes[2].features, map.keyframes[2].features);
