@@ -31,11 +31,13 @@ use std::path::{Path, PathBuf};
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
 
 /// Keyframes of a whole sequence from the real tracker with default options, correcting
-/// for a rolling-shutter readout of `readout_s` (0: none).
+/// for a rolling-shutter readout of `readout_s` (0: none), with `radial_k` added to the
+/// calibration's k1 (what `egoslam run --calibrate-radial` applies).
 fn keyframes(
     path: &Path,
     readout_s: f64,
     centred: bool,
+    radial_k: f64,
 ) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
     let layout = egoslam_sources::detect_layout(path)?;
     let calib = egoslam_sources::load_calibration(&layout, None)?;
@@ -63,7 +65,11 @@ fn keyframes(
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
         let cam = match camera {
             Some(c) => c,
-            None => *camera.insert(calib.camera_for(w, h)?),
+            None => {
+                let mut c = calib.camera_for(w, h)?;
+                c.distortion[0] += radial_k;
+                *camera.insert(c)
+            }
         };
         let t = tracker.get_or_insert_with(|| {
             let options = TrackerOptions {
@@ -146,6 +152,7 @@ fn main() -> Result<()> {
     let mut start_from: Option<PathBuf> = None;
     let mut turn_prior: Option<f64> = None;
     let mut extrapolated = false;
+    let mut radial_k = 0.0;
     while let Some(a) = args.next() {
         match a.as_str() {
             "--window" => size = args.next().ok_or("--window N")?.parse()?,
@@ -153,6 +160,7 @@ fn main() -> Result<()> {
             "--verbose" => verbose = true,
             "--ba-from" => start_from = Some(args.next().ok_or("--ba-from POSES.tum")?.into()),
             "--extrapolated" => extrapolated = true,
+            "--radial" => radial_k = args.next().ok_or("--radial K")?.parse()?,
             "--turn-prior" => turn_prior = Some(args.next().ok_or("--turn-prior RAD_S")?.parse()?),
             "--rolling-shutter-ms" => {
                 readout_ms = args.next().ok_or("--rolling-shutter-ms MS")?.parse()?
@@ -161,14 +169,14 @@ fn main() -> Result<()> {
         }
     }
     let path =
-        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS [--extrapolated] [--turn-prior RAD_S]] [--ba-from POSES.tum]")?;
+        path.ok_or("usage: window_accuracy DATASET [--window N] [--ba-from-truth] [--verbose] [--rolling-shutter-ms MS [--extrapolated] [--turn-prior RAD_S]] [--ba-from POSES.tum] [--radial K]")?;
     opencv::core::set_num_threads(1)?;
     let truth = egoslam_sources::load_ground_truth(&path)?.poses;
     let start_poses = match &start_from {
         Some(file) => Some(egoslam_sources::ground_truth::read_tum_file(file)?),
         None => None,
     };
-    let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0, !extrapolated)?;
+    let (camera, keyframes) = keyframes(&path, readout_ms / 1000.0, !extrapolated, radial_k)?;
     let mut options = WindowSolverOptions::default();
     if let Some(prior) = turn_prior {
         options.bundle_adjustment.readout_s = readout_ms / 1000.0;
