@@ -124,13 +124,18 @@ pub fn first_keyframes(
     Ok(keyframes)
 }
 
-/// The focal estimate of a recorded input's first windows (module doc), logged.
-pub fn estimate_from_source(
+/// What both estimates are made from: the first keyframes of `source` (tracked with
+/// `camera`) and the windows and solver the run will use.
+fn first_windows_input(
     source: &mut dyn FrameSource,
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
     readout_s: f64,
-) -> anyhow::Result<FocalEstimate> {
+) -> anyhow::Result<(
+    Vec<KeyframeObservations>,
+    FocalCalibrationOptions,
+    WindowSolverOptions,
+)> {
     let keyframes = first_keyframes(source, camera, pipeline, readout_s)?;
     let options = FocalCalibrationOptions {
         window: usize::from(pipeline.window),
@@ -139,6 +144,17 @@ pub fn estimate_from_source(
     };
     let mut solver = WindowSolverOptions::default();
     solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
+    Ok((keyframes, options, solver))
+}
+
+/// The focal estimate of a recorded input's first windows (module doc), logged.
+pub fn estimate_from_source(
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+    pipeline: &PipelineArgs,
+    readout_s: f64,
+) -> anyhow::Result<FocalEstimate> {
+    let (keyframes, options, solver) = first_windows_input(source, camera, pipeline, readout_s)?;
     let estimate = estimate_focal_scale(&camera, &keyframes, &options, &solver)
         .with_context(|| format!("{} keyframes", keyframes.len()))?;
     tracing::info!(
@@ -158,14 +174,7 @@ pub fn radial_from_source(
     pipeline: &PipelineArgs,
     readout_s: f64,
 ) -> anyhow::Result<RadialEstimate> {
-    let keyframes = first_keyframes(source, camera, pipeline, readout_s)?;
-    let options = FocalCalibrationOptions {
-        window: usize::from(pipeline.window),
-        overlap: pipeline.overlap,
-        ..FocalCalibrationOptions::default()
-    };
-    let mut solver = WindowSolverOptions::default();
-    solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
+    let (keyframes, options, solver) = first_windows_input(source, camera, pipeline, readout_s)?;
     let estimate = estimate_radial_term(&camera, &keyframes, &options, &solver)
         .with_context(|| format!("{} keyframes", keyframes.len()))?;
     tracing::info!(
