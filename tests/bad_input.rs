@@ -53,12 +53,17 @@ fn frame_file(dir: &Path, n: usize) -> std::path::PathBuf {
 
 /// Runs `egoslam run` on `input`, which must succeed; its stderr and report.json.
 fn run_ok(input: &Path) -> (String, serde_json::Value) {
+    run_ok_with(input, &[])
+}
+
+fn run_ok_with(input: &Path, extra: &[&str]) -> (String, serde_json::Value) {
     let out = tempfile::tempdir().expect("tempdir");
     let o = egoslam()
         .args(["run", "--input"])
         .arg(input)
         .arg("--out")
         .arg(out.path())
+        .args(extra)
         .output()
         .expect("runs");
     let err = String::from_utf8_lossy(&o.stderr).into_owned();
@@ -116,15 +121,15 @@ fn truncated_image_mid_stream_is_skipped_named_and_counted() {
         .to_string_lossy()
         .into_owned();
     assert!(
-        err.contains(&name) && err.contains("corrupt frame skipped"),
+        err.contains(&name) && err.contains("frame skipped"),
         "{err}"
     );
-    assert_eq!(report["corrupt_frames"], 1);
+    assert_eq!(report["skipped_frames"]["decode"], 1);
     assert_eq!(report["frames"], 39);
     assert_eq!(report["posed_frames"], 39);
     // The bad frame had ended the readout estimation there (19 pairs, too few: a global
     // shutter).
-    assert_readout_pairs_at_least(&report, 35);
+    assert_readout_pairs_at_least(&report, 30);
 }
 
 #[test]
@@ -186,10 +191,10 @@ fn a_frame_of_another_size_is_skipped_and_counted() {
     imgcodecs::imwrite(path.to_str().expect("utf-8"), &small, &Vector::new()).expect("write");
     let (err, report) = run_ok(dir.path());
     assert!(err.contains("320x240") && err.contains("skipped"), "{err}");
-    assert_eq!(report["wrong_size_frames"], 1);
+    assert_eq!(report["skipped_frames"]["size"], 1);
     assert_eq!(report["posed_frames"], 39);
     // Left out of the readout estimation too, which had stopped there (14 pairs).
-    assert_readout_pairs_at_least(&report, 35);
+    assert_readout_pairs_at_least(&report, 30);
 }
 
 #[test]
@@ -229,4 +234,163 @@ fn calibrate_readout_refuses_a_missing_input() {
         err.contains("/nonexistent/sequence") && err.contains("No such file"),
         "{err}"
     );
+}
+
+/// The keyframe ATE (m) of a run's report.
+fn keyframe_ate(report: &serde_json::Value) -> f64 {
+    report["accuracy"]["keyframes"]["ate_rmse_m"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no keyframe ATE in {report}"))
+}
+
+#[test]
+fn every_kind_of_bad_frame_mid_sequence_is_skipped_and_counted_by_reason() {
+    let clean = tempfile::tempdir().expect("tempdir");
+    tum_copy(clean.path(), 120);
+    std::fs::copy(
+        tum_fixture().join("groundtruth.txt"),
+        clean.path().join("groundtruth.txt"),
+    )
+    .expect("copy ground truth");
+    // The clean run's estimated readout for both: the clip's map moves by up to 2x between
+    // neighbouring readouts (1.65, 2.89, 1.52, 1.35 cm at 19-22 ms with these frames
+    // skipped), which would hide what the skipping itself does.
+    let readout = ["--rolling-shutter-ms", "21"];
+    let (_, clean_report) = run_ok_with(clean.path(), &readout);
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 120);
+    std::fs::copy(
+        tum_fixture().join("groundtruth.txt"),
+        dir.path().join("groundtruth.txt"),
+    )
+    .expect("copy ground truth");
+    // Zero bytes, truncated, a folder, and a missing file, each in place of a frame.
+    std::fs::write(frame_file(dir.path(), 20), b"").expect("empty");
+    let truncated = frame_file(dir.path(), 40);
+    let bytes = std::fs::read(&truncated).expect("read");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).expect("truncate");
+    let folder = frame_file(dir.path(), 60);
+    std::fs::remove_file(&folder).expect("rm");
+    std::fs::create_dir(&folder).expect("mkdir in its place");
+    std::fs::remove_file(frame_file(dir.path(), 80)).expect("rm");
+    // Timestamps: a duplicate, one going back, and a non-finite one (extra lines, each
+    // naming a good image).
+    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("rgb.txt");
+    let mut lines: Vec<String> = index.lines().map(str::to_string).collect();
+    let file_of = |l: &str| l.split_whitespace().nth(1).expect("file").to_string();
+    let stamp_of = |l: &str| l.split_whitespace().next().expect("stamp").to_string();
+    let duplicate = format!("{} {}", stamp_of(&lines[90]), file_of(&lines[91]));
+    let back = format!("{} {}", stamp_of(&lines[50]), file_of(&lines[101]));
+    let infinite = format!("inf {}", file_of(&lines[111]));
+    lines.insert(112, infinite);
+    lines.insert(102, back);
+    lines.insert(91, duplicate);
+    std::fs::write(dir.path().join("rgb.txt"), lines.join("\n") + "\n").expect("write");
+
+    let (err, report) = run_ok_with(dir.path(), &readout);
+    let skipped = &report["skipped_frames"];
+    assert_eq!(skipped["decode"], 2, "{skipped}");
+    assert_eq!(skipped["unreadable"], 1, "{skipped}");
+    assert_eq!(skipped["missing"], 1, "{skipped}");
+    assert_eq!(skipped["timestamp"], 3, "{skipped}");
+    assert!(
+        err.contains("duplicate timestamp") && err.contains("not finite"),
+        "{err}"
+    );
+    assert_eq!(report["frames"], 116);
+    assert_eq!(report["posed_frames"], 116);
+    let (ate, clean_ate) = (keyframe_ate(&report), keyframe_ate(&clean_report));
+    assert!(
+        ate <= 1.25 * clean_ate,
+        "{ate} m against {clean_ate} m clean"
+    );
+}
+
+#[test]
+fn a_non_finite_timestamp_in_a_real_time_replay_is_skipped() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 40);
+    let index = std::fs::read_to_string(dir.path().join("rgb.txt")).expect("rgb.txt");
+    let lines: Vec<String> = index
+        .lines()
+        .enumerate()
+        .map(|(i, l)| match i {
+            10 => l.replacen(l.split_whitespace().next().expect("stamp"), "inf", 1),
+            11 => l.replacen(l.split_whitespace().next().expect("stamp"), "nan", 1),
+            _ => l.to_string(),
+        })
+        .collect();
+    std::fs::write(dir.path().join("rgb.txt"), lines.join("\n") + "\n").expect("write");
+    let (ok, err) = run(dir.path(), &["--realtime"]);
+    assert!(ok, "{err}");
+    assert!(err.contains("not finite"), "{err}");
+}
+
+#[test]
+fn options_out_of_range_exit_with_2_naming_the_option_before_any_work() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 3);
+    for (args, name) in [
+        (&["--tracks", "1000000000"][..], "--tracks"),
+        (&["--lk-window", "2"], "--lk-window"),
+        (&["--keyframe-flow-px", "NaN"], "--keyframe-flow-px"),
+    ] {
+        let out = tempfile::tempdir().expect("tempdir");
+        let o = egoslam()
+            .args(["run", "--input"])
+            .arg(dir.path())
+            .arg("--out")
+            .arg(out.path())
+            .args(args)
+            .output()
+            .expect("runs");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(name) && !err.contains("panicked"), "{err}");
+    }
+    let config = dir.path().join("bad.toml");
+    std::fs::write(&config, "[frontend]\nlk_window = 2\n").expect("write");
+    let o = egoslam()
+        .args(["run", "--config"])
+        .arg(&config)
+        .arg("--input")
+        .arg(dir.path())
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("frontend.lk_window"), "{err}");
+}
+
+#[test]
+fn a_non_finite_ground_truth_pose_is_left_out_by_eval() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let gt = std::fs::read_to_string(tum_fixture().join("groundtruth.txt")).expect("gt");
+    let mut lines: Vec<String> = gt.lines().map(str::to_string).collect();
+    let row = lines
+        .iter()
+        .position(|l| !l.starts_with('#'))
+        .expect("a pose")
+        + 5;
+    let mut fields: Vec<String> = lines[row].split_whitespace().map(str::to_string).collect();
+    fields[4] = "nan".into();
+    lines[row] = fields.join(" ");
+    let bad = dir.path().join("groundtruth.txt");
+    std::fs::write(&bad, lines.join("\n") + "\n").expect("write");
+    let started = std::time::Instant::now();
+    let o = egoslam()
+        .arg("eval")
+        .arg(tum_fixture().join("groundtruth.txt"))
+        .arg(&bad)
+        .output()
+        .expect("eval");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        started.elapsed().as_secs() < 30,
+        "eval took {:?}",
+        started.elapsed()
+    );
+    assert!(err.contains("not finite"), "{err}");
 }

@@ -32,6 +32,7 @@ fn keyframe_stream_with(
     // the dataset's own calibration in egoslam format.
     let layout = egoslam_sources::detect_layout(input).expect("layout");
     let calib = egoslam_sources::load_calibration(&layout, None).expect("calibration");
+    use egoslam_sources::FrameSource;
     let mut src = egoslam_sources::open_source(input, 30.0).expect("source");
     let frames = src.len_hint().expect("known length");
     let first = src.next_frame().expect("frame").expect("decodes");

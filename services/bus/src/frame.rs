@@ -118,12 +118,31 @@ impl ReceivedFrame {
     pub fn pixels(&self) -> &[u8] {
         self.sample.payload()
     }
+
+    /// Why the header does not describe the payload, if it does not: a size that is not the
+    /// payload's, or a non-finite timestamp. An end-of-stream marker carries no pixels.
+    fn problem(&self) -> Option<String> {
+        let meta = self.meta();
+        if meta.is_end_of_stream() {
+            return None;
+        }
+        let pixels = self.pixels().len();
+        let expected = u64::from(meta.width) * u64::from(meta.height);
+        if meta.width == 0 || meta.height == 0 || expected != pixels as u64 {
+            return Some(format!("{pixels} bytes for {}x{}", meta.width, meta.height));
+        }
+        if !meta.timestamp.is_finite() {
+            return Some(format!("timestamp {}", meta.timestamp));
+        }
+        None
+    }
 }
 
 /// Receives frames.
 pub struct FrameSubscriber<'a> {
     bus: &'a Bus,
     inbox: Inbox<FrameMeta>,
+    dropped: std::cell::Cell<u64>,
 }
 
 impl<'a> FrameSubscriber<'a> {
@@ -132,15 +151,35 @@ impl<'a> FrameSubscriber<'a> {
         Ok(Self {
             bus,
             inbox: Inbox::open(bus, &FRAMES)?,
+            dropped: Default::default(),
         })
     }
 
     /// Waits for the next frame. `Ok(None)` means the process was asked to stop.
     /// Fails with [`ReceiveError::ProducerGone`] if the producer dies mid-stream.
+    /// A frame whose header does not describe its pixels is dropped and counted
+    /// ([`Self::dropped`]).
     pub fn receive(&self) -> Result<Option<ReceivedFrame>, ReceiveError> {
-        Ok(self
-            .inbox
-            .next_sample(self.bus, &FRAMES)?
-            .map(|sample| ReceivedFrame { sample }))
+        loop {
+            let Some(sample) = self.inbox.next_sample(self.bus, &FRAMES)? else {
+                return Ok(None);
+            };
+            let frame = ReceivedFrame { sample };
+            match frame.problem() {
+                None => return Ok(Some(frame)),
+                Some(problem) => {
+                    self.dropped.set(self.dropped.get() + 1);
+                    tracing::warn!(
+                        frame_id = frame.meta().frame_id,
+                        "frame message dropped: {problem}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Frame messages dropped so far because their header did not match their pixels.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.get()
     }
 }

@@ -19,11 +19,13 @@ mod error;
 mod frame;
 mod message;
 mod port;
+mod stop;
 
 pub use channel::{Channel, Delivery, FRAMES, KEYFRAMES, WINDOWS};
 pub use error::{BusOpenError, ReceiveError, SendError};
 pub use frame::{FrameMeta, FramePublisher, FrameSubscriber, ReceivedFrame};
 pub use message::{MessagePublisher, MessageSubscriber};
+pub use stop::{stop_requested, watch_stop_requests, STOP_DEADLINE_EXIT, STOP_GRACE};
 
 use iceoryx2::prelude::*;
 use std::time::Duration;
@@ -73,6 +75,10 @@ impl Bus {
         // removing dead nodes' resources first frees their slots and stops producers from
         // delivering into a buffer nobody will read.
         let _ = node.try_cleanup_dead_nodes();
+        // iceoryx2 installs its signal handler on the first wait, replacing any handler set
+        // before (it does not chain): wait once so that the stop watch chains it.
+        let _ = node.wait(Duration::ZERO);
+        watch_stop_requests();
         Ok(Self { node, options })
     }
 

@@ -50,6 +50,16 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         self.sequence += 1;
         Ok(())
     }
+
+    /// Sends a payload that is already encoded (a recorded stream replayed by a tool) with
+    /// the next sequence number. The bytes are not checked here: the consumer drops what it
+    /// cannot decode.
+    pub fn send_encoded(&mut self, payload: &[u8]) -> Result<(), SendError> {
+        self.outbox
+            .send(self.bus, &self.channel, self.sequence, payload)?;
+        self.sequence += 1;
+        Ok(())
+    }
 }
 
 impl<M> MessagePublisher<'_, M> {
@@ -73,6 +83,7 @@ pub struct MessageSubscriber<'a, M> {
     channel: Channel,
     inbox: Inbox<u64>,
     expected: Option<u64>,
+    dropped: u64,
     _message: PhantomData<M>,
 }
 
@@ -84,6 +95,7 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
             channel,
             inbox: Inbox::open(bus, &channel)?,
             expected: None,
+            dropped: 0,
             _message: PhantomData,
         })
     }
@@ -93,23 +105,54 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
         Ok(self.receive_numbered()?.map(|(_, m)| m))
     }
 
-    /// As [`Self::receive`], with the producer's sequence number of the message.
+    /// As [`Self::receive`], with the producer's sequence number of the message. A message
+    /// that is not valid (see [`Self::dropped`]) is skipped.
     pub fn receive_numbered(&mut self) -> Result<Option<(u64, M)>, ReceiveError> {
-        let Some(sample) = self.inbox.next_sample(self.bus, &self.channel)? else {
-            return Ok(None);
-        };
-        self.decode(sample).map(Some)
+        loop {
+            let Some(sample) = self.inbox.next_sample(self.bus, &self.channel)? else {
+                return Ok(None);
+            };
+            if let Some(message) = self.validated(sample) {
+                return Ok(Some(message));
+            }
+        }
     }
 
-    /// The next message with its sequence number if one has arrived; `Ok(None)` when none
-    /// has. Never waits: a consumer busy with something else (the merger waiting for its
-    /// background refinement) keeps taking messages, so the producer's lossless `send`
+    /// The next valid message with its sequence number if one has arrived; `Ok(None)` when
+    /// none has. Never waits: a consumer busy with something else (the merger waiting for
+    /// its background refinement) keeps taking messages, so the producer's lossless `send`
     /// does not run into its delivery timeout.
     pub fn try_receive_numbered(&mut self) -> Result<Option<(u64, M)>, ReceiveError> {
-        let Some(sample) = self.inbox.try_next_sample(self.bus, &self.channel)? else {
-            return Ok(None);
-        };
-        self.decode(sample).map(Some)
+        loop {
+            let Some(sample) = self.inbox.try_next_sample(self.bus, &self.channel)? else {
+                return Ok(None);
+            };
+            if let Some(message) = self.validated(sample) {
+                return Ok(Some(message));
+            }
+        }
+    }
+
+    /// Messages dropped so far: undecodable payloads and sequence numbers going back. One
+    /// bad message (a foreign or broken producer, a torn write) must not stop the pipeline;
+    /// the lossless stream's own messages are always valid, and a real loss shows as a
+    /// forward gap, which the consumer fills from the producer's journal.
+    pub fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
+    fn validated(
+        &mut self,
+        sample: iceoryx2::sample::Sample<iceoryx2::service::ipc::Service, [u8], u64>,
+    ) -> Option<(u64, M)> {
+        match self.decode(sample) {
+            Ok(message) => Some(message),
+            Err(e) => {
+                self.dropped += 1;
+                tracing::warn!(error = %e, dropped = self.dropped, "bus message dropped");
+                None
+            }
+        }
     }
 
     fn decode(
@@ -131,12 +174,11 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
                 });
             }
         }
+        let message = M::decode(sample.payload()).map_err(|e| ReceiveError::Decode {
+            service: name,
+            reason: e.to_string(),
+        })?;
         self.expected = Some(sequence + 1);
-        M::decode(sample.payload())
-            .map(|m| (sequence, m))
-            .map_err(|e| ReceiveError::Decode {
-                service: name,
-                reason: e.to_string(),
-            })
+        Ok((sequence, message))
     }
 }

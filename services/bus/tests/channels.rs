@@ -168,3 +168,64 @@ fn live_frames_for_a_slow_consumer_are_dropped_and_counted_never_lost_silently()
     );
     assert!(ids.windows(2).all(|w| w[0] < w[1]));
 }
+
+#[test]
+fn invalid_messages_are_dropped_and_counted_and_the_stream_goes_on() {
+    let opts = options("garbage");
+    let consumer_opts = opts.clone();
+    let consumer = std::thread::spawn(move || {
+        let bus = Bus::open("consumer", consumer_opts).expect("bus");
+        let mut sub = MessageSubscriber::<Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
+        let mut got = Vec::new();
+        while got.len() < 3 {
+            let (sequence, k) = sub.receive_numbered().expect("receive").expect("message");
+            got.push((sequence, k.keyframe_id));
+        }
+        (got, sub.dropped())
+    });
+    let bus = Bus::open("producer", opts.clone()).expect("bus");
+    let mut publisher = MessagePublisher::<Keyframe>::create(&bus, KEYFRAMES).expect("publisher");
+    let keyframe = |id| Keyframe {
+        keyframe_id: id,
+        ..Default::default()
+    };
+    publisher.send(&keyframe(7)).expect("send");
+    // Not protobuf: a truncated length-delimited field.
+    publisher
+        .send_encoded(&[0x0a, 0xff, 0xff, 0x01])
+        .expect("send");
+    publisher.send(&keyframe(8)).expect("send");
+    publisher.send(&keyframe(9)).expect("send");
+    let (got, dropped) = consumer.join().expect("consumer thread");
+    assert_eq!(got, vec![(0, 7), (2, 8), (3, 9)]);
+    assert_eq!(dropped, 1);
+}
+
+#[test]
+fn a_frame_whose_header_does_not_match_its_pixels_is_dropped() {
+    let opts = options("badframe");
+    let consumer = consume_frames(opts.clone(), |f| assert_eq!(f.pixels().len(), 64 * 48));
+    let bus = Bus::open("producer", opts).expect("bus");
+    let mut publisher =
+        FramePublisher::create(&bus, 64 * 48, Delivery::Lossless).expect("publisher");
+    let meta = |id, width| FrameMeta {
+        frame_id: id,
+        timestamp: id as f64 / 30.0,
+        width,
+        height: 48,
+        ..Default::default()
+    };
+    publisher.send(meta(0, 64), &[1; 64 * 48]).expect("send");
+    // The header claims 80x48 over a 64x48 payload.
+    publisher
+        .send_in_place(64 * 48, |pixels| {
+            pixels.iter_mut().for_each(|p| {
+                p.write(0);
+            });
+            meta(1, 80)
+        })
+        .expect("send");
+    publisher.send(meta(2, 64), &[1; 64 * 48]).expect("send");
+    publisher.finish(2).expect("eos");
+    assert_eq!(consumer.join().expect("consumer thread"), vec![0, 2]);
+}

@@ -19,9 +19,8 @@ use egoslam_solver::focal_calibration::{
 };
 use egoslam_solver::view_graph::KeyframeObservations;
 use egoslam_solver::window_solver::WindowSolverOptions;
-use egoslam_sources::{FrameSource, SourceError};
+use egoslam_sources::FrameSource;
 use nalgebra::Point2;
-use opencv::prelude::*;
 
 /// Frames tracked for the estimate (300: 10 s at 30 fps, 30 s of KITTI's 10 fps; enough
 /// keyframes for the 3-8 windows pooled on every sequence here; the whole pre-pass,
@@ -104,15 +103,8 @@ pub fn first_keyframes(
     let mut keyframes = Vec::new();
     let mut pending: Option<(KeyframeTracks, f64)> = None;
     for frame in std::iter::from_fn(|| source.next_frame()).take(FOCAL_FRAMES) {
-        let frame = match frame {
-            Ok(frame) => frame,
-            Err(SourceError::BadImage { .. }) => continue,
-            Err(e) => return Err(e).context("reading frames for the focal calibration"),
-        };
-        let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-        if (w, h) != (camera.width, camera.height) {
-            continue;
-        }
+        // Bad frames were skipped by the source (FrameStream), as the run skips them.
+        let frame = frame.context("reading frames for the focal calibration")?;
         let outcome = tracker.process_timed(frame.index, frame.timestamp, &frame.image)?;
         if let Some((mut k, timestamp)) = pending.take() {
             tracker.centre_keyframe(&mut k);

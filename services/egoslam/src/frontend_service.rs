@@ -408,6 +408,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         "frontend finished ({:.1} frames/s)",
         stats.frames as f64 / secs
     );
+    stats.count("dropped_messages", frames.dropped());
     stats.write(&args.out)?;
     // Stay until the solver has read everything (see MessagePublisher::finish).
     if !keyframes.finish() {

@@ -3,7 +3,8 @@
 use crate::cli::{PipelineArgs, RunArgs};
 use crate::output::{camera_yaml, write_atomically};
 use crate::stats::ServiceStats;
-use anyhow::{bail, Context};
+use crate::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
+use anyhow::Context;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::ground_truth::GroundTruth;
 use egoslam_sources::{
@@ -12,8 +13,7 @@ use egoslam_sources::{
 use opencv::prelude::*;
 use serde_json::json;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// The embedded default sequence: a 120-frame TUM fr1_rpy clip shipped in the repository.
 fn default_input() -> PathBuf {
@@ -123,129 +123,62 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
         .find_map(|d| load_ground_truth(d).ok())
 }
 
-/// Services the supervisor restarts when they die by a signal: the merger resumes exactly
-/// (checkpoint + journal); a restarted frontend continues its ids and a restarted solver
-/// starts a new stream, which the merger continues as a new map segment (the keyframes in
-/// flight are lost: docs/durability.md). The replay (camera) is not restarted.
-const RESTARTABLE: &[&str] = &["merger", "solver", "frontend"];
-
-/// Restarts allowed per service within [`RESTART_INTERVAL`] (as systemd's StartLimitBurst
-/// and StartLimitIntervalSec): a service that keeps dying has a real problem, but one killed
-/// now and then on a long run is restarted every time.
-const RESTART_BURST: usize = 3;
-const RESTART_INTERVAL: Duration = Duration::from_secs(60);
-
-struct Supervised {
-    name: &'static str,
-    args: Vec<String>,
-    child: Child,
-    restarts: u32,
-    /// When the restarts within the last [`RESTART_INTERVAL`] happened.
-    recent_restarts: std::collections::VecDeque<Instant>,
-}
-
-impl Supervised {
-    /// Whether one more restart stays within the burst limit (forgets older restarts).
-    fn may_restart(&mut self, now: Instant) -> bool {
-        while self
-            .recent_restarts
-            .front()
-            .is_some_and(|t| now.duration_since(*t) > RESTART_INTERVAL)
-        {
-            self.recent_restarts.pop_front();
+/// Fails, naming the option, when a zenoh TCP or TLS listen endpoint's address is taken
+/// (another run's, or another program's): found before any work rather than when the merger
+/// opens its session after the pre-passes.
+fn check_listen_endpoints(endpoints: &[String]) -> anyhow::Result<()> {
+    for endpoint in endpoints {
+        let Some(address) = endpoint
+            .strip_prefix("tcp/")
+            .or_else(|| endpoint.strip_prefix("tls/"))
+        else {
+            continue;
+        };
+        // Zenoh endpoints may carry `#` metadata or `?` configuration after the address.
+        let address = address.split(['#', '?']).next().unwrap_or(address);
+        let Ok(socket) = address.parse::<std::net::SocketAddr>() else {
+            continue; // a host name: zenoh resolves it and reports what fails
+        };
+        if socket.port() == 0 {
+            continue;
         }
-        self.recent_restarts.len() < RESTART_BURST
+        if let Err(e) = std::net::TcpListener::bind(socket) {
+            anyhow::bail!(
+                "--zenoh-listen {endpoint}: cannot listen there ({e}); another egoslam run or program has it: give another port, tcp/127.0.0.1:0 for a free one, or none"
+            );
+        }
     }
+    Ok(())
 }
 
-fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
-    use std::os::unix::process::CommandExt;
-    let exe = std::env::current_exe().context("locating the egoslam executable")?;
-    let mut command = Command::new(exe);
-    command.arg(name).args(args);
-    // A launcher that is killed (SIGKILL, or SIGTERM, which it does not catch) must not
-    // leave its services running on: each gets SIGTERM when the launcher dies, and stops
-    // as on any SIGTERM. Found when two killed runs kept writing into one output folder.
-    // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
-    unsafe {
-        command.pre_exec(|| {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
-                return Err(std::io::Error::last_os_error());
+/// Writes the iceoryx2 configuration of this run (egoslam's, with its root under
+/// `OUT/state/bus/`) and returns its path.
+fn per_run_bus_config(out: &Path) -> anyhow::Result<PathBuf> {
+    let shared = egoslam_bus::config_path();
+    let text = std::fs::read_to_string(&shared)
+        .with_context(|| format!("reading the iceoryx2 configuration {}", shared.display()))?;
+    let dir = std::path::absolute(out.join("state").join("bus"))
+        .with_context(|| format!("locating {}", out.display()))?;
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let root = format!("root-path = {:?}", format!("{}/", dir.display()));
+    let mut replaced = false;
+    let lines: Vec<String> = text
+        .lines()
+        .map(|l| {
+            if l.trim_start().starts_with("root-path") && !replaced {
+                replaced = true;
+                root.clone()
+            } else {
+                l.to_string()
             }
-            Ok(())
-        });
+        })
+        .collect();
+    if !replaced {
+        anyhow::bail!("{}: no root-path to replace", shared.display());
     }
-    let child = command
-        .spawn()
-        .with_context(|| format!("starting the {name} service"))?;
-    Ok(Supervised {
-        name,
-        args: args.to_vec(),
-        child,
-        restarts: 0,
-        recent_restarts: Default::default(),
-    })
-}
-
-fn stop_all(children: &mut [Supervised]) {
-    for c in children.iter_mut() {
-        // SIGTERM first: services finish their current item and release shared memory.
-        // Only to those still running: a service that has exited was reaped by `try_wait`,
-        // its process id may already be another process's (and `kill(1)` printed "No such
-        // process" for it under the service's own error).
-        if matches!(c.child.try_wait(), Ok(None)) {
-            if let Ok(pid) = libc::pid_t::try_from(c.child.id()) {
-                // SAFETY: kill(2) touches no memory; `pid` is our unreaped child.
-                unsafe { libc::kill(pid, libc::SIGTERM) };
-            }
-        }
-    }
-    let deadline = Instant::now() + Duration::from_secs(3);
-    for c in children.iter_mut() {
-        while Instant::now() < deadline && matches!(c.child.try_wait(), Ok(None)) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = c.child.kill();
-        let _ = c.child.wait();
-    }
-}
-
-/// Waits for every service. A restartable service killed by a signal (SIGKILL, a crash) is
-/// started again; any other failure stops the others and is reported. Returns the restarts
-/// per service.
-fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Vec<(&'static str, u32)>> {
-    use std::os::unix::process::ExitStatusExt;
-    loop {
-        let mut running = 0;
-        for i in 0..children.len() {
-            match children[i].child.try_wait()? {
-                Some(status)
-                    if status.signal().is_some()
-                        && RESTARTABLE.contains(&children[i].name)
-                        && children[i].may_restart(Instant::now()) =>
-                {
-                    let c = &mut children[i];
-                    tracing::warn!(service = c.name, %status, "service died; restarting it");
-                    let again = spawn(c.name, &c.args)?;
-                    c.child = again.child;
-                    c.restarts += 1;
-                    c.recent_restarts.push_back(Instant::now());
-                    running += 1;
-                }
-                Some(status) if !status.success() => {
-                    let name = children[i].name;
-                    stop_all(&mut children);
-                    bail!("the {name} service failed ({status}); the pipeline was stopped");
-                }
-                Some(_) => {}
-                None => running += 1,
-            }
-        }
-        if running == 0 {
-            return Ok(children.iter().map(|c| (c.name, c.restarts)).collect());
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let path = dir.join("iceoryx2.toml");
+    write_atomically(&path, (lines.join("\n") + "\n").as_bytes())?;
+    Ok(path)
 }
 
 /// Peak resident memory per process and their sum (an upper bound of the pipeline's peak:
@@ -269,18 +202,19 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let layout = detect_layout(&input)?;
     // Open the sequence and decode the first frame now: a bad path, an empty sequence, an
     // unreadable image or a wrong calibration size fails here, before any process starts.
-    let mut source = open_source(&input, args.fps)?;
+    // Quiet: the replay reads these frames again and warns about each bad one then.
+    let mut source = open_source(&input, args.fps)?.quiet();
     let total_frames = source.len_hint();
     let first = source
         .next_frame()
         .with_context(|| format!("{}: no frames", input.display()))??;
     let calibration = load_calibration(&layout, args.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
+    check_listen_endpoints(&args.egress.zenoh_listen)?;
     // An output folder that cannot be made fails before the readout pre-pass, not after.
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let readout_report =
-        resolve_readout(&mut args, &input, &layout, first, source.as_mut(), camera);
+    let readout_report = resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
     drop(source);
     let (camera, focal_report) =
         crate::self_calibration::resolve_focal(&args, &input, &layout, camera);
@@ -332,6 +266,12 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         replay_args.push("--realtime".into());
     }
     replay_args.extend(common.iter().cloned());
+    // The services' iceoryx2 files under this run's output, not the shared /tmp/iceoryx2:
+    // runs never see each other's services or clean up each other's nodes.
+    let bus_config = per_run_bus_config(out)?;
+    std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
+    // From here on a Ctrl-C stops the services in order and keeps what they processed.
+    catch_stop_signals()?;
     // Consumers first; every producer also waits for its consumer to connect.
     let mut children = Vec::new();
     let mut merger_args = common.clone();
@@ -362,11 +302,22 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             return Err(e);
         }
     }
-    let restarts = supervise(children)?;
+    let Supervision {
+        restarts,
+        interrupted_by,
+    } = supervise(children)?;
+    let interrupted = interrupted_by.is_some();
 
+    // A service stopped before it wrote its statistics left none: counted as nothing.
     let stats: Vec<ServiceStats> = ["replay", "frontend", "solver", "merger"]
         .iter()
-        .map(|s| ServiceStats::read(out, s))
+        .map(|s| match ServiceStats::read(out, s) {
+            Err(e) if interrupted => {
+                tracing::warn!("{e:#}: the service was stopped before it wrote them");
+                Ok(ServiceStats::new(s))
+            }
+            read => read,
+        })
         .collect::<anyhow::Result<_>>()?;
     let (replay, frontend, solver, merger) = (&stats[0], &stats[1], &stats[2], &stats[3]);
     let mut timings = serde_json::Map::new();
@@ -384,16 +335,33 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     };
     let mut accuracy = serde_json::Value::Null;
     if let Some(gt) = &ground_truth {
-        accuracy = crate::eval::accuracy(out, layout.root(), &camera, gt)?;
+        accuracy = match crate::eval::accuracy(out, layout.root(), &camera, gt) {
+            Ok(a) => a,
+            Err(e) if interrupted => json!({ "error": format!("{e:#}") }),
+            Err(e) => return Err(e),
+        };
     }
     let report = json!({
+        // Stopped early by this signal (SIGINT 2, SIGTERM 15): the results cover the frames
+        // processed until then.
+        "interrupted_by_signal": interrupted_by,
         "input": input.display().to_string(),
         "layout": format!("{layout:?}"),
         "calibration": calibration.origin.display().to_string(),
         "frames": replay.frames,
         "dropped_frames": counter(replay, "dropped_frames"),
-        "corrupt_frames": counter(replay, "corrupt_frames"),
-        "wrong_size_frames": counter(replay, "wrong_size_frames"),
+        // Frames skipped by reason (missing, unreadable, decode, timestamp, size).
+        "skipped_frames": replay
+            .counters
+            .iter()
+            .filter_map(|(k, n)| Some((k.strip_prefix(crate::replay::SKIPPED_PREFIX)?.to_string(), json!(n))))
+            .collect::<serde_json::Map<_, _>>(),
+        // Bus messages dropped as invalid (undecodable, sequence going back, a frame whose
+        // header does not match its pixels), per receiving service.
+        "dropped_messages": stats
+            .iter()
+            .map(|s| (s.service.clone(), json!(counter(s, "dropped_messages"))))
+            .collect::<serde_json::Map<_, _>>(),
         "posed_frames": counter(merger, "posed_frames"),
         "keyframes": frontend.keyframes,
         "windows": solver.windows,
@@ -437,33 +405,15 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         counter(merger, "loops_closed"),
         out.display()
     );
-    Ok(())
+    match interrupted_by {
+        Some(signal) => Err(Interrupted { signal }.into()),
+        None => Ok(()),
+    }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn restarts_are_limited_per_interval_not_per_run() {
-        let child = Command::new("true").spawn().expect("spawn true");
-        let mut s = Supervised {
-            name: "solver",
-            args: Vec::new(),
-            child,
-            restarts: 0,
-            recent_restarts: Default::default(),
-        };
-        let t0 = Instant::now();
-        for k in 0..RESTART_BURST {
-            assert!(s.may_restart(t0 + Duration::from_secs(k as u64)));
-            s.recent_restarts
-                .push_back(t0 + Duration::from_secs(k as u64));
-        }
-        assert!(!s.may_restart(t0 + Duration::from_secs(10)), "burst spent");
-        // A minute after the first restart, one more is allowed; a kill every 60 s never
-        // runs out.
-        assert!(s.may_restart(t0 + RESTART_INTERVAL + Duration::from_secs(1)));
-        let _ = s.child.wait();
-    }
+/// The run was stopped by a signal after writing its results (exit status 128 + signal).
+#[derive(Debug, thiserror::Error)]
+#[error("stopped by signal {signal}; the results cover the frames processed until then")]
+pub struct Interrupted {
+    pub signal: i32,
 }

@@ -21,6 +21,7 @@ mod log_compaction;
 mod map_file;
 mod map_state;
 mod merger_service;
+mod option_checks;
 mod output;
 mod readout;
 mod record_log;
@@ -30,6 +31,7 @@ mod self_calibration;
 mod solver_resume;
 mod solver_service;
 mod stats;
+mod supervisor;
 mod synth_command;
 mod systemd;
 mod window_journal;
@@ -52,9 +54,14 @@ fn main() -> std::process::ExitCode {
             }
             Err(e) => {
                 eprintln!("error: {e:#}");
-                return std::process::ExitCode::FAILURE;
+                return std::process::ExitCode::from(2);
             }
         }
+    }
+    // Usage errors exit with 2, as clap's own do.
+    if let Err(e) = option_checks::validate(&cli.command) {
+        eprintln!("error: {e}");
+        return std::process::ExitCode::from(2);
     }
     let result = match cli.command {
         cli::Command::Run(args) => launcher::run(args),
@@ -74,10 +81,16 @@ fn main() -> std::process::ExitCode {
     systemd::notify("STOPPING=1");
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
+        Err(e) => match e.downcast_ref::<launcher::Interrupted>() {
+            Some(stop) => {
+                eprintln!("{stop}");
+                std::process::ExitCode::from(u8::try_from(128 + stop.signal).unwrap_or(1))
+            }
+            None => {
+                eprintln!("error: {e:#}");
+                std::process::ExitCode::FAILURE
+            }
+        },
     }
 }
 

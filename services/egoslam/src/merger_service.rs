@@ -511,6 +511,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         }
         merger.apply(sequence, &w)?;
     }
+    merger.stats.count("dropped_messages", windows.dropped());
     merger.emit(&[], pb::ServiceState::Finished, true)?;
     if let Some(path) = &merger.args.map.map_out {
         let Some(camera) = &merger.camera else {

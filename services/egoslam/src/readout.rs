@@ -12,9 +12,7 @@ use egoslam_frontend::{
     ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
 use egoslam_geometry::PinholeRadtan;
-use egoslam_sources::{
-    detect_layout, load_calibration, open_source, Frame, FrameSource, Layout, SourceError,
-};
+use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, FrameSource, Layout};
 use opencv::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -178,11 +176,9 @@ impl<'de> serde::Deserialize<'de> for Readout {
 
 /// Tracks an input's first `pipeline.readout_frames` frames (`first`, already read, then
 /// the rest of `source`) with no readout correction and estimates the readout from them.
-/// A corrupt frame or one of another size is left out, as the run itself skips it (the
-/// tracker then links the frames either side; the fit uses their timestamps): one bad
-/// file among the first frames had ended the estimation there, and the run of a
-/// rolling-shutter camera then assumed a global shutter (the TUM clip with its second
-/// frame truncated: 0 frame pairs instead of 117). Any other read error ends it.
+/// The source skips bad frames as the run does (FrameStream; the tracker then links the
+/// frames either side and the fit uses their timestamps), so one bad file among the first
+/// frames does not end the estimation; a source that gives up ends it.
 pub fn estimate_from_source(
     first: Frame,
     source: &mut dyn FrameSource,
@@ -195,20 +191,11 @@ pub fn estimate_from_source(
     for frame in frames.take(pipeline.readout_frames as usize) {
         let frame = match frame {
             Ok(frame) => frame,
-            Err(e @ SourceError::BadImage { .. }) => {
-                tracing::debug!(%e, "readout estimation leaves out a frame it cannot read");
-                continue;
-            }
             Err(e) => {
-                tracing::warn!(%e, "readout estimation stops at a frame it cannot read");
+                tracing::warn!(%e, "readout estimation stops where the source gave up");
                 break;
             }
         };
-        let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-        if (w, h) != (camera.width, camera.height) {
-            tracing::debug!(source = %frame.source, "readout estimation leaves out a {w}x{h} frame");
-            continue;
-        }
         if let Err(e) = tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
             tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
             break;
@@ -294,7 +281,7 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: no frames", input.display()))??;
     let camera = load_calibration(&layout, args.calib.as_deref())?
         .camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
-    let e = estimate_from_source(first, source.as_mut(), camera, &args.pipeline)
+    let e = estimate_from_source(first, &mut source, camera, &args.pipeline)
         .with_context(|| format!("estimating the readout of {}", input.display()))?;
     println!(
         "readout {:.0} ms ({} frame pairs; rotation-only residual {:.3} px, {:.3} px at a global shutter, best at {:.0} ms{})",

@@ -12,7 +12,9 @@ use egoslam_relocalization::{
     Descriptor, OrbDescriber, QueryFeatures, Relocalizer, RelocalizerOptions, Vocabulary,
     VocabularyOptions,
 };
-use egoslam_sources::{detect_layout, load_calibration, load_ground_truth, open_source};
+use egoslam_sources::{
+    detect_layout, load_calibration, load_ground_truth, open_source, FrameSource,
+};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use serde_json::json;
@@ -256,22 +258,11 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
     let (mut frames, mut non_keyframes, mut non_keyframes_localized) = (0u64, 0u64, 0u64);
     let mut camera: Option<PinholeRadtan> = None;
     while let Some(frame) = source.next_frame() {
-        let frame = match frame {
-            Ok(f) => f,
-            Err(e) => {
-                tracing::warn!(error = %e, "frame skipped");
-                *failures.entry("unreadable frame".into()).or_default() += 1;
-                continue;
-            }
-        };
+        // Bad frames are skipped and counted by the source (below); an error here means it
+        // gave up.
+        let frame = frame?;
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
         let camera = match camera {
-            Some(c) if (c.width, c.height) != (w, h) => {
-                // As `run` does: the calibration is for the stream's first size.
-                tracing::warn!(source = %frame.source, "frame is {w}x{h}, the stream {}x{}: skipped", c.width, c.height);
-                *failures.entry("frame of another size".into()).or_default() += 1;
-                continue;
-            }
             Some(c) => c,
             None => *camera.insert(crate::focal::with_the_maps_focal(
                 &calibration.camera_for(w, h)?,
@@ -311,6 +302,11 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
         bail!("{}: no frames", args.input.display());
     }
     write_trajectory(&args.out, &localized)?;
+    for (reason, n) in source.skipped().iter() {
+        *failures
+            .entry(format!("frame skipped ({reason})"))
+            .or_default() += n;
+    }
     query_ms.sort_by(f64::total_cmp);
     let count: usize = localized.values().map(Vec::len).sum();
     let mut report = json!({

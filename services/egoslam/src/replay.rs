@@ -4,9 +4,13 @@ use crate::cli::ReplayArgs;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, Delivery, FrameMeta, FramePublisher};
-use egoslam_sources::{calibration::read_calibration_file, open_source, SourceError};
+use egoslam_sources::{calibration::read_calibration_file, open_source, FrameSource};
 use opencv::prelude::*;
 use std::time::{Duration, Instant};
+
+/// Prefix of the replay's counters of skipped frames, one per reason
+/// (`skipped_frames.decode`, ...), gathered under `skipped_frames` in report.json.
+pub const SKIPPED_PREFIX: &str = "skipped_frames.";
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("replay");
@@ -36,33 +40,24 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let mut last_progress = Instant::now();
     let mut last_id = 0;
     let mut size: Option<(u32, u32)> = None;
+    // SIGINT/SIGTERM: stop reading, end the stream where it is, so that the services
+    // behind finish what was sent and write their results.
+    let mut interrupted = false;
     while let Some(frame) = stats.time("decode", || source.next_frame()) {
-        // A corrupt or truncated frame after the first is skipped, named and counted: one
-        // bad file must not end a long recording (the first frame is checked by `run`).
-        let frame = match frame {
-            Ok(f) => f,
-            Err(e @ SourceError::BadImage { .. }) if size.is_some() => {
-                tracing::warn!(error = %e, "corrupt frame skipped");
-                stats.count("corrupt_frames", 1);
-                continue;
-            }
-            Err(e) => return Err(e.into()),
-        };
+        if egoslam_bus::stop_requested() {
+            interrupted = true;
+            break;
+        }
+        // Bad frames (missing, undecodable, another size, out-of-order timestamps) never
+        // reach here: the source skips, names and counts them (FrameStream).
+        let frame = frame?;
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-        match size {
-            None => {
-                if let Some(calib) = &camera {
-                    // Fails with the calibration file and both sizes named.
-                    calib.camera_for(w, h)?;
-                }
-                size = Some((w, h));
+        if size.is_none() {
+            if let Some(calib) = &camera {
+                // Fails with the calibration file and both sizes named.
+                calib.camera_for(w, h)?;
             }
-            Some((w0, h0)) if (w0, h0) != (w, h) => {
-                tracing::warn!(source = %frame.source, "frame is {w}x{h}, the stream {w0}x{h0}: skipped");
-                stats.count("wrong_size_frames", 1);
-                continue;
-            }
-            Some(_) => {}
+            size = Some((w, h));
         }
         let image = if frame.image.is_continuous() {
             frame.image
@@ -81,10 +76,14 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         };
         if args.realtime {
             let t0 = *first_t.get_or_insert(frame.timestamp);
-            let due = Duration::from_secs_f64((frame.timestamp - t0).max(0.0));
+            // Timestamps are finite and increasing (FrameStream); a gap too long for a
+            // Duration is not waited for.
+            let due = Duration::try_from_secs_f64((frame.timestamp - t0).max(0.0))
+                .unwrap_or(Duration::ZERO);
             if let Some(wait) = due.checked_sub(start.elapsed()) {
                 if !bus.idle(wait) {
-                    bail!("terminated by signal");
+                    interrupted = true;
+                    break;
                 }
             }
         }
@@ -95,7 +94,15 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             height: h,
             ..FrameMeta::default()
         };
-        stats.time("publish", || publisher.send(meta, pixels))?;
+        match stats.time("publish", || publisher.send(meta, pixels)) {
+            Ok(()) => {}
+            // A lossless send waiting for room gives up on the stop request.
+            Err(_) if egoslam_bus::stop_requested() => {
+                interrupted = true;
+                break;
+            }
+            Err(e) => return Err(e.into()),
+        }
         stats.frames += 1;
         last_id = frame.index;
         if last_progress.elapsed() > Duration::from_secs(2) {
@@ -107,11 +114,24 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             }
         }
     }
+    if interrupted {
+        tracing::warn!(
+            frames = stats.frames,
+            "stop requested: the stream ends here"
+        );
+        stats.count("interrupted", 1);
+    }
     let Some(mut publisher) = publisher else {
+        if interrupted {
+            return stats.write(&args.service.out);
+        }
         bail!("{}: no frames", input.display())
     };
     publisher.finish(last_id)?;
     stats.count("dropped_frames", publisher.dropped());
+    for (reason, n) in source.skipped().iter() {
+        stats.count(&format!("{SKIPPED_PREFIX}{reason}"), n);
+    }
     tracing::info!(
         frames = stats.frames,
         dropped = publisher.dropped(),

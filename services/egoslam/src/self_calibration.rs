@@ -34,7 +34,7 @@ fn read_ahead<T>(
     };
     let result = open_source(input, args.fps)
         .map_err(anyhow::Error::from)
-        .and_then(|mut source| estimate(source.as_mut(), readout_s));
+        .and_then(|source| estimate(&mut source.quiet(), readout_s));
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     result.map(|e| (e, elapsed_ms)).map_err(|e| {
         tracing::info!("no {what} estimate ({e:#}): the calibration is used as given");

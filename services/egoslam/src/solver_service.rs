@@ -449,6 +449,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         windows = stats.windows,
         "solver finished"
     );
+    stats.count("dropped_messages", keyframes.dropped());
     stats.write(&args.out)?;
     // Stay until the merger has read everything (see MessagePublisher::finish).
     if !windows.finish() {

@@ -65,7 +65,7 @@ pub enum EgressError {
         reason: String,
     },
     /// The session could not be opened (e.g. the listen port is taken).
-    #[error("cannot open zenoh session (listen {listen:?}): {reason}")]
+    #[error("cannot open the zenoh session (--zenoh-listen {listen:?}): {reason}")]
     Open { listen: Vec<String>, reason: String },
     /// A publisher or queryable could not be declared.
     #[error("cannot declare {key}: {reason}")]

@@ -4,7 +4,7 @@
 //! `cargo bench -p egoslam-frontend --bench frontend_throughput`
 
 use egoslam_frontend::{Tracker, TrackerOptions};
-use egoslam_sources::{calibration::load_calibration, detect_layout, open_source};
+use egoslam_sources::{calibration::load_calibration, detect_layout, open_source, FrameSource};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use std::path::Path;

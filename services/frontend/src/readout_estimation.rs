@@ -206,8 +206,29 @@ pub fn estimate_readout(
     }
     let indexed: Vec<Positions> = frames.iter().map(positions).collect();
     let neighbour = |k: usize| (&indexed[k], frames[k].timestamp_s);
+    // A frame next to a gap (a frame skipped or dropped) is left out: its velocity, a
+    // central difference over the longer interval, is off where the head accelerates.
+    let interval = median(
+        frames
+            .windows(2)
+            .map(|w| w[1].timestamp_s - w[0].timestamp_s)
+            .collect(),
+    );
+    let evenly_spaced = |k: usize| {
+        let (before, after) = (
+            frames[k].timestamp_s - frames[k - 1].timestamp_s,
+            frames[k + 1].timestamp_s - frames[k].timestamp_s,
+        );
+        before.max(after) <= 1.5 * interval
+    };
     let per_frame: Vec<HashMap<u64, Sample>> = (1..frames.len().saturating_sub(1))
-        .map(|k| samples(camera, neighbour(k - 1), &frames[k], neighbour(k + 1)))
+        .map(|k| {
+            if evenly_spaced(k) {
+                samples(camera, neighbour(k - 1), &frames[k], neighbour(k + 1))
+            } else {
+                HashMap::new()
+            }
+        })
         .collect();
     let pairs: Vec<Vec<(Sample, Sample)>> = per_frame
         .windows(2)

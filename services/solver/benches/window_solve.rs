@@ -8,6 +8,7 @@ use egoslam_geometry::PinholeRadtan;
 use egoslam_solver::triangulation::CameraPose;
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions};
+use egoslam_sources::FrameSource;
 use nalgebra::{Point2, Rotation3, Vector3};
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -41,6 +41,7 @@ fn keyframes(
 ) -> Result<(PinholeRadtan, Vec<KeyframeObservations>)> {
     let layout = egoslam_sources::detect_layout(path)?;
     let calib = egoslam_sources::load_calibration(&layout, None)?;
+    use egoslam_sources::FrameSource;
     let mut source = egoslam_sources::open_source(path, 10.0)?;
     let mut tracker: Option<Tracker> = None;
     let mut camera = None;

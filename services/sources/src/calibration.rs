@@ -83,7 +83,13 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
         keys.iter().find_map(|k| doc.get(*k).and_then(yaml_number))
     };
     let missing = |what: &str| SourceError::parse(path, 0, format!("calibration lacks {what}"));
-    let size = |w: Option<f64>, h: Option<f64>| (w.map(|w| w as u32), h.map(|h| h as u32));
+    // A size that is not a positive whole number is no size: `camera_for` then takes the
+    // frames' (and the focal and centre are checked by the camera model).
+    let size = |w: Option<f64>, h: Option<f64>| {
+        let whole =
+            |v: f64| (v >= 1.0 && v <= f64::from(u32::MAX) && v.fract() == 0.0).then_some(v as u32);
+        (w.and_then(whole), h.and_then(whole))
+    };
 
     if let Some(intr) = doc.get("intrinsics").and_then(yaml_numbers) {
         // Kalibr / EuRoC sensor.yaml
@@ -109,11 +115,19 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
                 ));
             }
         }
-        let res = doc.get("resolution").and_then(yaml_numbers);
-        let (width, height) = size(
-            res.as_ref().map(|r| r[0]),
-            res.as_ref().and_then(|r| r.get(1).copied()),
-        );
+        let (width, height) = match doc.get("resolution") {
+            None => (None, None),
+            Some(v) => match yaml_numbers(v).as_deref() {
+                Some(&[w, h]) => size(Some(w), Some(h)),
+                _ => {
+                    return Err(SourceError::parse(
+                        path,
+                        0,
+                        "resolution must be [width, height] (two positive integers)",
+                    ))
+                }
+            },
+        };
         return Ok(Calibration {
             width,
             height,
@@ -333,5 +347,30 @@ mod tests {
             err.to_string().contains("zero.yaml") && cause.contains("focal"),
             "{err}: {cause}"
         );
+    }
+
+    #[test]
+    fn a_resolution_that_is_not_two_numbers_is_named() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let f = dir.path().join("sensor.yaml");
+        for res in ["[]", "[640]", "[640, 480, 3]", "nope"] {
+            std::fs::write(
+                &f,
+                format!("intrinsics: [500, 500, 320, 240]\nresolution: {res}\n"),
+            )
+            .expect("write");
+            let err = read_calibration_file(&f).expect_err(res);
+            assert!(
+                err.to_string().contains("sensor.yaml") && err.to_string().contains("resolution"),
+                "{res}: {err}"
+            );
+        }
+        std::fs::write(
+            &f,
+            "intrinsics: [500, 500, 320, 240]\nresolution: [640, 480]\n",
+        )
+        .expect("write");
+        let c = read_calibration_file(&f).expect("parses");
+        assert_eq!((c.width, c.height), (Some(640), Some(480)));
     }
 }

@@ -52,9 +52,28 @@ pub enum SourceError {
     /// OpenCV failed on this file (e.g. a video that cannot be opened).
     #[error("{path}: {message}")]
     OpenCv { path: PathBuf, message: String },
+    /// So many frames in a row could not be used that the source is taken to be broken.
+    #[error("{path}: {frames} frames in a row could not be used (missing, unreadable or out of order); giving up")]
+    TooManyBadFrames { path: PathBuf, frames: u32 },
 }
 
 impl SourceError {
+    /// The file or folder the error is about.
+    pub fn path(&self) -> Option<&std::path::Path> {
+        match self {
+            Self::Io { path, .. }
+            | Self::UnknownLayout { path }
+            | Self::Empty { path }
+            | Self::Parse { path, .. }
+            | Self::BadImage { path }
+            | Self::MissingCalibration { path }
+            | Self::CalibrationSize { path, .. }
+            | Self::BadCalibration { path, .. }
+            | Self::OpenCv { path, .. }
+            | Self::TooManyBadFrames { path, .. } => Some(path),
+        }
+    }
+
     pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Self::Io {
             path: path.into(),

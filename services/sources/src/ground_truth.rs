@@ -44,6 +44,16 @@ pub fn read_tum_file(path: &Path) -> Result<Vec<StampedPose>, SourceError> {
         .collect()
 }
 
+/// The rotation nearest to `m`, in a bounded number of iterations: nalgebra's
+/// `Rotation3::from_matrix` iterates until convergence, which a NaN (or a matrix far from
+/// any rotation) never reaches.
+fn nearest_rotation(m: &Matrix3<f64>) -> Rotation3<f64> {
+    if !m.iter().all(|v| v.is_finite()) {
+        return Rotation3::from_matrix_unchecked(Matrix3::from_element(f64::NAN));
+    }
+    Rotation3::from_matrix_eps(m, 1e-12, 100, Rotation3::identity())
+}
+
 fn read_kitti(path: &Path, times: &Path) -> Result<Vec<StampedPose>, SourceError> {
     let stamps: Vec<f64> = {
         let text = read_text(times)?;
@@ -68,7 +78,7 @@ fn read_kitti(path: &Path, times: &Path) -> Result<Vec<StampedPose>, SourceError
             Ok(StampedPose {
                 timestamp: t,
                 position: Vector3::new(v[3], v[7], v[11]),
-                rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&r)),
+                rotation: UnitQuaternion::from_rotation_matrix(&nearest_rotation(&r)),
             })
         })
         .collect()
@@ -119,7 +129,7 @@ pub fn read_body_from_sensor(path: &Path) -> Result<Isometry3<f64>, SourceError>
         ));
     }
     let m = Matrix4::from_row_slice(&data);
-    let r = Rotation3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned());
+    let r = nearest_rotation(&m.fixed_view::<3, 3>(0, 0).into_owned());
     Ok(Isometry3::from_parts(
         Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
         UnitQuaternion::from_rotation_matrix(&r),
@@ -259,6 +269,25 @@ pub fn load_ground_truth(path: &Path) -> Result<GroundTruth, SourceError> {
         body_to_camera(&mut poses, &t_bs);
         description.push_str(&format!(", body poses x T_BS from {}", sensor.display()));
     }
+    // A pose with a NaN or infinity cannot be aligned (an SVD of it need not converge): it
+    // is left out, and said.
+    let listed = poses.len();
+    poses.retain(|p| {
+        p.timestamp.is_finite()
+            && p.position.iter().all(|v| v.is_finite())
+            && p.rotation.coords.iter().all(|v| v.is_finite())
+    });
+    if poses.len() < listed {
+        tracing::warn!(
+            path = %path.display(),
+            "{} of {listed} ground-truth poses are not finite and are left out",
+            listed - poses.len()
+        );
+        description.push_str(&format!(
+            ", {} non-finite poses left out",
+            listed - poses.len()
+        ));
+    }
     if poses.is_empty() {
         return Err(SourceError::Empty { path: path.into() });
     }
@@ -320,5 +349,37 @@ mod tests {
         std::fs::write(&f, "1 2 3\n").expect("write");
         let err = load_ground_truth(&f).expect_err("3 columns");
         assert!(err.to_string().contains("gt.txt"), "{err}");
+    }
+
+    #[test]
+    fn non_finite_poses_are_left_out_and_a_bad_rotation_does_not_hang() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let seq = dir.path().join("sequences/00");
+        std::fs::create_dir_all(&seq).expect("mkdir");
+        std::fs::write(seq.join("times.txt"), "0.0\n0.1\n0.2\n").expect("times");
+        let poses = dir.path().join("poses");
+        std::fs::create_dir_all(&poses).expect("mkdir");
+        let f = poses.join("00.txt");
+        std::fs::write(
+            &f,
+            "1 0 0 0 0 1 0 0 0 0 1 0\n\
+             nan 0 0 1 0 1 0 0 0 0 1 0\n\
+             0 0 0 2 0 0 0 0 0 0 0 0\n",
+        )
+        .expect("poses");
+        let gt = load_ground_truth(&f).expect("loads");
+        assert_eq!(gt.poses.len(), 2, "{}", gt.description);
+        assert!(
+            gt.description.contains("1 non-finite"),
+            "{}",
+            gt.description
+        );
+        let tum = dir.path().join("gt_tum.txt");
+        std::fs::write(
+            &tum,
+            "1 0 0 0 0 0 0 1\n2 nan 0 0 0 0 0 1\n3 inf 0 0 0 0 0 1\n",
+        )
+        .expect("tum");
+        assert_eq!(load_ground_truth(&tum).expect("loads").poses.len(), 1);
     }
 }

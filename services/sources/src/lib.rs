@@ -7,6 +7,7 @@
 
 pub mod calibration;
 pub mod error;
+pub mod frame_stream;
 pub mod ground_truth;
 pub mod layout;
 pub mod reader;
@@ -25,6 +26,7 @@ pub(crate) fn shared_test_data(sub: &str) -> Option<std::path::PathBuf> {
     })
 }
 pub use error::SourceError;
+pub use frame_stream::{FrameStream, FrameStreamOptions, SkipReason, SkippedFrames};
 pub use ground_truth::load_ground_truth;
 pub use layout::{detect_layout, Layout};
 pub use reader::{open_source, Frame, FrameSource};

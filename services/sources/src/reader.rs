@@ -1,6 +1,7 @@
 //! Reading frames, one at a time, from any [`Layout`].
 
 use crate::error::{data_lines, parse_floats, read_text};
+use crate::frame_stream::FrameStream;
 use crate::layout::is_image;
 use crate::{detect_layout, Layout, SourceError};
 use opencv::core::Mat;
@@ -54,7 +55,7 @@ fn is_truncated(bytes: &[u8]) -> bool {
 /// Decodes an image file to 8-bit grey, naming the file on any failure.
 pub fn decode_grey(path: &Path) -> Result<Mat, SourceError> {
     let bytes = std::fs::read(path).map_err(|e| SourceError::io(path, e))?;
-    if is_truncated(&bytes) {
+    if bytes.is_empty() || is_truncated(&bytes) {
         return Err(SourceError::BadImage { path: path.into() });
     }
     // A Mat header over the file bytes: OpenCV decodes from them without another copy.
@@ -226,9 +227,15 @@ fn folder_entries(dir: &Path, fps: f64) -> Result<Vec<(f64, PathBuf)>, SourceErr
         .collect())
 }
 
-/// Opens the sequence at `path` (any supported layout). `fps` sets the timestamps of image
-/// folders (which carry none) and is the fallback for videos that report no rate.
-pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceError> {
+/// Opens the sequence at `path` (any supported layout) as a [`FrameStream`], which skips and
+/// counts the frames that cannot be used. `fps` sets the timestamps of image folders (which
+/// carry none) and is the fallback for videos that report no rate.
+pub fn open_source(path: &Path, fps: f64) -> Result<FrameStream, SourceError> {
+    open_frames(path, fps).map(FrameStream::new)
+}
+
+/// The frames at `path` as they are listed, bad ones included.
+fn open_frames(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceError> {
     let layout = detect_layout(path)?;
     let entries = match &layout {
         Layout::Tum { dir } => tum_entries(dir)?,
@@ -381,7 +388,7 @@ mod tests {
         imgcodecs::imwrite_def(&png, &good).expect("png");
         let bytes = std::fs::read(&png).expect("read");
         std::fs::write(&png, &bytes[..bytes.len() / 3]).expect("truncate");
-        let mut src = open_source(dir.path(), 30.0).expect("folder");
+        let mut src = open_frames(dir.path(), 30.0).expect("folder");
         let err = src
             .next_frame()
             .expect("one")
@@ -395,7 +402,7 @@ mod tests {
         let err = open_source(&tum, 30.0).err().expect("empty");
         assert!(err.to_string().contains("empty sequence"), "{err}");
         std::fs::write(tum.join("rgb.txt"), "1.0 rgb/missing.png\n").expect("write");
-        let err = open_source(&tum, 30.0)
+        let err = open_frames(&tum, 30.0)
             .expect("lists")
             .next_frame()
             .expect("one")
