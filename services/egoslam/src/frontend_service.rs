@@ -1,17 +1,19 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
 use crate::cli::ServiceArgs;
+use crate::frontend_resume;
 use crate::log_compaction;
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
+use egoslam_frontend::tracker::ResumePoint;
 use egoslam_frontend::{KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_relocalization::patch_alignment::extract_patch;
 use egoslam_sources::calibration::read_calibration_file;
-use opencv::core::{Mat, ToInputArray};
+use opencv::core::{Mat, Point2f, ToInputArray};
 use opencv::prelude::*;
 use std::collections::HashSet;
 use std::time::Instant;
@@ -217,6 +219,41 @@ fn keyframe_message(
     }
 }
 
+/// A restarted frontend continues from its predecessor's last frame (frontend_resume.rs);
+/// a fresh one removes what an earlier stream of its namespace left.
+fn continue_tracks(
+    tracker: &mut Tracker,
+    path: Option<&std::path::Path>,
+    resuming: bool,
+    stats: &mut ServiceStats,
+) {
+    let Some(path) = path else { return };
+    if !resuming {
+        let _ = std::fs::remove_file(path);
+        return;
+    }
+    let resumed = frontend_resume::load(path).and_then(|saved| {
+        tracker.resume_from(&ResumePoint {
+            frame_id: saved.frame_id,
+            timestamp_s: saved.timestamp_s,
+            image: &saved.image,
+            tracks: &saved.tracks,
+        })?;
+        Ok((saved.frame_id, saved.tracks.len()))
+    });
+    match resumed {
+        Ok((frame_id, tracks)) => {
+            tracing::warn!(
+                frame_id,
+                tracks,
+                "continuing the tracks of the frame before the restart"
+            );
+            stats.count("resumed_tracks", tracks as u64);
+        }
+        Err(e) => tracing::warn!("{e:#}: new tracks begin after the restart"),
+    }
+}
+
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("frontend");
     let calib_path = args
@@ -274,6 +311,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         tracker.resume_ids(kf, track);
         stats.count("restarts", 1);
     }
+    let mut resume_path = frontend_resume::path(&args.namespace);
+    continue_tracks(&mut tracker, resume_path.as_deref(), resuming, &mut stats);
     let bus = Bus::open(
         "frontend",
         BusOptions {
@@ -323,6 +362,16 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }
             let sender = (&mut keyframe_log, &mut keyframes);
             publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+        }
+        if let Some(path) = &resume_path {
+            let tracks = tracker.sample_tracks(usize::MAX).into_iter();
+            let tracks = tracks.map(|t| (t.track_id, Point2f::new(t.raw.x, t.raw.y)));
+            if let Err(e) =
+                frontend_resume::save(path, meta.frame_id, meta.timestamp, &image, tracks)
+            {
+                tracing::warn!("{e:#}: a restarted frontend will start new tracks");
+                resume_path = None;
+            }
         }
         let mut described = None;
         if let Some(k) = &outcome.keyframe {
@@ -410,6 +459,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     );
     stats.count("dropped_messages", frames.dropped());
     stats.write(&args.out)?;
+    if let Some(path) = &resume_path {
+        // The stream is over: nothing to continue.
+        let _ = std::fs::remove_file(path);
+    }
     // Stay until the solver has read everything (see MessagePublisher::finish).
     if !keyframes.finish() {
         bail!("terminated by signal while the solver was reading the last keyframes")

@@ -380,6 +380,8 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "map_points": counter(merger, "map_points"),
         "published_points": counter(merger, "published_points"),
         "peak_rss_mib": peak_memory(&stats),
+        // Tracks a restarted frontend continued from its predecessor's last frame.
+        "resumed_tracks": counter(frontend, "resumed_tracks"),
         "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
         "recovered_windows": counter(merger, "recovered_windows"),
         "localized_frames": counter(merger, "localized_frames"),

@@ -13,6 +13,7 @@ mod eval;
 mod features_log;
 mod focal;
 mod frame_poses;
+mod frontend_resume;
 mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
