@@ -20,7 +20,9 @@ getent group video >/dev/null && usermod -a -G video egoslam
 install -m 0755 "$binary" /usr/local/bin/egoslam
 install -d -m 0755 /etc/egoslam
 [ -e /etc/egoslam/egoslam.toml ] || install -m 0644 deploy/egoslam.toml /etc/egoslam/egoslam.toml
-install -m 0644 config/iceoryx2.toml /etc/egoslam/iceoryx2.toml
+# The units' iceoryx2 files live in their runtime directory, not in the shared /tmp.
+sed 's|^root-path = .*|root-path = "/run/egoslam/iceoryx2/"|' config/iceoryx2.toml > /etc/egoslam/iceoryx2.toml
+chmod 0644 /etc/egoslam/iceoryx2.toml
 install -m 0644 deploy/systemd/*.service deploy/systemd/egoslam.target /etc/systemd/system/
 install -d -m 0755 /usr/share/doc/egoslam
 install -m 0644 docs/deploy.md /usr/share/doc/egoslam/deploy.md

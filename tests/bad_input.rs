@@ -394,3 +394,21 @@ fn a_non_finite_ground_truth_pose_is_left_out_by_eval() {
     );
     assert!(err.contains("not finite"), "{err}");
 }
+
+#[test]
+fn a_zenoh_port_already_taken_is_refused_naming_the_option_before_any_work() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    tum_copy(dir.path(), 3);
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let endpoint = format!("tcp/{}", taken.local_addr().expect("address"));
+    let started = std::time::Instant::now();
+    let (ok, err) = run(dir.path(), &["--zenoh-listen", &endpoint]);
+    assert!(!ok);
+    assert!(
+        err.contains("--zenoh-listen") && err.contains(&endpoint) && err.contains("in use"),
+        "{err}"
+    );
+    // Refused before the pre-passes (seconds), not when the merger opens its session.
+    assert!(!err.contains("readout estimated"), "{err}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(10));
+}

@@ -156,6 +156,13 @@ fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
     assert!(statuses.iter().any(|s| s.service == "merger"
         && s.state == pb::ServiceState::Running as i32
         && s.windows >= 1));
+    // Every status names this run, the one report.json names.
+    let run_id = report(out.path())["run_id"]
+        .as_str()
+        .expect("run_id")
+        .to_string();
+    assert!(run_id.starts_with("run"), "{run_id}");
+    assert!(statuses.iter().all(|s| s.run_id == run_id), "{run_id}");
     let windows: Vec<u64> = statuses.iter().map(|s| s.windows).collect();
     assert!(
         windows.windows(2).all(|w| w[0] <= w[1]),

@@ -270,6 +270,13 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     // runs never see each other's services or clean up each other's nodes.
     let bus_config = per_run_bus_config(out)?;
     std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
+    let run_id = format!(
+        "{namespace}-{}",
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis())
+    );
+    std::env::set_var("EGOSLAM_RUN_ID", &run_id);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
     catch_stop_signals()?;
     // Consumers first; every producer also waits for its consumer to connect.
@@ -345,6 +352,8 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         // Stopped early by this signal (SIGINT 2, SIGTERM 15): the results cover the frames
         // processed until then.
         "interrupted_by_signal": interrupted_by,
+        // The id every status message over zenoh carries.
+        "run_id": run_id,
         "input": input.display().to_string(),
         "layout": format!("{layout:?}"),
         "calibration": calibration.origin.display().to_string(),

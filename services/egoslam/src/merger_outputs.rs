@@ -20,6 +20,8 @@ pub(super) struct Outputs {
     pub(super) point_confidence: PointConfidenceOptions,
     /// The last scores of the map's points (recomputed when the files are written).
     pub(super) confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
+    /// Carried by every status message (`Status.run_id`).
+    pub(super) run_id: String,
 }
 
 impl Outputs {
@@ -91,6 +93,7 @@ impl Outputs {
                     map.live_segments(),
                     snapshot.points.len()
                 ),
+                run_id: self.run_id.clone(),
             };
             map_state::publish(
                 egress,

@@ -400,6 +400,17 @@ fn injected_fault() -> Option<u64> {
     n
 }
 
+/// This run's id: the launcher's (`EGOSLAM_RUN_ID`, inherited), else the namespace and this
+/// merger's start time, so that a restarted unit keeps no stale id of a run long gone.
+fn run_id(namespace: &str) -> String {
+    std::env::var("EGOSLAM_RUN_ID").unwrap_or_else(|_| {
+        let started = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis());
+        format!("{namespace}-{started}")
+    })
+}
+
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)?;
     let checkpoint_path = args.out.join(checkpoint::FILE_NAME);
@@ -419,6 +430,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             ..PointConfidenceOptions::default()
         },
         confidence: None,
+        run_id: run_id(&args.namespace),
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
