@@ -261,6 +261,22 @@ fn run_writes_every_output_and_the_report() {
     ] {
         assert!(out.path().join(f).is_file(), "{f} missing");
     }
+    // Owner-only, results and state alike (egocentric video is private); iceoryx2 sets its
+    // own folders' modes (0750) for its bookkeeping files.
+    use std::os::unix::fs::PermissionsExt;
+    let bus = out.path().join("state").join("bus");
+    for entry in walk(out.path())
+        .into_iter()
+        .filter(|e| !e.starts_with(&bus) || e == &bus)
+    {
+        let mode = std::fs::metadata(&entry)
+            .expect("metadata")
+            .permissions()
+            .mode()
+            & 0o777;
+        let expected = if entry.is_dir() { 0o700 } else { 0o600 };
+        assert_eq!(mode, expected, "{} is {mode:o}", entry.display());
+    }
     let report: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(out.path().join("report.json")).expect("read"),
     )
@@ -314,4 +330,17 @@ fn calibrate_readout_reads_the_clip() {
         text.contains(&format!("rolling_shutter_ms = {ms}")),
         "{text}"
     );
+}
+
+/// Every file and folder under `dir` (not `dir` itself, which the test made).
+fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(dir).expect("read_dir").flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            found.extend(walk(&path));
+        }
+        found.push(path);
+    }
+    found
 }

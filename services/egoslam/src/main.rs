@@ -40,6 +40,10 @@ mod window_journal;
 use clap::{CommandFactory, FromArgMatches};
 
 fn main() -> std::process::ExitCode {
+    // Egocentric video shows the wearer's life: everything egoslam writes (results, state,
+    // logs, saved maps) is for its owner only (files 0600, folders 0700).
+    // SAFETY: umask(2) only sets the process's file mode mask.
+    unsafe { libc::umask(0o077) };
     let matches = cli::Cli::command().get_matches();
     let mut cli = match cli::Cli::from_arg_matches(&matches) {
         Ok(c) => c,
