@@ -261,14 +261,9 @@ fn run_writes_every_output_and_the_report() {
     ] {
         assert!(out.path().join(f).is_file(), "{f} missing");
     }
-    // Owner-only, results and state alike (egocentric video is private); iceoryx2 sets its
-    // own folders' modes (0750) for its bookkeeping files.
+    // Owner-only, results and state alike (egocentric video is private).
     use std::os::unix::fs::PermissionsExt;
-    let bus = out.path().join("state").join("bus");
-    for entry in walk(out.path())
-        .into_iter()
-        .filter(|e| !e.starts_with(&bus) || e == &bus)
-    {
+    for entry in walk(out.path()) {
         let mode = std::fs::metadata(&entry)
             .expect("metadata")
             .permissions()

@@ -23,6 +23,10 @@ pub enum Suite {
     /// still move one walk's ATE by +-50 % either way (docs/solver.md, "Relative pose
     /// refinement"); the median over seeds does not hang on one turn.
     Walks,
+    /// A rendered corridor walk played back and forth (`--cycles`, `--walk-frames`) through
+    /// the real processes, sampling each service's memory and the output's size every 2 s
+    /// (docs/benchmarks.md, "Endurance"; endurance_bench.rs).
+    Endurance,
 }
 
 #[derive(Args, Debug)]
@@ -41,6 +45,13 @@ pub struct BenchArgs {
     /// ../shared/data (real sequences with ground truth); skipped when absent.
     #[arg(long, default_value = "../shared/data")]
     pub shared: PathBuf,
+    /// Endurance: back-and-forth passes of the walk (6: 6 minutes of video at the default
+    /// length; 60 for an hour).
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub cycles: u32,
+    /// Endurance: frames of the rendered corridor walk one pass plays (900: 30 s, ~27 m).
+    #[arg(long, default_value_t = 900, value_parser = clap::value_parser!(u32).range(30..=100_000))]
+    pub walk_frames: u32,
 }
 
 /// One entry of the suite: a real sequence, or synth arguments.
@@ -54,10 +65,10 @@ struct Entry {
 
 /// Where a suite's table goes in the markdown file: between two marker lines, under a
 /// heading when the section is new.
-struct Section {
-    begin: &'static str,
-    end: &'static str,
-    heading: &'static str,
+pub(crate) struct Section {
+    pub begin: &'static str,
+    pub end: &'static str,
+    pub heading: &'static str,
 }
 
 const QUICK_SECTION: Section = Section {
@@ -223,7 +234,7 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
     entries
 }
 
-fn egoslam() -> anyhow::Result<Command> {
+pub(crate) fn egoslam() -> anyhow::Result<Command> {
     let mut c = Command::new(std::env::current_exe().context("locating egoslam")?);
     c.env("EGOSLAM_ZENOH_LISTEN", "none")
         .env("EGOSLAM_LOG", "warn");
@@ -246,27 +257,32 @@ fn run_command(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Resu
     Ok(run)
 }
 
+/// Renders `synth` into `input` unless it is there, drawn by this revision of the renderer.
+pub(crate) fn ensure_rendered(input: &Path, synth: &[String]) -> anyhow::Result<()> {
+    let revision = format!("renderer revision {}.", egoslam_synth::RENDER_REVISION);
+    let current = std::fs::read_to_string(input.join("SOURCE.txt"))
+        .is_ok_and(|about| about.contains(&revision));
+    if !current || !input.join("groundtruth.txt").exists() {
+        let status = egoslam()?
+            .arg("synth")
+            .args(synth)
+            .arg("--out")
+            .arg(input)
+            .stdout(std::process::Stdio::null())
+            .status()?;
+        if !status.success() {
+            bail!("{}: rendering failed", input.display());
+        }
+    }
+    Ok(())
+}
+
 /// Runs one entry; returns its table row as JSON. `config` (the bench's own `--config`)
 /// is handed to the run, not to the rendering: rendered sequences are cached by the
 /// renderer's revision alone, so a configuration must not change them.
 fn measure(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<serde_json::Value> {
     if let Some(synth) = &entry.synth {
-        // Rendered again when missing or drawn by an earlier revision of the renderer.
-        let revision = format!("renderer revision {}.", egoslam_synth::RENDER_REVISION);
-        let current = std::fs::read_to_string(entry.input.join("SOURCE.txt"))
-            .is_ok_and(|about| about.contains(&revision));
-        if !current || !entry.input.join("groundtruth.txt").exists() {
-            let status = egoslam()?
-                .arg("synth")
-                .args(synth)
-                .arg("--out")
-                .arg(&entry.input)
-                .stdout(std::process::Stdio::null())
-                .status()?;
-            if !status.success() {
-                bail!("{}: rendering failed", entry.name);
-            }
-        }
+        ensure_rendered(&entry.input, synth)?;
     }
     let start = Instant::now();
     let status = run_command(entry, out, config)?
@@ -381,7 +397,7 @@ fn spread(rows: &[serde_json::Value]) -> Option<String> {
 }
 
 /// Replaces `section` of `path` (or appends it).
-fn write_section(path: &Path, table: &str, section: &Section) -> anyhow::Result<()> {
+pub(crate) fn write_section(path: &Path, table: &str, section: &Section) -> anyhow::Result<()> {
     let old = std::fs::read_to_string(path).unwrap_or_default();
     let Section {
         begin,
@@ -400,6 +416,9 @@ fn write_section(path: &Path, table: &str, section: &Section) -> anyhow::Result<
 /// `--config`: the runs are child processes, which did not see it before), with the
 /// suite's own flags for an entry winning over it.
 pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
+    if args.suite == Suite::Endurance {
+        return crate::endurance_bench::run(&args, config);
+    }
     let entries = suite(&args);
     std::fs::create_dir_all(&args.out)?;
     let mut rows = Vec::new();

@@ -151,15 +151,14 @@ fn check_listen_endpoints(endpoints: &[String]) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Writes the iceoryx2 configuration of this run (egoslam's, with its root under
-/// `OUT/state/bus/`) and returns its path.
-fn per_run_bus_config(out: &Path) -> anyhow::Result<PathBuf> {
+/// Writes the iceoryx2 configuration of this run (egoslam's, with its root `dir`) into
+/// `dir` and returns its path. The root is kept short (in the temporary folder, not under
+/// the output): iceoryx2 names Unix sockets after it, whose paths may not pass 108 bytes.
+fn per_run_bus_config(dir: &Path) -> anyhow::Result<PathBuf> {
     let shared = egoslam_bus::config_path();
     let text = std::fs::read_to_string(&shared)
         .with_context(|| format!("reading the iceoryx2 configuration {}", shared.display()))?;
-    let dir = std::path::absolute(out.join("state").join("bus"))
-        .with_context(|| format!("locating {}", out.display()))?;
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let root = format!("root-path = {:?}", format!("{}/", dir.display()));
     let mut replaced = false;
     let lines: Vec<String> = text
@@ -266,9 +265,10 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         replay_args.push("--realtime".into());
     }
     replay_args.extend(common.iter().cloned());
-    // The services' iceoryx2 files under this run's output, not the shared /tmp/iceoryx2:
+    // The services' iceoryx2 files in a folder of this run's, not the shared /tmp/iceoryx2:
     // runs never see each other's services or clean up each other's nodes.
-    let bus_config = per_run_bus_config(out)?;
+    let bus_root = std::env::temp_dir().join(format!("egoslam-{namespace}"));
+    let bus_config = per_run_bus_config(&bus_root)?;
     std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
     let run_id = format!(
         "{namespace}-{}",
@@ -309,10 +309,13 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             return Err(e);
         }
     }
+    let supervision = supervise(children);
+    // Every service has ended (or was stopped): their bus files are of no further use.
+    let _ = std::fs::remove_dir_all(&bus_root);
     let Supervision {
         restarts,
         interrupted_by,
-    } = supervise(children)?;
+    } = supervision?;
     let interrupted = interrupted_by.is_some();
 
     // A service stopped before it wrote its statistics left none: counted as nothing.

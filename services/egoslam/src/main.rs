@@ -9,6 +9,7 @@ mod checkpoint;
 mod cli;
 mod config;
 mod convert;
+mod endurance_bench;
 mod eval;
 mod features_log;
 mod focal;
