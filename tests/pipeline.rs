@@ -286,8 +286,11 @@ fn run_writes_every_output_and_the_report() {
     ] {
         assert!(report.get(key).is_some(), "report lacks {key}");
     }
+    assert_eq!(report["schema_version"], 2);
     assert_eq!(report["frames"], 120);
     assert_eq!(report["dropped_frames"], 0);
+    assert_eq!(report["skipped_frames"], serde_json::json!({}));
+    assert!(report["interrupted_by_signal"].is_null());
     let keyframes = report["keyframes"].as_u64().expect("number");
     let windows = report["windows"].as_u64().expect("number");
     // K = 20, O = 5: 1 + ceil((keyframes - 20) / 15) windows.

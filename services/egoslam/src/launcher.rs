@@ -352,6 +352,8 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         };
     }
     let report = json!({
+        // Raised when a field changes meaning or goes (docs/config.md, "report.json").
+        "schema_version": REPORT_SCHEMA_VERSION,
         // Stopped early by this signal (SIGINT 2, SIGTERM 15): the results cover the frames
         // processed until then.
         "interrupted_by_signal": interrupted_by,
@@ -424,6 +426,10 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         None => Ok(()),
     }
 }
+
+/// Version of report.json's layout: 2 since skipped frames are counted by reason
+/// (`skipped_frames`, replacing `corrupt_frames` and `wrong_size_frames`).
+const REPORT_SCHEMA_VERSION: u32 = 2;
 
 /// The run was stopped by a signal after writing its results (exit status 128 + signal).
 #[derive(Debug, thiserror::Error)]

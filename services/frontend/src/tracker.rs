@@ -187,15 +187,7 @@ impl Tracker {
                 cv_type: image.typ(),
             });
         }
-        if (image.cols() as u32, image.rows() as u32) != (self.camera.width, self.camera.height) {
-            return Err(TrackerError::SizeMismatch {
-                frame_id,
-                width: image.cols(),
-                height: image.rows(),
-                camera_width: self.camera.width,
-                camera_height: self.camera.height,
-            });
-        }
+        self.check_size(frame_id, image)?;
         // Only a frame that is tracked sets the time step its velocities span (a refused
         // frame in between would otherwise shorten it).
         self.time_before_last = self.last_times.0;
@@ -267,6 +259,20 @@ impl Tracker {
             mean_flow_px: mean_flow,
             blind: false,
         })
+    }
+
+    /// Fails unless `image` has the camera's size.
+    fn check_size(&self, frame_id: u64, image: &impl MatTraitConst) -> Result<(), TrackerError> {
+        if (image.cols() as u32, image.rows() as u32) != (self.camera.width, self.camera.height) {
+            return Err(TrackerError::SizeMismatch {
+                frame_id,
+                width: image.cols(),
+                height: image.rows(),
+                camera_width: self.camera.width,
+                camera_height: self.camera.height,
+            });
+        }
+        Ok(())
     }
 
     /// Makes the last processed frame a keyframe (end of stream), unless it already is one.

@@ -10,7 +10,6 @@
 
 use super::{Track, Tracker, TrackerError};
 use opencv::core::{Mat, Point2f, Size, Vector};
-use opencv::prelude::*;
 use opencv::video;
 
 /// A tracked frame to continue from: the frame, its time and its live tracks.
@@ -31,15 +30,7 @@ impl Tracker {
     pub fn resume_from(&mut self, point: &ResumePoint) -> Result<(), TrackerError> {
         let frame_id = point.frame_id;
         let image = point.image;
-        if (image.cols() as u32, image.rows() as u32) != (self.camera.width, self.camera.height) {
-            return Err(TrackerError::SizeMismatch {
-                frame_id,
-                width: image.cols(),
-                height: image.rows(),
-                camera_width: self.camera.width,
-                camera_height: self.camera.height,
-            });
-        }
+        self.check_size(frame_id, image)?;
         let win = Size::new(self.options.lk_window_px, self.options.lk_window_px);
         let mut pyramid = Vector::<Mat>::new();
         video::build_optical_flow_pyramid_def(
