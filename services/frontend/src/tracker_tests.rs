@@ -452,3 +452,66 @@ fn a_keyframe_centred_on_the_next_frame_follows_a_turn_onset() {
     assert_eq!(tracker.centre_keyframe(&mut late), 0);
     assert_eq!(late, extrapolated);
 }
+
+#[test]
+fn a_new_tracker_resumed_from_a_saved_frame_keeps_the_track_ids() {
+    let big = texture(600, 300);
+    let (w, h) = (320, 240);
+    let mut before = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let mut saved = None;
+    for i in 0..5 {
+        let frame = crop(&big, 3 * i as i32, 30, w, h);
+        before.process(i, &frame).expect("tracks");
+        saved = Some(frame);
+    }
+    let saved = saved.expect("a frame");
+    let tracks: Vec<(u64, Point2f)> = before
+        .sample_tracks(usize::MAX)
+        .iter()
+        .map(|t| (t.track_id, Point2f::new(t.raw.x, t.raw.y)))
+        .collect();
+    assert!(tracks.len() > 300, "{} tracks", tracks.len());
+    // The restarted process: a new tracker, its ids continued, starting from frame 4 and
+    // given frame 9 next (the frames between were lost with the old process): 15 px on.
+    let mut after = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let (next_keyframe, next_track) = before.next_ids();
+    after.resume_ids(next_keyframe, next_track);
+    after
+        .resume_from(&ResumePoint {
+            frame_id: 4,
+            timestamp_s: f64::NAN,
+            image: &saved,
+            tracks: &tracks,
+        })
+        .expect("resumes");
+    let out = after.process(9, &crop(&big, 27, 30, w, h)).expect("tracks");
+    let moved: std::collections::HashMap<u64, Point2f> = tracks.iter().copied().collect();
+    let continued: Vec<_> = after
+        .sample_tracks(usize::MAX)
+        .into_iter()
+        .filter(|t| moved.contains_key(&t.track_id))
+        .collect();
+    assert!(
+        continued.len() * 10 > tracks.len() * 9,
+        "{} of {}",
+        continued.len(),
+        tracks.len()
+    );
+    for t in &continued {
+        let p0 = moved[&t.track_id];
+        assert!(
+            (t.raw.x - (p0.x - 15.0)).abs() < 0.3,
+            "x {} -> {}",
+            p0.x,
+            t.raw.x
+        );
+        assert!((t.raw.y - p0.y).abs() < 0.3);
+    }
+    // Not a first keyframe of a new stream: the keyframe rule counts from the saved frame.
+    assert!(out
+        .keyframe
+        .is_none_or(|k| k.reason != KeyframeReason::First));
+    // New tracks take ids after every id given before the restart.
+    let (_, next) = after.next_ids();
+    assert!(next >= next_track);
+}
