@@ -75,6 +75,47 @@ fn a_killed_merger_resumes_and_loses_nothing() {
     assert_eq!(keyframes(aborted.path()), expected, "results differ");
 }
 
+/// With the checkpoint's write budget at 1 byte/s the merger checkpoints after its first
+/// window and at the end only (the rewrites a growing map would make are spaced by its size
+/// over the budget); killed in between, it replays every later window from the solver's
+/// journal and loses nothing.
+#[test]
+fn a_merger_that_checkpoints_rarely_still_loses_nothing() {
+    let _turn = one_test_at_a_time();
+    let undisturbed = tempfile::tempdir().expect("tempdir");
+    wait_success(run_fixture(undisturbed.path(), None));
+    let expected = keyframes(undisturbed.path());
+
+    let rare = tempfile::tempdir().expect("tempdir");
+    let mut c = egoslam_without_pre_passes();
+    let run = c
+        .args(["run", "--global-ba-px=inf", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(rare.path())
+        .env("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S", "1")
+        .spawn()
+        .expect("run");
+    let start = Instant::now();
+    while !rare.path().join("merger.checkpoint").exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    sigkill("merger", rare.path());
+    wait_success(run);
+    let r = report(rare.path());
+    assert_eq!(r["restarts"]["merger"], 1, "{r}");
+    assert!(r["recovered_windows"].as_u64() >= Some(1), "{r}");
+    assert_eq!(keyframes(rare.path()), expected, "results differ");
+    let merger: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(rare.path().join("stats/merger.json")).expect("stats"),
+    )
+    .expect("json");
+    // The restarted merger's: its first window's checkpoint and the end's.
+    assert_eq!(merger["counters"]["checkpoints"], 2, "{merger}");
+}
+
 /// Runs the clip (in real time with `realtime`), SIGKILLs `service` after `after`, and
 /// returns the report of the run, which must complete, with the number of keyframes in
 /// keyframes.tum.

@@ -97,9 +97,16 @@ fn parents() -> BTreeMap<u32, u32> {
         .collect()
 }
 
-/// VmRSS in MiB of `root` and its descendants, by service (`egoslam <service>`; the
+/// Per service: VmRSS in MiB, and bytes the process has caused to be written to storage
+/// (`write_bytes` of /proc/PID/io: what wears the flash, page-cache writeback included).
+struct ProcessSample {
+    rss_mib: BTreeMap<&'static str, f64>,
+    written_bytes: BTreeMap<&'static str, u64>,
+}
+
+/// [`ProcessSample`] of `root` and its descendants, by service (`egoslam <service>`; the
 /// launcher is `run`).
-fn rss_by_service(root: u32) -> BTreeMap<&'static str, f64> {
+fn sample_processes(root: u32) -> ProcessSample {
     let parents = parents();
     let mut tree = vec![root];
     let mut i = 0;
@@ -109,6 +116,7 @@ fn rss_by_service(root: u32) -> BTreeMap<&'static str, f64> {
         i += 1;
     }
     let mut rss = BTreeMap::new();
+    let mut written = BTreeMap::new();
     for pid in tree {
         let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
         let role = cmdline.split(|b| *b == 0).nth(1).unwrap_or_default();
@@ -128,8 +136,20 @@ fn rss_by_service(root: u32) -> BTreeMap<&'static str, f64> {
             })
             .unwrap_or(0.0);
         *rss.entry(service).or_default() += kib / 1024.0;
+        let bytes: u64 = std::fs::read_to_string(format!("/proc/{pid}/io"))
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find_map(|l| l.strip_prefix("write_bytes:"))
+                    .and_then(|v| v.trim().parse().ok())
+            })
+            .unwrap_or(0);
+        *written.entry(service).or_default() += bytes;
     }
-    rss
+    ProcessSample {
+        rss_mib: rss,
+        written_bytes: written,
+    }
 }
 
 /// Bytes under `dir` (symlinks not followed).
@@ -153,6 +173,8 @@ struct Sample {
     /// Video time the merger has posed, seconds.
     video_s: f64,
     rss_mib: BTreeMap<&'static str, f64>,
+    /// Bytes written by each service so far (a restarted service starts again from 0).
+    written_bytes: BTreeMap<&'static str, u64>,
     disk_mib: f64,
     keyframes: u64,
     map_points: u64,
@@ -162,6 +184,10 @@ impl Sample {
     fn total_rss(&self) -> f64 {
         self.rss_mib.values().sum()
     }
+
+    fn written_mib(&self) -> f64 {
+        self.written_bytes.values().sum::<u64>() as f64 / (1024.0 * 1024.0)
+    }
 }
 
 fn take_sample(root: u32, out: &Path, started: Instant) -> Sample {
@@ -170,10 +196,12 @@ fn take_sample(root: u32, out: &Path, started: Instant) -> Sample {
             .ok()
             .and_then(|t| serde_json::from_str(&t).ok())
             .unwrap_or_default();
+    let processes = sample_processes(root);
     Sample {
         wall_s: started.elapsed().as_secs_f64(),
         video_s: merger["frames"].as_f64().unwrap_or(0.0) / FPS,
-        rss_mib: rss_by_service(root),
+        rss_mib: processes.rss_mib,
+        written_bytes: processes.written_bytes,
         disk_mib: size_of(out) as f64 / (1024.0 * 1024.0),
         keyframes: merger["keyframes"].as_u64().unwrap_or(0),
         map_points: merger["counters"]["map_points"].as_u64().unwrap_or(0),
@@ -224,13 +252,19 @@ fn write_csv(path: &Path, samples: &[Sample]) -> anyhow::Result<()> {
     for s in SERVICES {
         csv += &format!(",rss_{s}_mib");
     }
-    csv += ",disk_mib,keyframes,map_points\n";
+    csv += ",disk_mib,written_mib,keyframes,map_points\n";
     for s in samples {
         csv += &format!("{:.1},{:.1},{:.1}", s.wall_s, s.video_s, s.total_rss());
         for service in SERVICES {
             csv += &format!(",{:.1}", s.rss_mib.get(service).copied().unwrap_or(0.0));
         }
-        csv += &format!(",{:.1},{},{}\n", s.disk_mib, s.keyframes, s.map_points);
+        csv += &format!(
+            ",{:.1},{:.1},{},{}\n",
+            s.disk_mib,
+            s.written_mib(),
+            s.keyframes,
+            s.map_points
+        );
     }
     crate::output::write_atomically(path, csv.as_bytes())
 }
@@ -313,6 +347,19 @@ fn peak(
         .reduce(f64::max)
 }
 
+/// MiB written over the run: per service its last count (counters only grow while the
+/// process lives), summed.
+fn written_mib(samples: &[Sample]) -> f64 {
+    let mut last: BTreeMap<&str, u64> = BTreeMap::new();
+    for s in samples {
+        for (service, bytes) in &s.written_bytes {
+            let entry = last.entry(service).or_default();
+            *entry = (*entry).max(*bytes);
+        }
+    }
+    last.values().sum::<u64>() as f64 / (1024.0 * 1024.0)
+}
+
 fn ate(report: &serde_json::Value) -> Option<f64> {
     report["accuracy"]["trajectory"]["ate_rmse_m"].as_f64()
 }
@@ -365,7 +412,10 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         "rss_peak_mib_by_service": report["peak_rss_mib"],
         "disk_mib_after_cycle_2": disk_at(c2),
         "disk_mib_end": samples.last().map(|s| s.disk_mib),
-        "disk_mib_written_per_video_hour": samples.last().map(|s| s.disk_mib / (frames as f64 / FPS / 3600.0)),
+        "disk_mib_growth_per_video_hour": samples.last().map(|s| s.disk_mib / (frames as f64 / FPS / 3600.0)),
+        // The largest count of each service, summed: what the run wrote to storage.
+        "written_mib": written_mib(&samples),
+        "written_mib_per_video_hour": written_mib(&samples) / (frames as f64 / FPS / 3600.0),
         "ate_m": ate(&report),
         "ate_single_pass_m": ate(&single),
         "ate_ratio_to_single_pass": ate(&report).zip(ate(&single)).map(|(a, b)| a / b),
@@ -389,7 +439,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
          | figure | up to the end of cycle 2 | last cycle / end |\n|---|---|---|\n\
          | peak RSS, all processes (MiB) | {rss_c2} | {rss_last} |\n\
          | output + state on disk (MiB) | {disk_c2} | {disk_end} |\n\n\
-         | keyframes | map points | segments | ATE, whole loop | ATE, one pass | ratio | disk written per hour of video (MiB) |\n\
+         | keyframes | map points | segments | ATE, whole loop | ATE, one pass | ratio | written to storage per hour of video (MiB) |\n\
          |---|---|---|---|---|---|---|\n| {kf} | {pts} | {seg} | {ate} m | {ate1} m | {ratio} | {per_hour} |\n\n",
         cycles = args.cycles,
         walk_frames = args.walk_frames,
@@ -405,7 +455,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         ate = f("ate_m", 3),
         ate1 = f("ate_single_pass_m", 3),
         ratio = f("ate_ratio_to_single_pass", 2),
-        per_hour = f("disk_mib_written_per_video_hour", 0),
+        per_hour = f("written_mib_per_video_hour", 0),
     );
     print!("{table}");
     write_section(&args.markdown, &table, &SECTION)?;

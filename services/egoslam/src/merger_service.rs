@@ -44,6 +44,8 @@ struct Merger {
     camera: Option<PinholeRadtan>,
     /// When the files and checkpoint were last written.
     last_persist: Option<std::time::Instant>,
+    /// Time the next rewrite waits for (`persist_due`).
+    persist_spacing: std::time::Duration,
     /// For relocalization: linking segments after a break, and the saved map.
     vocabulary: Vocabulary,
     /// Where keyframe descriptors are persisted (not in the checkpoint).
@@ -58,10 +60,26 @@ struct Merger {
     loop_sightings: Vec<(u64, u64, nalgebra::Point2<f64>)>,
 }
 
-/// Longest time between rewrites of the result files and the checkpoint. Rewriting both
+/// Shortest time between rewrites of the result files and the checkpoint. Rewriting both
 /// after every window made a 12,000-frame walk spend 370 of its 428 s there (they grow
 /// with the map); the journal makes waiting safe.
 const PERSIST_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Average bytes per second the checkpoint's rewrites may write (512 KiB/s, 1.8 GiB per
+/// hour): a rewrite waits, beyond [`PERSIST_INTERVAL`], as long as the last checkpoint's
+/// size takes at that rate. The checkpoint is the whole map (80 MB after 6 minutes of a
+/// looped walk), and rewritten every 5 s it wrote ~16 MB/s: flash wear that would end a
+/// wearable's storage within months. Windows in between stay in the solver's journal.
+/// `EGOSLAM_PERSIST_BUDGET_BYTES_PER_S` sets another rate ("inf": every 5 s).
+const PERSIST_BUDGET_BYTES_PER_S: f64 = 512.0 * 1024.0;
+
+fn persist_budget() -> f64 {
+    std::env::var("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+        .filter(|b| *b > 0.0)
+        .unwrap_or(PERSIST_BUDGET_BYTES_PER_S)
+}
 
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
@@ -171,6 +189,12 @@ impl Merger {
             self.stats
                 .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
             self.last_persist = Some(std::time::Instant::now());
+            let bytes = std::fs::metadata(self.checkpoint_path()).map_or(0, |m| m.len());
+            self.persist_spacing = PERSIST_INTERVAL.max(
+                std::time::Duration::try_from_secs_f64(bytes as f64 / persist_budget())
+                    .unwrap_or(PERSIST_INTERVAL),
+            );
+            self.stats.count("checkpoints", 1);
         }
         Ok(())
     }
@@ -198,13 +222,14 @@ impl Merger {
     }
 
     /// Whether the files and the checkpoint are due: at most every
-    /// [`PERSIST_INTERVAL`], and always at the end of the stream. Windows in between are
-    /// safe in the solver's journal, from which a restarted merger replays them.
+    /// [`PERSIST_INTERVAL`] or as the write budget allows ([`PERSIST_BUDGET_BYTES_PER_S`]),
+    /// and always at the end of the stream. Windows in between are safe in the solver's
+    /// journal, from which a restarted merger replays them.
     fn persist_due(&self) -> bool {
         self.state.finished
             || self
                 .last_persist
-                .is_none_or(|t| t.elapsed() >= PERSIST_INTERVAL)
+                .is_none_or(|t| t.elapsed() >= self.persist_spacing)
     }
 
     fn add_window(&mut self, w: &pb::WindowSolution) {
@@ -451,6 +476,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes, refinement_lag),
         camera: None,
         last_persist: None,
+        persist_spacing: PERSIST_INTERVAL,
         vocabulary,
         features_log,
         database: KeyframeDatabase::new(),
