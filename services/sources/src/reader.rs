@@ -103,6 +103,8 @@ struct VideoSource {
     frames: Option<usize>,
     next: u64,
     grey: Mat,
+    /// Live camera: wall-clock time and monotonic instant of the first frame.
+    clock: Option<(f64, std::time::Instant)>,
 }
 
 impl FrameSource for VideoSource {
@@ -136,9 +138,16 @@ impl FrameSource for VideoSource {
         let index = self.next;
         self.next += 1;
         let timestamp = if self.live {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0.0, |d| d.as_secs_f64())
+            // Wall-clock time at the first frame plus the monotonic clock since: a step of
+            // the system clock (NTP, a suspended box) must not send stamps backwards, which
+            // would have every frame skipped until the clock caught up.
+            let (wall0, mono0) = *self.clock.get_or_insert_with(|| {
+                let wall = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0.0, |d| d.as_secs_f64());
+                (wall, std::time::Instant::now())
+            });
+            wall0 + mono0.elapsed().as_secs_f64()
         } else {
             index as f64 / self.fps
         };
@@ -281,6 +290,7 @@ fn open_frames(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceErro
                 live,
                 next: 0,
                 grey: Mat::default(),
+                clock: None,
             }));
         }
     };
