@@ -124,6 +124,8 @@ fn truncated_image_mid_stream_is_skipped_named_and_counted() {
         err.contains(&name) && err.contains("frame skipped"),
         "{err}"
     );
+    // Logs to a pipe or file are plain lines (colour only on a terminal).
+    assert!(!err.contains('\u{1b}'), "ANSI codes in {err}");
     assert_eq!(report["skipped_frames"]["decode"], 1);
     assert_eq!(report["frames"], 39);
     assert_eq!(report["posed_frames"], 39);

@@ -110,9 +110,12 @@ fn init_tracing(verbose: u8) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{default},zenoh=warn")));
     // EGOSLAM_LOG_FORMAT=json: one JSON object per line, for journald (the systemd units).
+    // Colour only on a terminal: a log file or a pipe gets plain lines.
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(colour)
         .with_target(false);
     if std::env::var("EGOSLAM_LOG_FORMAT").is_ok_and(|f| f == "json") {
         builder.json().with_current_span(true).init();
