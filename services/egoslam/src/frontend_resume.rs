@@ -45,7 +45,7 @@ pub fn save(
     tracks: impl ExactSizeIterator<Item = (u64, Point2f)>,
 ) -> anyhow::Result<()> {
     let pixels = image.data_bytes().context("resume frame: pixel access")?;
-    let mut bytes = Vec::with_capacity(MAGIC.len() + 32 + tracks.len() * 16 + pixels.len());
+    let mut bytes = Vec::with_capacity(MAGIC.len() + 32 + tracks.len() * 16);
     bytes.extend_from_slice(MAGIC);
     bytes.extend_from_slice(&(image.cols() as u32).to_le_bytes());
     bytes.extend_from_slice(&(image.rows() as u32).to_le_bytes());
@@ -57,11 +57,12 @@ pub fn save(
         bytes.extend_from_slice(&p.x.to_le_bytes());
         bytes.extend_from_slice(&p.y.to_le_bytes());
     }
-    bytes.extend_from_slice(pixels);
     let partial = path.with_extension("resume.partial");
     let mut file = std::fs::File::create(&partial)
         .with_context(|| format!("creating {}", partial.display()))?;
+    // The pixels straight from the frame (shared memory), not through another buffer.
     file.write_all(&bytes)
+        .and_then(|()| file.write_all(pixels))
         .with_context(|| format!("writing {}", partial.display()))?;
     std::fs::rename(&partial, path).with_context(|| format!("replacing {}", path.display()))
 }

@@ -13,7 +13,7 @@ use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_relocalization::patch_alignment::extract_patch;
 use egoslam_sources::calibration::read_calibration_file;
-use opencv::core::{Mat, Point2f, ToInputArray};
+use opencv::core::{Mat, ToInputArray};
 use opencv::prelude::*;
 use std::collections::HashSet;
 use std::time::Instant;
@@ -364,8 +364,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
         }
         if let Some(path) = &resume_path {
-            let tracks = tracker.sample_tracks(usize::MAX).into_iter();
-            let tracks = tracks.map(|t| (t.track_id, Point2f::new(t.raw.x, t.raw.y)));
+            let tracks = tracker.resumable_tracks();
             if let Err(e) =
                 frontend_resume::save(path, meta.frame_id, meta.timestamp, &image, tracks)
             {

@@ -39,7 +39,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let (start, mut first_t) = (Instant::now(), None);
     let mut last_progress = Instant::now();
     let mut last_id = 0;
-    let mut size: Option<(u32, u32)> = None;
+    let mut calibration_checked = false;
     // SIGINT/SIGTERM: stop reading, end the stream where it is, so that the services
     // behind finish what was sent and write their results.
     let mut interrupted = false;
@@ -52,12 +52,12 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         // reach here: the source skips, names and counts them (FrameStream).
         let frame = frame?;
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
-        if size.is_none() {
+        if !calibration_checked {
             if let Some(calib) = &camera {
                 // Fails with the calibration file and both sizes named.
                 calib.camera_for(w, h)?;
             }
-            size = Some((w, h));
+            calibration_checked = true;
         }
         let image = if frame.image.is_continuous() {
             frame.image

@@ -465,11 +465,7 @@ fn a_new_tracker_resumed_from_a_saved_frame_keeps_the_track_ids() {
         saved = Some(frame);
     }
     let saved = saved.expect("a frame");
-    let tracks: Vec<(u64, Point2f)> = before
-        .sample_tracks(usize::MAX)
-        .iter()
-        .map(|t| (t.track_id, Point2f::new(t.raw.x, t.raw.y)))
-        .collect();
+    let tracks: Vec<(u64, Point2f)> = before.resumable_tracks().collect();
     assert!(tracks.len() > 300, "{} tracks", tracks.len());
     // The restarted process: a new tracker, its ids continued, starting from frame 4 and
     // given frame 9 next (the frames between were lost with the old process): 15 px on.

@@ -24,6 +24,19 @@ pub struct ResumePoint<'a> {
 }
 
 impl Tracker {
+    /// `(track id, raw pixel)` of the live tracks that were alive at the last keyframe: what
+    /// [`ResumePoint::tracks`] takes. Raw positions only (no undistortion): the frontend
+    /// saves them after every frame.
+    pub fn resumable_tracks(&self) -> impl ExactSizeIterator<Item = (u64, Point2f)> + '_ {
+        let kept: Vec<(u64, Point2f)> = self
+            .tracks
+            .iter()
+            .filter(|t| t.at_keyframe.is_some())
+            .map(|t| (t.id, t.pos))
+            .collect();
+        kept.into_iter()
+    }
+
     /// Continues from `point` as if it had just been tracked: the next frame is tracked from
     /// it and the keyframe rule counts from it. Ids already given (see
     /// [`Tracker::resume_ids`]) are not reused.
