@@ -33,6 +33,8 @@ pub struct MergerState {
     pub finished: bool,
     pub windows: u64,
     pub unsolved_windows: u64,
+    /// Keyframes with smaller ids were looked at for culling (merger_keyframe_culling.rs).
+    pub culling_checked_before: u64,
     /// frame id -> last revision published over zenoh.
     pub revisions: std::collections::BTreeMap<u64, u32>,
     /// keyframe id -> its described tracks (relocalization map, --map-out). Not in the
@@ -119,6 +121,7 @@ impl MergerState {
             keyframe_frame_ids: self.frames.keyframe_frames.values().copied().collect(),
             windows: self.windows,
             unsolved_windows: self.unsolved_windows,
+            culling_checked_before: self.culling_checked_before,
             pending_frames: self
                 .frames
                 .pending
@@ -271,6 +274,7 @@ impl MergerState {
             finished: m.finished,
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
+            culling_checked_before: m.culling_checked_before,
             features: BTreeMap::new(),
             patches: BTreeMap::new(),
             revisions: m
@@ -354,6 +358,7 @@ mod tests {
         state.last_sequence = Some(3);
         state.revisions.insert(4, 2);
         state.windows = 4;
+        state.culling_checked_before = 2;
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join(FILE_NAME);
         state.save(&path).expect("save");
@@ -368,6 +373,7 @@ mod tests {
             (back.stream_id, back.last_sequence, back.windows),
             (Some(7), Some(3), 4)
         );
+        assert_eq!(back.culling_checked_before, 2);
         assert!(MergerState::load(&dir.path().join("none"))
             .expect("absent is fine")
             .is_none());

@@ -131,6 +131,12 @@ pub struct PipelineArgs {
     /// off.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
+    /// Merger: take out of the map the keyframes whose points nearly all (90 %) are seen
+    /// by three other keyframes, once no window can bring them again (docs/merger.md,
+    /// "Keyframe culling"); their frames stay in the trajectory. `false` keeps every
+    /// keyframe (memory then grows with the time walked).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub cull_keyframes: bool,
     /// Merger: map.ply holds only the map points whose standard deviation, from the
     /// keyframes that saw them at 1 px noise, is at most this fraction of their distance to
     /// the nearest of those keyframes ("inf": every point). Default 0.02 (6 cm at 3 m).

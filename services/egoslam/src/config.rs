@@ -60,6 +60,7 @@ pub struct MergerSection {
     pub refine_keyframes: Option<usize>,
     pub refinement_lag: Option<u32>,
     pub loop_closure: Option<bool>,
+    pub cull_keyframes: Option<bool>,
     pub max_point_std: Option<f64>,
 }
 
@@ -248,6 +249,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "loop_closure",
         &mut p.loop_closure,
         &c.merger.loop_closure,
+    );
+    fill(
+        m,
+        "cull_keyframes",
+        &mut p.cull_keyframes,
+        &c.merger.cull_keyframes,
     );
 }
 

@@ -36,6 +36,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--refine-keyframes={}", p.refine_keyframes),
         format!("--refinement-lag={}", p.refinement_lag),
         format!("--loop-closure={}", p.loop_closure),
+        format!("--cull-keyframes={}", p.cull_keyframes),
         format!("--global-ba-px={}", p.global_ba_px),
         format!("--max-point-std={}", p.max_point_std),
         format!("--predict-motion={}", p.predict_motion),
@@ -378,6 +379,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             .collect::<serde_json::Map<_, _>>(),
         "posed_frames": counter(merger, "posed_frames"),
         "keyframes": frontend.keyframes,
+        // Those the map keeps (keyframes.tum); the others were culled as redundant
+        // (docs/merger.md, "Keyframe culling") and stay in the trajectory as frames.
+        "map_keyframes": merger.keyframes,
         "windows": solver.windows,
         "unsolved_windows": counter(merger, "unsolved_windows"),
         "segments": counter(merger, "segments"),

@@ -142,41 +142,8 @@ pub struct MapState {
 
 impl MapState {
     pub fn of(map: &MapBuilder, index: &FrameIndex) -> Self {
-        let mut keyframes: Vec<PosedFrame> = map
-            .keyframes()
-            .map(|(kf, segment, pose)| PosedFrame {
-                frame_id: index.keyframe_frames.get(&kf).copied().unwrap_or(u64::MAX),
-                segment,
-                pose: *pose,
-                interpolated: false,
-            })
-            .collect();
-        keyframes.sort_by(|a, b| a.pose.timestamp.total_cmp(&b.pose.timestamp));
-        let anchors: Vec<(u32, StampedPose)> =
-            keyframes.iter().map(|k| (k.segment, k.pose)).collect();
-        let ids: Vec<u64> = index.frames.keys().copied().collect();
-        let stamps: Vec<f64> = index.frames.values().copied().collect();
-        let keyframe_ids: std::collections::BTreeSet<u64> =
-            keyframes.iter().map(|k| k.frame_id).collect();
-        let frames = interpolate_frames(&anchors, &stamps)
-            .into_iter()
-            .map(|(i, pose, segment)| {
-                let frame_id = ids[i];
-                let localized = index.localized.get(&frame_id).and_then(|l| {
-                    let (s, anchor) = map.keyframe(l.anchor_keyframe)?;
-                    let next = map
-                        .keyframe(l.next_keyframe)
-                        .and_then(|(sn, next)| (sn == s).then_some(next));
-                    (s == segment).then(|| l.pose(anchor, next))
-                });
-                PosedFrame {
-                    frame_id,
-                    segment,
-                    interpolated: localized.is_none() && !keyframe_ids.contains(&frame_id),
-                    pose: localized.unwrap_or(pose),
-                }
-            })
-            .collect();
+        let keyframes = posed_keyframes(map, index);
+        let frames = posed_frames(map, index, &keyframes, ..);
         let points = map.points().map(|(track, _, x)| (track, *x)).collect();
         Self {
             keyframes,
@@ -233,6 +200,69 @@ impl MapState {
         write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())?;
         Ok(points.len())
     }
+}
+
+/// The map's keyframes as posed frames, in time order.
+fn posed_keyframes(map: &MapBuilder, index: &FrameIndex) -> Vec<PosedFrame> {
+    let mut keyframes: Vec<PosedFrame> = map
+        .keyframes()
+        .map(|(kf, segment, pose)| PosedFrame {
+            frame_id: index.keyframe_frames.get(&kf).copied().unwrap_or(u64::MAX),
+            segment,
+            pose: *pose,
+            interpolated: false,
+        })
+        .collect();
+    keyframes.sort_by(|a, b| a.pose.timestamp.total_cmp(&b.pose.timestamp));
+    keyframes
+}
+
+/// The frames with ids in `ids` that can be posed: localized ones relative to their anchor
+/// keyframe, the others interpolated between the keyframes around them.
+fn posed_frames(
+    map: &MapBuilder,
+    index: &FrameIndex,
+    keyframes: &[PosedFrame],
+    ids: impl std::ops::RangeBounds<u64>,
+) -> Vec<PosedFrame> {
+    let anchors: Vec<(u32, StampedPose)> = keyframes.iter().map(|k| (k.segment, k.pose)).collect();
+    let (ids, stamps): (Vec<u64>, Vec<f64>) =
+        index.frames.range(ids).map(|(i, t)| (*i, *t)).unzip();
+    let keyframe_ids: std::collections::BTreeSet<u64> =
+        keyframes.iter().map(|k| k.frame_id).collect();
+    interpolate_frames(&anchors, &stamps)
+        .into_iter()
+        .map(|(i, pose, segment)| {
+            let frame_id = ids[i];
+            let localized = index.localized.get(&frame_id).and_then(|l| {
+                let (s, anchor) = map.keyframe(l.anchor_keyframe)?;
+                let next = map
+                    .keyframe(l.next_keyframe)
+                    .and_then(|(sn, next)| (sn == s).then_some(next));
+                (s == segment).then(|| l.pose(anchor, next))
+            });
+            PosedFrame {
+                frame_id,
+                segment,
+                interpolated: localized.is_none() && !keyframe_ids.contains(&frame_id),
+                pose: localized.unwrap_or(pose),
+            }
+        })
+        .collect()
+}
+
+/// frame id -> (segment, pose) of the frames with ids in `ids`, as [`MapState::of`] poses
+/// them.
+pub fn frame_poses(
+    map: &MapBuilder,
+    index: &FrameIndex,
+    ids: impl std::ops::RangeBounds<u64>,
+) -> BTreeMap<u64, (u32, StampedPose)> {
+    let keyframes = posed_keyframes(map, index);
+    posed_frames(map, index, &keyframes, ids)
+        .into_iter()
+        .map(|f| (f.frame_id, (f.segment, f.pose)))
+        .collect()
 }
 
 /// Revision bookkeeping: which frame poses are new or changed since last published.

@@ -17,6 +17,8 @@ use crate::stats::ServiceStats;
 
 #[path = "merger_journal_recovery.rs"]
 mod journal_recovery;
+#[path = "merger_keyframe_culling.rs"]
+mod keyframe_culling;
 #[path = "merger_outputs.rs"]
 mod outputs;
 #[path = "merger_relocalization.rs"]
@@ -176,6 +178,10 @@ impl Merger {
         if persist {
             self.state.revisions = self.outputs.revisions.numbers();
             let save_start = std::time::Instant::now();
+            let (features, patches) = (&self.state.features, &self.state.patches);
+            if crate::features_log::compact_if_due(&mut self.features_log, features, patches)? > 0 {
+                self.stats.count("features_log_compactions", 1);
+            }
             self.features_log.sync()?;
             self.state.save(&self.checkpoint_path())?;
             // The solver may now drop the journal's records before the next one.
@@ -355,6 +361,9 @@ impl Merger {
             self.stats.count("loop_sightings", added as u64);
         }
         self.try_link(w.window_id, segment);
+        if let Some(first) = w.keyframe_ids.first() {
+            self.cull_keyframes(*first);
+        }
     }
 }
 
@@ -498,6 +507,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         );
         merger.stats.count("restarts", 1);
         (state.features, state.patches) = crate::features_log::read(&merger.args.out)?;
+        // Culled keyframes' records stay in the log until it is compacted.
+        let map = &state.map;
+        state.features.retain(|k, _| map.keyframe(*k).is_some());
+        state.patches.retain(|k, _| map.keyframe(*k).is_some());
         for (keyframe, features) in &state.features {
             merger.index_keyframe(*keyframe, features);
         }

@@ -81,6 +81,27 @@ impl RecordLog {
         Ok(())
     }
 
+    /// Replaces the whole log, atomically, by `records` (compaction: the records still
+    /// wanted, written once each); appending goes on after them.
+    pub fn replace_with<'a, M: Message + 'a>(
+        &mut self,
+        records: impl IntoIterator<Item = &'a M>,
+    ) -> anyhow::Result<()> {
+        self.flush()?;
+        let mut bytes = Vec::new();
+        for r in records {
+            r.encode_length_delimited(&mut bytes)
+                .with_context(|| format!("encoding a record of {}", self.path.display()))?;
+        }
+        crate::output::write_atomically(&self.path, &bytes)?;
+        let file = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&self.path)
+            .with_context(|| format!("reopening {}", self.path.display()))?;
+        self.writer = std::io::BufWriter::new(file);
+        Ok(())
+    }
+
     /// Empties the log (a new stream starts a new map).
     pub fn truncate(&mut self) -> anyhow::Result<()> {
         self.flush()?;

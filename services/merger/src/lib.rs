@@ -6,6 +6,7 @@ pub mod chaining;
 pub mod frame_localization;
 pub mod interior_cut;
 pub mod interpolation;
+pub mod keyframe_culling;
 pub mod loop_closure;
 pub mod point_confidence;
 pub mod provisional_scale;
@@ -28,6 +29,7 @@ pub(crate) fn median(values: Vec<f64>) -> Option<f64> {
 }
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};
+pub use keyframe_culling::{CulledKeyframe, CullingReport, KeyframeCullingOptions};
 pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
 pub use provisional_scale::{ProvisionalScale, SettledScale};

@@ -18,6 +18,8 @@ pub struct Candidate {
 #[derive(Debug, Clone, Default)]
 pub struct KeyframeDatabase {
     keyframes: Vec<u64>,
+    /// keyframe id -> index into `keyframes`, of the keyframes indexed now.
+    entries: HashMap<u64, u32>,
     /// word -> (index into `keyframes`, weight).
     inverted: HashMap<u32, Vec<(u32, f32)>>,
 }
@@ -31,19 +33,36 @@ impl KeyframeDatabase {
     pub fn add(&mut self, keyframe_id: u64, bow: &BowVector) {
         let index = self.keyframes.len() as u32;
         self.keyframes.push(keyframe_id);
+        self.entries.insert(keyframe_id, index);
         for &(word, weight) in bow {
             self.inverted.entry(word).or_default().push((index, weight));
         }
     }
 
+    /// Takes a keyframe out of the index (`bow`: the bag of words it was added with); its
+    /// entries go, so the index's size follows the keyframes kept, not those ever added.
+    pub fn remove(&mut self, keyframe_id: u64, bow: &BowVector) {
+        let Some(index) = self.entries.remove(&keyframe_id) else {
+            return;
+        };
+        for &(word, _) in bow {
+            if let Some(list) = self.inverted.get_mut(&word) {
+                list.retain(|(entry, _)| *entry != index);
+                if list.is_empty() {
+                    self.inverted.remove(&word);
+                }
+            }
+        }
+    }
+
     /// Number of keyframes indexed.
     pub fn len(&self) -> usize {
-        self.keyframes.len()
+        self.entries.len()
     }
 
     /// Whether no keyframe is indexed.
     pub fn is_empty(&self) -> bool {
-        self.keyframes.is_empty()
+        self.entries.is_empty()
     }
 
     /// The `max_results` keyframes most similar to `bow` by the L1 score
@@ -94,5 +113,11 @@ mod tests {
         assert!((got[1].score - 0.25).abs() < 1e-6);
         assert_eq!(db.query(&vec![(1, 1.0)], 1).len(), 1);
         assert_eq!(db.len(), 3);
+        db.remove(7, &vec![(1, 0.5), (4, 0.5)]);
+        let got = db.query(&vec![(1, 0.5), (4, 0.5)], 5);
+        assert_eq!(got.len(), 1);
+        assert_eq!(got[0].keyframe_id, 8);
+        assert_eq!(db.len(), 2);
+        assert!(!db.inverted.contains_key(&4), "an emptied word's list goes");
     }
 }

@@ -1,0 +1,141 @@
+//! The merger drops redundant keyframes once no window can bring them again
+//! (egoslam_merger::keyframe_culling): the map, the checkpoint, the descriptors and the
+//! bag-of-words index keep the keyframes that see something the others do not. A culled
+//! keyframe's frame stays in the trajectory, posed relative to the kept keyframes around
+//! it (a `LocalizedFrame`), as do the frames that were posed against it.
+
+use super::Merger;
+use crate::map_state::{relative, LocalizedFrame};
+use egoslam_geometry::StampedPose;
+use egoslam_merger::{CulledKeyframe, KeyframeCullingOptions};
+use std::collections::BTreeMap;
+
+impl Merger {
+    /// Culls among the keyframes older than `oldest_live` (the newest window's first: the
+    /// next window overlaps only that one) not looked at before. Not while a background
+    /// refinement runs: its result holds those keyframes (a fold finding one gone drops
+    /// the whole result); they are looked at after it is folded.
+    pub(super) fn cull_keyframes(&mut self, oldest_live: u64) {
+        if !self.args.pipeline.cull_keyframes
+            || self.refiner.is_running()
+            || oldest_live <= self.state.culling_checked_before
+        {
+            return;
+        }
+        let candidates: Vec<u64> = self
+            .state
+            .map
+            .keyframes()
+            .map(|(id, _, _)| id)
+            .filter(|id| (self.state.culling_checked_before..oldest_live).contains(id))
+            .collect();
+        self.state.culling_checked_before = oldest_live;
+        let Some(&first) = candidates.first() else {
+            return;
+        };
+        // The frames that may be posed against a candidate, as they are posed now.
+        let frames = &self.state.frames;
+        let span = |id: Option<u64>| id.and_then(|k| frames.keyframe_frames.get(&k).copied());
+        let map = &self.state.map;
+        let before_first = map
+            .keyframes()
+            .map(|(id, _, _)| id)
+            .take_while(|id| *id < first);
+        let from = span(before_first.last().or(Some(first)));
+        let to = span(
+            map.keyframes()
+                .map(|(id, _, _)| id)
+                .find(|id| *id >= oldest_live),
+        );
+        let (Some(from), Some(to)) = (from, to) else {
+            return;
+        };
+        let before = crate::map_state::frame_poses(map, frames, from..=to);
+        let options = KeyframeCullingOptions::default();
+        let map = &mut self.state.map;
+        let report = self.stats.time("cull_keyframes", || {
+            map.cull_keyframes(&candidates, &options)
+        });
+        if report.culled.is_empty() {
+            return;
+        }
+        let culled: BTreeMap<u64, CulledKeyframe> =
+            report.culled.iter().map(|c| (c.keyframe_id, *c)).collect();
+        self.keep_frames_posed(&culled, &before);
+        for id in culled.keys() {
+            if let Some(features) = self.state.features.remove(id) {
+                let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
+                self.database
+                    .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
+            }
+            self.state.patches.remove(id);
+        }
+        tracing::debug!(
+            keyframes = culled.len(),
+            points = report.removed_points,
+            "redundant keyframes culled"
+        );
+        self.stats.count("culled_keyframes", culled.len() as u64);
+        self.stats
+            .count("culled_points", report.removed_points as u64);
+    }
+
+    /// Keeps each culled keyframe's frame, and every frame posed against a culled keyframe,
+    /// at its pose in `before`, relative to the kept keyframes around it. Frames that were
+    /// interpolated stay interpolated (now between the kept keyframes).
+    fn keep_frames_posed(
+        &mut self,
+        culled: &BTreeMap<u64, CulledKeyframe>,
+        before: &BTreeMap<u64, (u32, StampedPose)>,
+    ) {
+        let kept: Vec<(u64, u32, StampedPose)> = self
+            .state
+            .map
+            .keyframes()
+            .map(|(id, s, p)| (id, s, *p))
+            .collect();
+        let index = &mut self.state.frames;
+        let mut frozen: Vec<u64> = culled
+            .keys()
+            .filter_map(|k| index.keyframe_frames.get(k).copied())
+            .collect();
+        frozen.extend(index.localized.iter().filter_map(|(f, l)| {
+            (culled.contains_key(&l.anchor_keyframe) || culled.contains_key(&l.next_keyframe))
+                .then_some(*f)
+        }));
+        for frame in frozen {
+            let Some(&(segment, pose)) = before.get(&frame) else {
+                continue;
+            };
+            match bracket(&kept, pose.timestamp, segment) {
+                Some((anchor_id, anchor, next_id, next)) => {
+                    index.localized.insert(
+                        frame,
+                        LocalizedFrame {
+                            anchor_keyframe: anchor_id,
+                            relative: relative(&anchor, &pose),
+                            next_keyframe: next_id,
+                            bracket_length: (next.position - anchor.position).norm(),
+                        },
+                    );
+                }
+                None => {
+                    index.localized.remove(&frame);
+                }
+            }
+        }
+    }
+}
+
+/// The kept keyframes (`kept`, in time order) just before and after time `t`, when both
+/// are in `segment`.
+fn bracket(
+    kept: &[(u64, u32, StampedPose)],
+    t: f64,
+    segment: u32,
+) -> Option<(u64, StampedPose, u64, StampedPose)> {
+    let after = kept.partition_point(|(_, _, p)| p.timestamp <= t);
+    let (a_id, a_segment, anchor) = *kept.get(after.checked_sub(1)?)?;
+    let (n_id, n_segment, next) = *kept.get(after)?;
+    (a_segment == segment && n_segment == segment).then_some((a_id, anchor, n_id, next))
+}

@@ -1,0 +1,240 @@
+//! Redundant keyframes leave the map (Mur-Artal et al., "ORB-SLAM", T-RO 2015, section
+//! VI-E): a keyframe whose map points are nearly all seen by enough other keyframes adds
+//! nothing the refinements or relocalization need, and keeping it makes memory, the
+//! checkpoint and every map-wide step grow with the time walked instead of with the
+//! ground covered. The head-mounted walks this runs on make keyframes at 0.4-0.8 per frame
+//! (head turns fire the flow rule), so most of them are redundant.
+//!
+//! What is removed: the keyframe's pose, its observations (kept and weak), and points no
+//! keyframe observes any more. Its frame (and the frames posed against it) are handed to
+//! the caller, who keeps them relative to the keyframes around ([`CulledKeyframe`]).
+
+use crate::chaining::MapBuilder;
+use egoslam_geometry::StampedPose;
+use std::collections::{BTreeSet, HashMap};
+
+/// When a keyframe is redundant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeyframeCullingOptions {
+    /// Fraction of its points that must be seen by [`Self::other_views`] other keyframes
+    /// (ORB-SLAM: 90 %).
+    pub redundant_fraction: f64,
+    /// ORB-SLAM: 3.
+    pub other_views: usize,
+    /// Keyframes this many ids before the oldest candidate, and every one after it, count
+    /// as other views (the tracks of a walk's keyframes live a few windows; a point seen
+    /// again much later through a loop sighting is not counted, which only keeps more).
+    pub neighbourhood: u64,
+}
+
+impl Default for KeyframeCullingOptions {
+    fn default() -> Self {
+        Self {
+            redundant_fraction: 0.9,
+            other_views: 3,
+            neighbourhood: 300,
+        }
+    }
+}
+
+/// A keyframe taken out of the map, with what its frames need to stay posed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CulledKeyframe {
+    pub keyframe_id: u64,
+    pub segment: u32,
+    pub pose: StampedPose,
+}
+
+/// The outcome of one culling pass.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CullingReport {
+    pub culled: Vec<CulledKeyframe>,
+    /// Points left without any observation, removed.
+    pub removed_points: usize,
+}
+
+impl MapBuilder {
+    /// Culls the redundant keyframes among `candidates` (oldest first, so that the counts
+    /// of the later ones see the earlier removals). A keyframe is kept when it is the first
+    /// or last of its segment (the frames around it need a keyframe on each side), when it
+    /// observes no point, or when fewer than `redundant_fraction` of its points are seen by
+    /// `other_views` other keyframes.
+    pub fn cull_keyframes(
+        &mut self,
+        candidates: &[u64],
+        options: &KeyframeCullingOptions,
+    ) -> CullingReport {
+        let mut report = CullingReport::default();
+        let Some(&oldest) = candidates.iter().min() else {
+            return report;
+        };
+        let mut views = self.view_counts(oldest.saturating_sub(options.neighbourhood));
+        for &id in candidates {
+            let Some(&(segment, pose)) = self.keyframes.get(&id) else {
+                continue;
+            };
+            if !self.has_neighbours_in(segment, id) {
+                continue;
+            }
+            let tracks: Vec<u64> = self
+                .observations
+                .range((id, 0)..=(id, u64::MAX))
+                .map(|((_, t), _)| *t)
+                .filter(|t| self.points.contains_key(t))
+                .collect();
+            if tracks.is_empty() {
+                continue;
+            }
+            let seen_elsewhere = tracks
+                .iter()
+                .filter(|t| views.get(t).copied().unwrap_or(0) > options.other_views)
+                .count();
+            if (seen_elsewhere as f64) < options.redundant_fraction * tracks.len() as f64 {
+                continue;
+            }
+            report.removed_points += self.remove_keyframe(id, &mut views);
+            report.culled.push(CulledKeyframe {
+                keyframe_id: id,
+                segment,
+                pose,
+            });
+        }
+        if !report.culled.is_empty() {
+            let culled: BTreeSet<u64> = report.culled.iter().map(|c| c.keyframe_id).collect();
+            self.weak.retain(|_, views| {
+                views.retain(|k, _| !culled.contains(k));
+                !views.is_empty()
+            });
+        }
+        report
+    }
+
+    /// Track id -> number of keyframes from `first` on that observe it.
+    fn view_counts(&self, first: u64) -> HashMap<u64, usize> {
+        let mut views: HashMap<u64, usize> = HashMap::new();
+        for ((_, track), _) in self.observations.range((first, 0)..) {
+            *views.entry(*track).or_default() += 1;
+        }
+        views
+    }
+
+    /// Whether keyframe `id` has keyframes of `segment` both before and after it.
+    fn has_neighbours_in(&self, segment: u32, id: u64) -> bool {
+        let before = self
+            .keyframes
+            .range(..id)
+            .next_back()
+            .is_some_and(|(_, (s, _))| *s == segment);
+        let after = self
+            .keyframes
+            .range(id + 1..)
+            .next()
+            .is_some_and(|(_, (s, _))| *s == segment);
+        before && after
+    }
+
+    /// Removes keyframe `id` and its observations, and the points it leaves unobserved in
+    /// the neighbourhood `views` counts (an older keyframe that sighted one through a loop
+    /// keeps an observation of a point no longer in the map, which every use skips); returns
+    /// how many points were removed.
+    fn remove_keyframe(&mut self, id: u64, views: &mut HashMap<u64, usize>) -> usize {
+        self.keyframes.remove(&id);
+        let keys: Vec<(u64, u64)> = self
+            .observations
+            .range((id, 0)..=(id, u64::MAX))
+            .map(|(k, _)| *k)
+            .collect();
+        let mut removed = 0;
+        for key in &keys {
+            self.observations.remove(key);
+            let left = views.get_mut(&key.1).map_or(0, |v| {
+                *v = v.saturating_sub(1);
+                *v
+            });
+            if left == 0 && self.points.remove(&key.1).is_some() {
+                removed += 1;
+            }
+        }
+        removed
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chaining::MapParts;
+    use nalgebra::{Point2, UnitQuaternion, Vector3};
+    use std::collections::BTreeMap;
+
+    fn pose(t: f64) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position: Vector3::new(t, 0.0, 0.0),
+            rotation: UnitQuaternion::identity(),
+        }
+    }
+
+    /// Keyframes 0..n in one segment; keyframe k observes tracks `tracks(k)`.
+    fn map(n: u64, tracks: impl Fn(u64) -> Vec<u64>) -> MapBuilder {
+        let mut parts = MapParts::default();
+        for k in 0..n {
+            parts.keyframes.insert(k, (0, pose(k as f64)));
+            for t in tracks(k) {
+                parts
+                    .points
+                    .insert(t, (0, Vector3::new(t as f64, 1.0, 5.0)));
+                parts.observations.insert((k, t), Point2::new(1.0, 2.0));
+            }
+        }
+        MapBuilder::from_parts(parts)
+    }
+
+    #[test]
+    fn keyframes_whose_points_others_see_go_and_the_ends_and_unique_views_stay() {
+        // Every keyframe sees the same 20 tracks, keyframe 5 also 10 of its own.
+        let mut m = map(10, |k| {
+            let mut t: Vec<u64> = (0..20).collect();
+            if k == 5 {
+                t.extend(100..110);
+            }
+            t
+        });
+        let report = m.cull_keyframes(&(0..10).collect::<Vec<_>>(), &Default::default());
+        let culled: Vec<u64> = report.culled.iter().map(|c| c.keyframe_id).collect();
+        // 0 and 9 end the segment; 5's own tracks are a third of its points. Keyframe 8,
+        // the last culled, still had 3 others (0, 5, 9) seeing its points.
+        assert!(!culled.contains(&0) && !culled.contains(&9) && !culled.contains(&5));
+        let kept: Vec<u64> = m.keyframes().map(|(id, _, _)| id).collect();
+        assert_eq!(kept.len() + culled.len(), 10);
+        assert_eq!(kept, vec![0, 5, 9], "culled {culled:?}");
+        for t in 0..20 {
+            let views = m.observations.keys().filter(|(_, x)| *x == t).count();
+            assert_eq!(views, 3, "track {t}");
+        }
+        assert_eq!(report.removed_points, 0);
+        assert_eq!(m.points().count(), 30);
+    }
+
+    #[test]
+    fn a_point_only_the_culled_keyframe_saw_goes_with_it_and_weak_views_too() {
+        // Keyframes 0..6 see tracks 0..20; keyframe 2 alone sees track 50 (1 of 21 points,
+        // under the 10 % it may own).
+        let mut m = map(6, |k| {
+            let mut t: Vec<u64> = (0..20).collect();
+            if k == 2 {
+                t.push(50);
+            }
+            t
+        });
+        let mut weak = BTreeMap::new();
+        weak.insert(2, Point2::new(3.0, 3.0));
+        m.weak.insert(77, weak);
+        let report = m.cull_keyframes(&[2], &Default::default());
+        assert_eq!(report.culled.len(), 1);
+        assert_eq!(report.culled[0].keyframe_id, 2);
+        assert_eq!(report.culled[0].pose, pose(2.0));
+        assert_eq!(report.removed_points, 1);
+        assert!(m.point(50).is_none() && m.keyframe(2).is_none());
+        assert!(m.weak.is_empty());
+    }
+}
