@@ -25,6 +25,9 @@ pub struct KeyframeCullingOptions {
     /// as other views (the tracks of a walk's keyframes live a few windows; a point seen
     /// again much later through a loop sighting is not counted, which only keeps more).
     pub neighbourhood: u64,
+    /// The rule for places mapped before ([`crate::keyframe_coverage`]); `None`: only the
+    /// covisibility rule.
+    pub revisits: Option<crate::keyframe_coverage::CoverageOptions>,
 }
 
 impl Default for KeyframeCullingOptions {
@@ -33,6 +36,7 @@ impl Default for KeyframeCullingOptions {
             redundant_fraction: 0.9,
             other_views: 3,
             neighbourhood: 300,
+            revisits: Some(Default::default()),
         }
     }
 }
@@ -65,10 +69,14 @@ impl MapBuilder {
         options: &KeyframeCullingOptions,
     ) -> CullingReport {
         let mut report = CullingReport::default();
-        let Some(&oldest) = candidates.iter().min() else {
+        let (Some(&oldest), Some(&newest)) = (candidates.iter().min(), candidates.iter().max())
+        else {
             return report;
         };
         let mut views = self.view_counts(oldest.saturating_sub(options.neighbourhood));
+        let older = options
+            .revisits
+            .map(|r| crate::keyframe_coverage::OlderKeyframes::of(self, newest, &r));
         for &id in candidates {
             let Some(&(segment, pose)) = self.keyframes.get(&id) else {
                 continue;
@@ -89,7 +97,16 @@ impl MapBuilder {
                 .iter()
                 .filter(|t| views.get(t).copied().unwrap_or(0) > options.other_views)
                 .count();
-            if (seen_elsewhere as f64) < options.redundant_fraction * tracks.len() as f64 {
+            let redundant =
+                (seen_elsewhere as f64) >= options.redundant_fraction * tracks.len() as f64;
+            let covered = || {
+                older.as_ref().is_some_and(|older| {
+                    let points = tracks.iter().filter_map(|t| self.points.get(t));
+                    let depths = points.map(|(_, x)| (pose.rotation.inverse() * (x - pose.position)).z);
+                    older.cover(self, id, segment, &pose, depths)
+                })
+            };
+            if !redundant && !covered() {
                 continue;
             }
             report.removed_points += self.remove_keyframe(id, &mut views);

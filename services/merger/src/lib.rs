@@ -6,6 +6,7 @@ pub mod chaining;
 pub mod frame_localization;
 pub mod interior_cut;
 pub mod interpolation;
+pub mod keyframe_coverage;
 pub mod keyframe_culling;
 pub mod loop_closure;
 pub mod point_confidence;

@@ -1,0 +1,169 @@
+//! Keyframes of a place the map already holds (a revisit): the wearer walks the same
+//! corridor all day, and every pass brings its own keyframes and points of the same walls.
+//! Their tracks are new, so the covisibility rule ([`crate::keyframe_culling`]) does not
+//! see them as redundant, and the map would grow with the time walked instead of with the
+//! ground covered. A keyframe is covered when an older keyframe of an earlier pass stands
+//! where it stands and looks where it looks; it is then culled like a redundant one, as the
+//! reduced pose graph of Johannsson et al. ("Temporally scalable visual SLAM using a reduced
+//! pose graph", ICRA 2013) adds no keyframe where the map already has one. A sparse spine of
+//! the pass is kept, so that its frames stay posed relative to keyframes close in time.
+
+use crate::chaining::MapBuilder;
+use egoslam_geometry::StampedPose;
+use nalgebra::Vector3;
+
+/// When a keyframe is covered by an older one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CoverageOptions {
+    /// Only keyframes at least this many ids older count (an earlier pass; the keyframes
+    /// just before are the covisibility rule's). 200: ~10 s of a head-mounted walk.
+    pub min_age: u64,
+    /// Centres at most this fraction of the keyframe's median scene depth apart.
+    pub max_offset: f64,
+    /// Optical axes at most this far apart, degrees (ORB-SLAM's loop and relocalization
+    /// candidates share most of their view at 20-30 deg).
+    pub max_angle_deg: f64,
+    /// A keyframe this many ids after the previous keyframe the map keeps is kept: the
+    /// spine of the pass, to which its frames are posed.
+    pub spine: u64,
+}
+
+impl Default for CoverageOptions {
+    fn default() -> Self {
+        Self {
+            min_age: 200,
+            max_offset: 0.1,
+            max_angle_deg: 20.0,
+            spine: 30,
+        }
+    }
+}
+
+/// The keyframes a culling pass may find covering its candidates.
+pub struct OlderKeyframes {
+    /// (id, segment, centre, optical axis), in id order.
+    entries: Vec<(u64, u32, Vector3<f64>, Vector3<f64>)>,
+    options: CoverageOptions,
+}
+
+fn axis(pose: &StampedPose) -> Vector3<f64> {
+    pose.rotation * Vector3::z()
+}
+
+impl OlderKeyframes {
+    /// The keyframes of `map` older than `newest_candidate` by at least `min_age` ids (each
+    /// candidate looks at those older than itself by that much).
+    pub fn of(map: &MapBuilder, newest_candidate: u64, options: &CoverageOptions) -> Self {
+        let before = newest_candidate.saturating_sub(options.min_age);
+        let entries = map
+            .keyframes
+            .range(..before)
+            .map(|(id, (s, p))| (*id, *s, p.position, axis(p)))
+            .collect();
+        Self {
+            entries,
+            options: *options,
+        }
+    }
+
+    /// Whether keyframe `id` of `segment` at `pose`, whose points are at `depths` in its
+    /// camera, is covered by an older keyframe, and not needed for the spine.
+    pub fn cover(
+        &self,
+        map: &MapBuilder,
+        id: u64,
+        segment: u32,
+        pose: &StampedPose,
+        depths: impl Iterator<Item = f64>,
+    ) -> bool {
+        let o = &self.options;
+        let previous = map.keyframes.range(..id).next_back().map(|(k, _)| *k);
+        if previous.is_none_or(|k| id - k > o.spine) {
+            return false;
+        }
+        let Some(depth) = crate::median(depths.filter(|d| *d > 0.0).collect()) else {
+            return false;
+        };
+        let (reach, centre, view) = (o.max_offset * depth, pose.position, axis(pose));
+        let cos_max = o.max_angle_deg.to_radians().cos();
+        let last = id.saturating_sub(o.min_age);
+        self.entries
+            .iter()
+            .take_while(|(k, ..)| *k < last)
+            .any(|(k, s, c, a)| {
+                *s == segment
+                    && (c - centre).norm() <= reach
+                    && a.dot(&view) >= cos_max
+                    && map.keyframes.contains_key(k)
+            })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chaining::MapParts;
+    use crate::keyframe_culling::KeyframeCullingOptions;
+    use nalgebra::{Point2, UnitQuaternion};
+
+    fn pose(t: f64, x: f64, yaw_deg: f64) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position: Vector3::new(x, 0.0, 0.0),
+            rotation: UnitQuaternion::from_euler_angles(0.0, yaw_deg.to_radians(), 0.0),
+        }
+    }
+
+    /// A corridor walked along x twice: keyframes 0..300 at x = k / 100, then keyframes
+    /// 300..600 at the same places again, each seeing 10 tracks of its own (no shared
+    /// points: only coverage can cull) 5 units ahead; the second pass looks `yaw` away.
+    fn two_passes(yaw_deg: f64) -> MapBuilder {
+        let mut parts = MapParts::default();
+        for k in 0..600u64 {
+            let x = (k % 300) as f64 / 100.0;
+            let yaw = if k >= 300 { yaw_deg } else { 0.0 };
+            parts.keyframes.insert(k, (0, pose(k as f64, x, yaw)));
+            for t in 0..10 {
+                let track = k * 10 + t;
+                parts
+                    .points
+                    .insert(track, (0, Vector3::new(x, 0.1 * t as f64, 5.0)));
+                parts.observations.insert((k, track), Point2::new(1.0, 2.0));
+            }
+        }
+        MapBuilder::from_parts(parts)
+    }
+
+    #[test]
+    fn a_second_pass_keeps_a_spine_and_a_new_view_is_kept() {
+        let options = KeyframeCullingOptions::default();
+        let candidates: Vec<u64> = (300..590).collect();
+        let mut map = two_passes(5.0);
+        let report = map.cull_keyframes(&candidates, &options);
+        // 5 deg away, 0.01 apart at depth 5: covered, but one keyframe in 31 is kept (the
+        // spine: 299, the first pass's last, then 330, 361, ..., 578).
+        let kept: Vec<u64> = map
+            .keyframes()
+            .map(|(id, ..)| id)
+            .filter(|id| (300..590).contains(id))
+            .collect();
+        assert_eq!(kept.len(), 9, "{kept:?}");
+        assert!(kept.windows(2).all(|w| w[1] - w[0] == 31), "{kept:?}");
+        assert_eq!(report.culled.len() + kept.len(), 290);
+        // Their own points went with them.
+        assert_eq!(report.removed_points, 10 * report.culled.len());
+        // The first pass is untouched.
+        assert_eq!(map.keyframes().filter(|(id, ..)| *id < 300).count(), 300);
+
+        // Looking 40 deg away, the second pass sees something else: nothing is culled.
+        let mut map = two_passes(40.0);
+        assert!(map.cull_keyframes(&candidates, &options).culled.is_empty());
+        // Without the rule, nothing either (no shared points).
+        let mut map = two_passes(5.0);
+        let without = KeyframeCullingOptions {
+            revisits: None,
+            ..options
+        };
+        assert!(map.cull_keyframes(&candidates, &without).culled.is_empty());
+    }
+}
