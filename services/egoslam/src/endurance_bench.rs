@@ -399,6 +399,13 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
             .or(samples.last())
             .map(|s| s.disk_mib)
     };
+    let keyframes_at = |t: f64| {
+        samples
+            .iter()
+            .find(|s| s.wall_s >= t)
+            .or(samples.last())
+            .map(|s| s.keyframes)
+    };
     let summary = json!({
         "walk": name,
         "cycles": args.cycles,
@@ -407,6 +414,8 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         "posed_frames": report["posed_frames"],
         "segments": report["segments"],
         "keyframes": report["keyframes"],
+        "map_keyframes": report["map_keyframes"],
+        "map_keyframes_after_cycle_2": keyframes_at(c2),
         "map_points": report["map_points"],
         "loops_closed": report["loops_closed"],
         "rss_peak_mib_to_cycle_2": peak(&samples, 0.0..c2, Sample::total_rss),
@@ -442,8 +451,8 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
          | figure | up to the end of cycle 2 | last cycle / end |\n|---|---|---|\n\
          | peak RSS, all processes (MiB) | {rss_c2} | {rss_last} |\n\
          | output + state on disk (MiB) | {disk_c2} | {disk_end} |\n\n\
-         | keyframes | map points | segments | ATE, whole loop | ATE, one pass | ratio | written to storage per hour of video (MiB) |\n\
-         |---|---|---|---|---|---|---|\n| {kf} | {pts} | {seg} | {ate} m | {ate1} m | {ratio} | {per_hour} |\n\n",
+         | keyframes made / in the map | map points | segments | ATE, whole loop | ATE, one pass | ratio | written to storage per hour of video (MiB) |\n\
+         |---|---|---|---|---|---|---|\n| {kf} / {map_kf} | {pts} | {seg} | {ate} m | {ate1} m | {ratio} | {per_hour} |\n\n",
         cycles = args.cycles,
         walk_frames = args.walk_frames,
         minutes = f("video_minutes", 1),
@@ -453,6 +462,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         disk_c2 = f("disk_mib_after_cycle_2", 0),
         disk_end = f("disk_mib_end", 0),
         kf = summary["keyframes"],
+        map_kf = summary["map_keyframes"],
         pts = summary["map_points"],
         seg = summary["segments"],
         ate = f("ate_m", 3),

@@ -26,7 +26,7 @@ pub fn open(dir: &Path) -> anyhow::Result<RecordLog> {
 }
 
 /// Rewrites the log with the records of `features` (and their `patches`) alone when it
-/// holds more than twice their size and at least [`COMPACT_ABOVE_BYTES`]: culled keyframes'
+/// holds more than 1.5 times their size and at least [`COMPACT_ABOVE_BYTES`]: culled keyframes'
 /// records go, so the log grows with the map, not with the time walked. Returns the bytes
 /// written (0 when not due). Call it before a checkpoint: the log must cover every keyframe
 /// the checkpoint holds, and the windows after it re-append theirs when replayed.
@@ -47,7 +47,7 @@ pub fn compact_if_due(
         .iter()
         .map(|r| (prost::length_delimiter_len(r.encoded_len()) + r.encoded_len()) as u64)
         .sum();
-    if size <= 2 * live {
+    if 2 * size <= 3 * live {
         return Ok(0);
     }
     log.replace_with(&records)?;

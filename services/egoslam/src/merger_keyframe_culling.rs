@@ -14,8 +14,12 @@ impl Merger {
     /// Culls among the keyframes older than `oldest_live` (the newest window's first: the
     /// next window overlaps only that one) not looked at before. Not while a background
     /// refinement runs: its result holds those keyframes (a fold finding one gone drops
-    /// the whole result); they are looked at after it is folded.
+    /// the whole result); they are looked at after it is folded. Nor from the first
+    /// keyframe of a stretch waiting for its scale on: settling it rescales its keyframes
+    /// about that one, which frames kept relative to keyframes before it would not follow.
     pub(super) fn cull_keyframes(&mut self, oldest_live: u64) {
+        let provisional = self.state.map.provisional_scale().map(|p| p.first_keyframe);
+        let oldest_live = provisional.map_or(oldest_live, |first| first.min(oldest_live));
         if !self.args.pipeline.cull_keyframes
             || self.refiner.is_running()
             || oldest_live <= self.state.culling_checked_before

@@ -102,7 +102,8 @@ impl MapBuilder {
             let covered = || {
                 older.as_ref().is_some_and(|older| {
                     let points = tracks.iter().filter_map(|t| self.points.get(t));
-                    let depths = points.map(|(_, x)| (pose.rotation.inverse() * (x - pose.position)).z);
+                    let depths =
+                        points.map(|(_, x)| (pose.rotation.inverse() * (x - pose.position)).z);
                     older.cover(self, id, segment, &pose, depths)
                 })
             };
