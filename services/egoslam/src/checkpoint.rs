@@ -43,6 +43,9 @@ pub struct MergerState {
     /// keyframe id -> the patches of the tracks first described in it (relocalization's patch
     /// alignment). In the features log with the descriptors.
     pub patches: BTreeMap<u64, Vec<(u64, Patch)>>,
+    /// Culled keyframe id -> the features of its tracks whose patches it keeps (their
+    /// pixels; merger_keyframe_culling.rs). In the features log.
+    pub culled_features: BTreeMap<u64, Vec<MapFeature>>,
 }
 
 impl MergerState {
@@ -277,6 +280,7 @@ impl MergerState {
             culling_checked_before: m.culling_checked_before,
             features: BTreeMap::new(),
             patches: BTreeMap::new(),
+            culled_features: BTreeMap::new(),
             revisions: m
                 .revision_frame_ids
                 .iter()

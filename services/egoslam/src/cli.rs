@@ -137,6 +137,12 @@ pub struct PipelineArgs {
     /// keyframe (memory then grows with the time walked).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub cull_keyframes: bool,
+    /// Merger: keyframes the map keeps at most; over it, those whose place another
+    /// keyframe covers most closely are culled first (docs/merger.md, "Keyframe culling").
+    /// Bounds the merger's memory on a day of walking (~0.2 MB per keyframe); 0: no
+    /// ceiling. Default 3000.
+    #[arg(long, default_value_t = 3000)]
+    pub max_map_keyframes: usize,
     /// Merger: map.ply holds only the map points whose standard deviation, from the
     /// keyframes that saw them at 1 px noise, is at most this fraction of their distance to
     /// the nearest of those keyframes ("inf": every point). Default 0.02 (6 cm at 3 m).

@@ -61,6 +61,7 @@ pub struct MergerSection {
     pub refinement_lag: Option<u32>,
     pub loop_closure: Option<bool>,
     pub cull_keyframes: Option<bool>,
+    pub max_map_keyframes: Option<usize>,
     pub max_point_std: Option<f64>,
 }
 
@@ -255,6 +256,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "cull_keyframes",
         &mut p.cull_keyframes,
         &c.merger.cull_keyframes,
+    );
+    fill(
+        m,
+        "max_map_keyframes",
+        &mut p.max_map_keyframes,
+        &c.merger.max_map_keyframes,
     );
 }
 

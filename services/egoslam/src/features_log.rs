@@ -25,14 +25,14 @@ pub fn open(dir: &Path) -> anyhow::Result<RecordLog> {
     RecordLog::open(&dir.join(FILE_NAME))
 }
 
-/// Rewrites the log with the records of `features` (and their `patches`) alone when it
+/// Rewrites the log with the records of `features` (each map of them; and their `patches`) alone when it
 /// holds more than 1.5 times their size and at least [`COMPACT_ABOVE_BYTES`]: culled keyframes'
 /// records go, so the log grows with the map, not with the time walked. Returns the bytes
 /// written (0 when not due). Call it before a checkpoint: the log must cover every keyframe
 /// the checkpoint holds, and the windows after it re-append theirs when replayed.
-pub fn compact_if_due(
+pub fn compact_if_due<const N: usize>(
     log: &mut RecordLog,
-    features: &BTreeMap<u64, Vec<MapFeature>>,
+    features: [&BTreeMap<u64, Vec<MapFeature>>; N],
     patches: &BTreeMap<u64, Vec<(u64, Patch)>>,
 ) -> anyhow::Result<u64> {
     let size = log.len_bytes()?;
@@ -41,6 +41,7 @@ pub fn compact_if_due(
     }
     let records: Vec<pb::KeyframeFeatures> = features
         .iter()
+        .flat_map(|f| f.iter())
         .map(|(k, f)| features_to_pb(*k, f, patches.get(k).map_or(&[], Vec::as_slice)))
         .collect();
     let live: u64 = records
@@ -115,11 +116,11 @@ mod tests {
         }
         let before = log.len_bytes().expect("len");
         assert!(before > COMPACT_ABOVE_BYTES);
-        let after = compact_if_due(&mut log, &features, &patches).expect("compact");
+        let after = compact_if_due(&mut log, [&features], &patches).expect("compact");
         assert!(after > 0 && after < before / 3, "{after} of {before}");
         assert_eq!(log.len_bytes().expect("len"), after);
         assert_eq!(
-            compact_if_due(&mut log, &features, &patches).expect("again"),
+            compact_if_due(&mut log, [&features], &patches).expect("again"),
             0
         );
         log.append(&features_to_pb(800, &[feature(800)], &[]))

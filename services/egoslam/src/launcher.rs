@@ -37,6 +37,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--refinement-lag={}", p.refinement_lag),
         format!("--loop-closure={}", p.loop_closure),
         format!("--cull-keyframes={}", p.cull_keyframes),
+        format!("--max-map-keyframes={}", p.max_map_keyframes),
         format!("--global-ba-px={}", p.global_ba_px),
         format!("--max-point-std={}", p.max_point_std),
         format!("--predict-motion={}", p.predict_motion),

@@ -54,7 +54,21 @@ pub fn relocalization_map(
         .points()
         .map(|(track, segment, x)| (track, (segment, *x)))
         .collect();
-    let keyframes = state
+    // Culled keyframes keep the patches of their points (merger_keyframe_culling.rs), at
+    // the pose their frame keeps.
+    let frame_poses = crate::map_state::frame_poses(&state.map, &state.frames, ..);
+    let culled = state.culled_features.iter().filter_map(|(id, features)| {
+        let frame = state.frames.keyframe_frames.get(id)?;
+        let (segment, pose) = frame_poses.get(frame)?;
+        Some(MapKeyframe {
+            keyframe_id: *id,
+            segment: *segment,
+            pose: *pose,
+            features: features.clone(),
+            patches: Vec::new(),
+        })
+    });
+    let mut keyframes: Vec<MapKeyframe> = state
         .map
         .keyframes()
         .map(|(id, segment, pose)| MapKeyframe {
@@ -64,16 +78,21 @@ pub fn relocalization_map(
             // Every described track: all of them make the keyframe's bag of words, those
             // that are points give the matches.
             features: state.features.get(&id).cloned().unwrap_or_default(),
-            // Only for points: the other tracks' patches are never looked up.
-            patches: state.patches.get(&id).map_or_else(Vec::new, |patches| {
-                patches
-                    .iter()
-                    .filter(|(track, _)| points.contains_key(track))
-                    .copied()
-                    .collect()
-            }),
+            patches: Vec::new(),
         })
+        .chain(culled)
         .collect();
+    keyframes.sort_by_key(|k| k.keyframe_id);
+    for k in &mut keyframes {
+        // Only for points: the other tracks' patches are never looked up.
+        if let Some(patches) = state.patches.get(&k.keyframe_id) {
+            k.patches = patches
+                .iter()
+                .filter(|(track, _)| points.contains_key(track))
+                .copied()
+                .collect();
+        }
+    }
     RelocalizationMap {
         camera: *camera,
         keyframes,

@@ -178,7 +178,8 @@ impl Merger {
         if persist {
             self.state.revisions = self.outputs.revisions.numbers();
             let save_start = std::time::Instant::now();
-            let (features, patches) = (&self.state.features, &self.state.patches);
+            let features = [&self.state.features, &self.state.culled_features];
+            let patches = &self.state.patches;
             if crate::features_log::compact_if_due(&mut self.features_log, features, patches)? > 0 {
                 self.stats.count("features_log_compactions", 1);
             }
@@ -506,11 +507,22 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
-        (state.features, state.patches) = crate::features_log::read(&merger.args.out)?;
-        // Culled keyframes' records stay in the log until it is compacted.
-        let map = &state.map;
-        state.features.retain(|k, _| map.keyframe(*k).is_some());
-        state.patches.retain(|k, _| map.keyframe(*k).is_some());
+        let (features, patches) = crate::features_log::read(&merger.args.out)?;
+        // Culled keyframes keep only their patches (and those tracks' features).
+        for (keyframe, features) in features {
+            if state.map.keyframe(keyframe).is_some() {
+                state.features.insert(keyframe, features);
+            } else if let Some(p) = patches.get(&keyframe) {
+                let patched: BTreeSet<u64> = p.iter().map(|(t, _)| *t).collect();
+                let kept = features
+                    .into_iter()
+                    .filter(|f| patched.contains(&f.track_id));
+                state.culled_features.insert(keyframe, kept.collect());
+            }
+        }
+        let kept =
+            |k: &u64| state.features.contains_key(k) || state.culled_features.contains_key(k);
+        state.patches = patches.into_iter().filter(|(k, _)| kept(k)).collect();
         for (keyframe, features) in &state.features {
             merger.index_keyframe(*keyframe, features);
         }

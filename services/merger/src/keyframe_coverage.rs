@@ -136,7 +136,7 @@ mod tests {
 
     #[test]
     fn a_second_pass_keeps_a_spine_and_a_new_view_is_kept() {
-        let options = KeyframeCullingOptions::default();
+        let options = crate::keyframe_culling::tests::any_size();
         let candidates: Vec<u64> = (300..590).collect();
         let mut map = two_passes(5.0);
         let report = map.cull_keyframes(&candidates, &options);

@@ -6,6 +6,7 @@ pub mod chaining;
 pub mod frame_localization;
 pub mod interior_cut;
 pub mod interpolation;
+pub mod keyframe_budget;
 pub mod keyframe_coverage;
 pub mod keyframe_culling;
 pub mod loop_closure;
@@ -30,6 +31,7 @@ pub(crate) fn median(values: Vec<f64>) -> Option<f64> {
 }
 pub use frame_localization::{localize_frame, LocalizationError, LocalizationOptions, Localized};
 pub use interpolation::{interpolate_between, interpolate_frames};
+pub use keyframe_budget::KeyframeBudget;
 pub use keyframe_culling::{CulledKeyframe, CullingReport, KeyframeCullingOptions};
 pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
