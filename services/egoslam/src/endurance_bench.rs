@@ -392,20 +392,9 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     let last = (f64::from(args.cycles) - 1.0) * cycle_s;
     let c2 = 2.0 * cycle_s;
     // The size when the second cycle ended: the first sample past it.
-    let disk_at = |t: f64| {
-        samples
-            .iter()
-            .find(|s| s.wall_s >= t)
-            .or(samples.last())
-            .map(|s| s.disk_mib)
-    };
-    let keyframes_at = |t: f64| {
-        samples
-            .iter()
-            .find(|s| s.wall_s >= t)
-            .or(samples.last())
-            .map(|s| s.keyframes)
-    };
+    let sample_at = |t: f64| samples.iter().find(|s| s.wall_s >= t).or(samples.last());
+    let disk_at = |t: f64| sample_at(t).map(|s| s.disk_mib);
+    let keyframes_at = |t: f64| sample_at(t).map(|s| s.keyframes);
     let summary = json!({
         "walk": name,
         "cycles": args.cycles,

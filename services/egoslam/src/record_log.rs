@@ -73,12 +73,7 @@ impl RecordLog {
     pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<()> {
         self.flush()?;
         crate::output::keep_tail_atomically(&self.path, offset, &[])?;
-        let file = std::fs::OpenOptions::new()
-            .append(true)
-            .open(&self.path)
-            .with_context(|| format!("reopening {}", self.path.display()))?;
-        self.writer = std::io::BufWriter::new(file);
-        Ok(())
+        self.reopen()
     }
 
     /// Replaces the whole log, atomically, by `records` (compaction: the records still
@@ -94,6 +89,11 @@ impl RecordLog {
                 .with_context(|| format!("encoding a record of {}", self.path.display()))?;
         }
         crate::output::write_atomically(&self.path, &bytes)?;
+        self.reopen()
+    }
+
+    /// Appends to the file now at the log's path (after it was replaced).
+    fn reopen(&mut self) -> anyhow::Result<()> {
         let file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)

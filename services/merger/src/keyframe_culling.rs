@@ -119,15 +119,23 @@ impl MapBuilder {
             if !redundant && !covered() {
                 continue;
             }
-            report.removed_points += self.remove_keyframe(id, &mut views);
-            report.culled.push(CulledKeyframe {
-                keyframe_id: id,
-                segment,
-                pose,
-            });
+            self.cull_one(id, &mut views, &mut report);
         }
         self.drop_weak_views(&report);
         report
+    }
+
+    /// Removes keyframe `id` into `report`.
+    fn cull_one(&mut self, id: u64, views: &mut HashMap<u64, usize>, report: &mut CullingReport) {
+        let Some(&(segment, pose)) = self.keyframes.get(&id) else {
+            return;
+        };
+        report.removed_points += self.remove_keyframe(id, views);
+        report.culled.push(CulledKeyframe {
+            keyframe_id: id,
+            segment,
+            pose,
+        });
     }
 
     /// Removes the keyframes `ids` (chosen otherwise, e.g. by
@@ -144,15 +152,7 @@ impl MapBuilder {
         };
         let mut views = self.view_counts(oldest.saturating_sub(options.neighbourhood));
         for &id in ids {
-            let Some(&(segment, pose)) = self.keyframes.get(&id) else {
-                continue;
-            };
-            report.removed_points += self.remove_keyframe(id, &mut views);
-            report.culled.push(CulledKeyframe {
-                keyframe_id: id,
-                segment,
-                pose,
-            });
+            self.cull_one(id, &mut views, &mut report);
         }
         self.drop_weak_views(&report);
         report
