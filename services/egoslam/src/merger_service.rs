@@ -145,6 +145,12 @@ impl Merger {
         // `BackgroundRefiner::fold`; at the end of the stream a running one is waited for).
         self.refiner
             .fold(&mut self.state.map, w.end_of_stream, &mut self.stats);
+        // Culling waits while a refinement runs, and a window may start the next one: here,
+        // right after a fold, it gets its turn. Keyframes older than this window's first
+        // are in no later window.
+        if let (false, Some(first)) = (w.end_of_stream, w.keyframe_ids.first()) {
+            self.cull_keyframes(*first);
+        }
         if w.end_of_stream {
             self.state.finished = true;
         } else {
@@ -362,9 +368,6 @@ impl Merger {
             self.stats.count("loop_sightings", added as u64);
         }
         self.try_link(w.window_id, segment);
-        if let Some(first) = w.keyframe_ids.first() {
-            self.cull_keyframes(*first);
-        }
     }
 }
 
