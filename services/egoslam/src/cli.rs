@@ -137,7 +137,8 @@ pub struct PipelineArgs {
     /// keyframe (memory then grows with the time walked).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub cull_keyframes: bool,
-    /// Merger: keyframes the map keeps at most; over it, those whose place another
+    /// Merger: keyframes the map aims to keep at most (keyframes that see no point and
+    /// those the spine needs stay beyond it); over it, those whose place another
     /// keyframe covers most closely are culled first (docs/merger.md, "Keyframe culling").
     /// Bounds the merger's memory on a day of walking (~0.2 MB per keyframe); 0: no
     /// ceiling. Default 3000.
