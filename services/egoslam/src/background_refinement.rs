@@ -50,6 +50,8 @@ pub struct BackgroundRefiner {
     worker: Option<JoinHandle<Option<RefinementOutcome>>>,
     /// The newest keyframe the running job knows (`None` when none runs).
     running_newest: Option<u64>,
+    /// The oldest keyframe the running job holds (`None` when none runs).
+    running_oldest: Option<u64>,
 }
 
 impl BackgroundRefiner {
@@ -66,6 +68,7 @@ impl BackgroundRefiner {
             job_lag: fold_lag,
             worker: None,
             running_newest: None,
+            running_oldest: None,
         }
     }
 
@@ -76,6 +79,16 @@ impl BackgroundRefiner {
         self.fold_lag > 0
             && self.windows_since_start + 1 >= self.job_lag
             && self.worker.as_ref().is_some_and(|w| !w.is_finished())
+    }
+
+    /// Keyframes older than this are in no running refinement and may be removed (all of
+    /// them when none runs).
+    pub fn free_before(&self) -> u64 {
+        match (&self.worker, self.running_oldest) {
+            (None, _) => u64::MAX,
+            (Some(_), Some(oldest)) => oldest,
+            (Some(_), None) => 0,
+        }
     }
 
     /// Whether a refinement is running (started, not folded yet).
@@ -117,6 +130,7 @@ impl BackgroundRefiner {
                 self.windows_since_start = 0;
                 self.job_lag = job_lag(self.fold_lag, job.keyframes());
                 self.running_newest = job.newest_known_keyframe();
+                self.running_oldest = job.oldest_keyframe();
                 self.worker = Some(std::thread::spawn(move || {
                     let _span = tracing::info_span!("global_refinement").entered();
                     job.solve()
@@ -153,6 +167,7 @@ impl BackgroundRefiner {
             return false;
         };
         self.running_newest = None;
+        self.running_oldest = None;
         let wait_start = std::time::Instant::now();
         let outcome = match worker.join() {
             Ok(o) => o,

@@ -20,12 +20,12 @@ impl Merger {
     pub(super) fn cull_keyframes(&mut self, oldest_live: u64) {
         let provisional = self.state.map.provisional_scale().map(|p| p.first_keyframe);
         let oldest_live = provisional.map_or(oldest_live, |first| first.min(oldest_live));
-        if !self.args.pipeline.cull_keyframes || self.refiner.is_running() {
+        if !self.args.pipeline.cull_keyframes {
             return;
         }
         let options = KeyframeCullingOptions::default();
         let checked = self.state.culling_checked_before;
-        if oldest_live > checked {
+        if oldest_live > checked && !self.refiner.is_running() {
             let candidates: Vec<u64> = self
                 .state
                 .map
@@ -43,9 +43,13 @@ impl Merger {
             ..KeyframeBudget::default()
         };
         if budget.max_keyframes > 0 {
+            // The ceiling also applies while a refinement runs, to keyframes older than
+            // those it holds: refinements started back to back otherwise left it unapplied
+            // for most of a long run.
+            let before = oldest_live.min(self.refiner.free_before());
             let map = &self.state.map;
             let over = self.stats.time("keyframe_budget", || {
-                map.over_budget_keyframes(oldest_live, &budget)
+                map.over_budget_keyframes(before, &budget)
             });
             self.cull(&over, oldest_live, "over_budget", |map| {
                 map.remove_keyframes(&over, &options)

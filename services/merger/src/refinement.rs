@@ -109,6 +109,12 @@ impl RefinementJob {
         self.ids.len()
     }
 
+    /// The oldest keyframe in the problem: older ones are not in it, and the fold does not
+    /// look at them.
+    pub fn oldest_keyframe(&self) -> Option<u64> {
+        self.ids.first().copied()
+    }
+
     /// The newest keyframe of the segment when the job was made: keyframes after it are
     /// carried rigidly when the job is folded, so they may be changed meanwhile.
     pub fn newest_known_keyframe(&self) -> Option<u64> {
