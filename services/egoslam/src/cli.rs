@@ -140,9 +140,8 @@ pub struct PipelineArgs {
     /// Merger: keyframes the map aims to keep at most (keyframes that see no point and
     /// those the spine needs stay beyond it); over it, those whose place another
     /// keyframe covers most closely are culled first (docs/merger.md, "Keyframe culling").
-    /// Limits the merger's memory (~0.3-0.4 MB per keyframe); applied at refinement folds,
-    /// so a long run can pass it (docs/benchmarks.md, "Endurance"). 0: no ceiling. Default
-    /// 3000.
+    /// Limits the merger's memory (~0.3-0.4 MB per keyframe); soft, so a long run can pass
+    /// it (docs/benchmarks.md, "Endurance"). 0: no ceiling. Default 3000.
     #[arg(long, default_value_t = 3000)]
     pub max_map_keyframes: usize,
     /// Merger: map.ply holds only the map points whose standard deviation, from the
