@@ -161,7 +161,14 @@ impl Merger {
             .keys()
             .filter_map(|k| index.keyframe_frames.get(k).copied())
             .collect();
-        frozen.extend(index.localized.iter().filter_map(|(f, l)| {
+        // Only frames `before` poses can be kept: the localized ones outside it are skipped
+        // without looking at every frame of the run.
+        let (Some((&first, _)), Some((&last, _))) =
+            (before.first_key_value(), before.last_key_value())
+        else {
+            return;
+        };
+        frozen.extend(index.localized.range(first..=last).filter_map(|(f, l)| {
             (culled.contains_key(&l.anchor_keyframe) || culled.contains_key(&l.next_keyframe))
                 .then_some(*f)
         }));
