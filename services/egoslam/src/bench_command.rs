@@ -236,8 +236,11 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
 
 pub(crate) fn egoslam() -> anyhow::Result<Command> {
     let mut c = Command::new(std::env::current_exe().context("locating egoslam")?);
-    c.env("EGOSLAM_ZENOH_LISTEN", "none")
-        .env("EGOSLAM_LOG", "warn");
+    c.env("EGOSLAM_ZENOH_LISTEN", "none");
+    // Warnings only, unless the caller asked for more (EGOSLAM_LOG, the same filter syntax).
+    if std::env::var_os("EGOSLAM_LOG").is_none() {
+        c.env("EGOSLAM_LOG", "warn");
+    }
     Ok(c)
 }
 

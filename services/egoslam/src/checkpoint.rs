@@ -110,6 +110,10 @@ impl MergerState {
                 depth_before: p.depth_before,
                 windows_since: p.windows_since,
             }),
+            loop_pinned: parts.loop_pinned.map(|(segment, keyframe)| pb::LoopPin {
+                segment_id: segment,
+                keyframe_id: keyframe,
+            }),
             frames: self
                 .frames
                 .frames
@@ -227,6 +231,10 @@ impl MergerState {
                 depth_before: p.depth_before,
                 windows_since: p.windows_since,
             }),
+            loop_pinned: m
+                .loop_pinned
+                .as_ref()
+                .map(|p| (p.segment_id, p.keyframe_id)),
         };
         Ok(Self {
             map: MapBuilder::from_parts(parts),
@@ -337,6 +345,9 @@ mod tests {
             observations: vec![(1, 3, Point2::new(320.5, 240.25))],
             weak_observations: vec![(2, 9, Point2::new(100.5, 200.75))],
         });
+        let mut parts = state.map.to_parts();
+        parts.loop_pinned = Some((0, 3));
+        state.map = MapBuilder::from_parts(parts);
         state.frames.frames.insert(4, 0.4);
         state.frames.keyframe_frames.insert(1, 4);
         state.frames.pending.insert(

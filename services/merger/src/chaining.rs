@@ -113,6 +113,9 @@ pub struct MapParts {
     pub segments: u32,
     /// A stretch chained with an unmeasured scale, waiting for a pace (provisional_scale.rs).
     pub provisional: Option<crate::provisional_scale::ProvisionalScale>,
+    /// `(segment, keyframe)`: the newest keyframe a closed loop put onto the older map
+    /// (loop_closure.rs); a later loop is spread only over the keyframes after it.
+    pub loop_pinned: Option<(u32, u64)>,
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -132,6 +135,8 @@ pub struct MapBuilder {
     segments: u32,
     /// See [`MapParts::provisional`].
     pub(crate) provisional: Option<crate::provisional_scale::ProvisionalScale>,
+    /// See [`MapParts::loop_pinned`].
+    pub(crate) loop_pinned: Option<(u32, u64)>,
 }
 
 impl MapBuilder {
@@ -313,6 +318,7 @@ impl MapBuilder {
             current_segment: self.current_segment,
             segments: self.segments,
             provisional: self.provisional,
+            loop_pinned: self.loop_pinned,
         }
     }
 
@@ -326,6 +332,7 @@ impl MapBuilder {
             current_segment: parts.current_segment,
             segments: parts.segments,
             provisional: parts.provisional,
+            loop_pinned: parts.loop_pinned,
         }
     }
 

@@ -241,9 +241,17 @@ impl MapBuilder {
         closure: &LoopClosure,
         min_correction_fraction: f64,
     ) -> Option<LoopReport> {
+        // Keyframes an earlier loop put onto the older map stay there: the drift to
+        // correct is the chain's since then.
+        let start = match self.loop_pinned {
+            Some((segment, keyframe)) if segment == closure.segment => {
+                closure.anchor_keyframe.max(keyframe)
+            }
+            _ => closure.anchor_keyframe,
+        };
         let ids: Vec<u64> = self
             .keyframes
-            .range(closure.anchor_keyframe..)
+            .range(start..)
             .filter(|(_, (s, _))| *s == closure.segment)
             .map(|(id, _)| *id)
             .collect();
@@ -323,6 +331,7 @@ impl MapBuilder {
             *x = m.after + m.scale * (m.rotation * (*x - m.before));
             points += 1;
         }
+        self.loop_pinned = ids.last().map(|id| (closure.segment, *id));
         Some(LoopReport {
             keyframes: ids.len() - 1,
             points,
@@ -552,5 +561,70 @@ mod tests {
         let step = |i: u64| (kf(i) - kf(i - 1)).norm();
         let ratio = step(last_before + 1) / step(last_before);
         assert!((ratio - 1.0).abs() < 0.01, "{ratio}");
+    }
+
+    #[test]
+    fn a_later_loop_leaves_what_an_earlier_loop_put_onto_the_map() {
+        // Keyframes 0-80 go around the square once. The first loop (anchored at 0)
+        // closes at 40 and pins it; then the chain drifts again from 40 on and a second
+        // loop, relocalized against keyframe 0 once more, closes at 80.
+        let n = 81u64;
+        let drift_after = |i: u64| {
+            let a = i.saturating_sub(40) as f64 / 40.0;
+            Similarity {
+                scale: 1.0,
+                rotation: Rotation3::from_euler_angles(0.0, 0.04 * a, 0.0),
+                translation: Vector3::new(0.2 * a, 0.0, -0.1 * a),
+            }
+        };
+        let truth = |i: u64| square_pose(i);
+        let mut map = MapBuilder::new();
+        let drifted = |i: u64| crate::chaining::transform_pose(&drift_after(i), &truth(i));
+        map.add_window(&WindowInput {
+            poses: (0..=40).map(|i| (i, truth(i))).collect(),
+            ..WindowInput::default()
+        });
+        let small = Similarity {
+            scale: 1.0,
+            rotation: Rotation3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.05),
+        };
+        // The first loop moves keyframe 40 by 5 cm (still drift), and pins it.
+        let first = LoopClosure {
+            segment: 0,
+            anchor_keyframe: 0,
+            transform: small,
+            keyframes: 3,
+            shared_points: 50,
+            scale_steps: Vec::new(),
+            sightings: Vec::new(),
+        };
+        map.close_loop(&first, 0.002).expect("first loop closed");
+        let pinned: Vec<StampedPose> = (0..=40).map(|i| *map.keyframe(i).expect("kf").1).collect();
+        map.add_window(&WindowInput {
+            poses: (39..n)
+                .map(|i| {
+                    let mut p = drifted(i);
+                    p.position += pinned[39].position - truth(39).position;
+                    (i, p)
+                })
+                .collect(),
+            ..WindowInput::default()
+        });
+        let second = LoopClosure {
+            anchor_keyframe: 0,
+            transform: drift_after(n - 1).inverse(),
+            ..first
+        };
+        let report = map.close_loop(&second, 0.002).expect("second loop closed");
+        assert_eq!(report.keyframes, 40, "spread over 41-80 only");
+        for (i, before) in pinned.iter().enumerate() {
+            assert_eq!(
+                map.keyframe(i as u64).expect("kf").1,
+                before,
+                "keyframe {i}"
+            );
+        }
+        assert_eq!(map.loop_pinned, Some((0, n - 1)));
     }
 }
