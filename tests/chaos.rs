@@ -59,7 +59,10 @@ fn micros(t: f64) -> i64 {
 /// written before each send and kept across frontend restarts).
 fn logged_keyframes(out: &Path) -> BTreeMap<u64, i64> {
     let bytes = std::fs::read(out.join("keyframes.log")).expect("keyframes.log");
-    let mut rest = &bytes[..];
+    // Magic `EGOSLAMR` and version (docs/durability.md).
+    let mut rest = bytes
+        .strip_prefix(b"EGOSLAMR")
+        .map_or(&bytes[..], |b| &b[4..]);
     let mut stamps = BTreeMap::new();
     while !rest.is_empty() {
         let Ok(k) = pb::Keyframe::decode_length_delimited(&mut rest) else {

@@ -111,10 +111,10 @@ impl CompactingLog {
                 .get(dropped)
                 .map_or(len, |(offset, _, _)| *offset);
             if dropped > 0 {
-                self.log.cut_before(cut)?;
+                let kept_at = self.log.cut_before(cut)?;
                 self.index.drain(..dropped);
                 for entry in &mut self.index {
-                    entry.0 -= cut;
+                    entry.0 = entry.0 - cut + kept_at;
                 }
                 tracing::info!(dropped, "keyframe log compacted");
             }

@@ -2,6 +2,10 @@
 //! descriptors (features_log.rs) and the frontend's keyframe messages (keyframes.log, read
 //! by a restarted solver). A kill mid-append leaves a torn last record, which a reader
 //! drops; anything flushed before survives the process.
+//!
+//! Layout: the magic `EGOSLAMR` and a little-endian `u32` format version (1), then the
+//! records. A log without the header (written before it existed) is read as it is and
+//! gets the header when it is next rewritten; a log of another version is refused.
 
 use anyhow::Context;
 use prost::Message;
@@ -11,6 +15,17 @@ use std::path::{Path, PathBuf};
 /// Largest record accepted when reading back (a keyframe message of 10,000 tracks with
 /// descriptors is ~700 KB).
 const MAX_RECORD_BYTES: usize = 16 << 20;
+
+const MAGIC: &[u8; 8] = b"EGOSLAMR";
+const FORMAT_VERSION: u32 = 1;
+/// Bytes before the first record of a log with a header.
+pub const HEADER_LEN: u64 = 12;
+
+fn header() -> Vec<u8> {
+    let mut h = MAGIC.to_vec();
+    h.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    h
+}
 
 /// An append-only file of length-delimited protobuf records.
 pub struct RecordLog {
@@ -27,10 +42,20 @@ impl RecordLog {
             .append(true)
             .open(&path)
             .with_context(|| format!("opening {}", path.display()))?;
-        Ok(Self {
+        let mut log = Self {
             path,
             writer: std::io::BufWriter::new(file),
-        })
+        };
+        if log.len_bytes()? == 0 {
+            log.write_header()?;
+        }
+        Ok(log)
+    }
+
+    fn write_header(&mut self) -> anyhow::Result<()> {
+        self.writer
+            .write_all(&header())
+            .with_context(|| format!("writing the header of {}", self.path.display()))
     }
 
     /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]).
@@ -67,13 +92,15 @@ impl RecordLog {
             .len())
     }
 
-    /// Drops everything before byte `offset` (a record boundary): the rest is copied to a
-    /// new file that atomically replaces the log, without decoding a record. Only the kept
-    /// tail is read, so the cost does not grow with what is dropped.
-    pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<()> {
+    /// Drops the records before byte `offset` (a record boundary): the rest is copied,
+    /// after the header, to a new file that atomically replaces the log, without decoding a
+    /// record. Only the kept tail is read, so the cost does not grow with what is dropped.
+    /// Returns the offset at which the kept records now start.
+    pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<u64> {
         self.flush()?;
-        crate::output::keep_tail_atomically(&self.path, offset, &[])?;
-        self.reopen()
+        crate::output::keep_tail_atomically(&self.path, offset, &header())?;
+        self.reopen()?;
+        Ok(HEADER_LEN)
     }
 
     /// Replaces the whole log, atomically, by `records` (compaction: the records still
@@ -83,7 +110,7 @@ impl RecordLog {
         records: impl IntoIterator<Item = &'a M>,
     ) -> anyhow::Result<()> {
         self.flush()?;
-        let mut bytes = Vec::new();
+        let mut bytes = header();
         for r in records {
             r.encode_length_delimited(&mut bytes)
                 .with_context(|| format!("encoding a record of {}", self.path.display()))?;
@@ -108,7 +135,8 @@ impl RecordLog {
         self.writer
             .get_ref()
             .set_len(0)
-            .with_context(|| format!("truncating {}", self.path.display()))
+            .with_context(|| format!("truncating {}", self.path.display()))?;
+        self.write_header()
     }
 }
 
@@ -127,6 +155,21 @@ pub fn read_records_at<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<
     };
     let mut out = Vec::new();
     let mut rest = &bytes[..];
+    if rest.starts_with(MAGIC) {
+        let Some(version) = rest.get(8..12) else {
+            // A header torn by a kill right after the file was created: no record yet.
+            return Ok(out);
+        };
+        let version = u32::from_le_bytes([version[0], version[1], version[2], version[3]]);
+        if version != FORMAT_VERSION {
+            anyhow::bail!(
+                "{}: record log format version {version}, this egoslam reads {FORMAT_VERSION} \
+                 (and logs without a header)",
+                path.display()
+            );
+        }
+        rest = &rest[HEADER_LEN as usize..];
+    }
     while !rest.is_empty() {
         let mut probe = rest;
         let length = match prost::encoding::decode_varint(&mut probe) {
@@ -170,10 +213,10 @@ mod tests {
         log.flush().expect("flush");
         let at: Vec<(u64, pb::Keyframe)> = read_records_at(&path).expect("read");
         assert_eq!(at.len(), 10);
-        assert_eq!(at[0].0, 0);
+        assert_eq!(at[0].0, HEADER_LEN);
         let before = log.len_bytes().expect("len");
-        log.cut_before(at[6].0).expect("cut");
-        assert_eq!(log.len_bytes().expect("len"), before - at[6].0);
+        assert_eq!(log.cut_before(at[6].0).expect("cut"), HEADER_LEN);
+        assert_eq!(log.len_bytes().expect("len"), before - at[6].0 + HEADER_LEN);
         log.append(&keyframe(10)).expect("append");
         log.flush().expect("flush");
         let ids: Vec<u64> = read_records::<pb::Keyframe>(&path)
@@ -182,5 +225,38 @@ mod tests {
             .map(|k| k.keyframe_id)
             .collect();
         assert_eq!(ids, [6, 7, 8, 9, 10]);
+    }
+
+    #[test]
+    fn a_log_without_header_is_read_and_another_version_refused() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("old.log");
+        let mut bytes = Vec::new();
+        for id in 0..3 {
+            keyframe(id)
+                .encode_length_delimited(&mut bytes)
+                .expect("encode");
+        }
+        std::fs::write(&path, &bytes).expect("write");
+        let ids: Vec<u64> = read_records::<pb::Keyframe>(&path)
+            .expect("read")
+            .iter()
+            .map(|k| k.keyframe_id)
+            .collect();
+        assert_eq!(ids, [0, 1, 2]);
+        let mut newer = MAGIC.to_vec();
+        newer.extend_from_slice(&2u32.to_le_bytes());
+        newer.extend_from_slice(&bytes);
+        std::fs::write(&path, &newer).expect("write");
+        let e = read_records::<pb::Keyframe>(&path).expect_err("version 2");
+        assert!(e.to_string().contains("format version 2"), "{e}");
+        // Emptied, a log starts over with the header.
+        let mut log = RecordLog::open(&path).expect("open");
+        log.truncate().expect("truncate");
+        log.append(&keyframe(5)).expect("append");
+        log.flush().expect("flush");
+        let back: Vec<(u64, pb::Keyframe)> = read_records_at(&path).expect("read");
+        assert_eq!(back.len(), 1);
+        assert_eq!(back[0].0, HEADER_LEN);
     }
 }
