@@ -6,7 +6,7 @@ use super::Merger;
 use crate::checkpoint::MergerState;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{
-    find_link, find_loop, relocalized_window_scale, LinkOptions, LoopOptions,
+    find_link, find_loop, relocalized_window_scale, LinkOptions, LoopNotApplied, LoopOptions,
     RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions, WindowInput,
 };
 use egoslam_relocalization::{KeyframeDatabase, Vocabulary};
@@ -26,7 +26,7 @@ const LINK_RETRY_KEYFRAMES: usize = 20;
 /// attempt relocalizes its newest 12 keyframes, ~20 ms each); an attempt due while a
 /// background refinement runs (its result, folded later, would undo the correction) is
 /// made at the first window after it is folded in.
-const LOOP_ATTEMPT_WINDOWS: u64 = 5;
+const LOOP_ATTEMPT_WINDOWS: u64 = 2;
 
 /// The merger's map, descriptors and index as relocalization reads them (a function of
 /// the fields, not of `&Merger`, so that `self.stats` stays free to time the call).
@@ -138,17 +138,26 @@ impl Merger {
             .stats
             .time("find_loop", || find_loop(&sources, segment, &options));
         let Some(closure) = closure else { return };
-        let Some(report) = self
-            .state
-            .map
-            .close_loop(&closure, options.min_correction_fraction)
-        else {
-            tracing::debug!(
-                window = window_id,
-                anchor = closure.anchor_keyframe,
-                "loop found, correction too small to apply"
-            );
-            return;
+        let report = match self.state.map.close_loop(&closure, &options) {
+            Ok(report) => report,
+            Err(e @ LoopNotApplied::TooLarge { .. }) => {
+                self.stats.count("loops_refused", 1);
+                tracing::warn!(
+                    window = window_id,
+                    anchor = closure.anchor_keyframe,
+                    shared_points = closure.shared_points,
+                    "loop refused: {e}"
+                );
+                return;
+            }
+            Err(e) => {
+                tracing::debug!(
+                    window = window_id,
+                    anchor = closure.anchor_keyframe,
+                    "loop not applied: {e}"
+                );
+                return;
+            }
         };
         self.stats.count("loops_closed", 1);
         self.loop_sightings = closure.sightings.clone();

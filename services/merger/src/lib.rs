@@ -33,7 +33,7 @@ pub use frame_localization::{localize_frame, LocalizationError, LocalizationOpti
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use keyframe_budget::KeyframeBudget;
 pub use keyframe_culling::{CulledKeyframe, CullingReport, KeyframeCullingOptions};
-pub use loop_closure::{find_loop, LoopClosure, LoopOptions, LoopReport};
+pub use loop_closure::{find_loop, LoopClosure, LoopNotApplied, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
 pub use provisional_scale::{ProvisionalScale, SettledScale};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};

@@ -50,6 +50,12 @@ pub struct LoopOptions {
     /// loop's path is not applied (default 0.002: below the drift the windows themselves
     /// leave, so applying it would only add the relocalization's own noise).
     pub min_correction_fraction: f64,
+    /// A correction that moves the newest keyframe by more than this fraction of the
+    /// loop's path is refused (default 0.35), unless the loop undoes a scale break as a
+    /// step. Drift since the last closed loop is a few to ~25 % of the path walked (the
+    /// rendered corridor's loops: 4-25 %); a match that asks for 69 % (measured: a wall
+    /// of one corridor leg taken for another's, 78 shared points) is a wrong place.
+    pub max_correction_fraction: f64,
     /// Fewest 3-D/3-D pairs (a newest keyframe's map point matched to an old one) the
     /// loop's scale must rest on (default 30). With fewer, the scale would come from the
     /// queried keyframes' centres, a few decimetres of walking relocalized with centimetre
@@ -77,6 +83,7 @@ impl Default for LoopOptions {
             min_age_keyframes: 300,
             newest_keyframes: 12,
             min_correction_fraction: 0.002,
+            max_correction_fraction: 0.35,
             min_shared_points: 30,
             max_scale_change: 1.5,
             scale_break: ScaleBreakOptions::default(),
@@ -118,6 +125,19 @@ pub struct ScaleStep {
     /// The scale correction of the break itself (the inverse of the map's pace ratio
     /// there).
     pub factor: f64,
+}
+
+/// Why a loop that was found was not applied.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum LoopNotApplied {
+    #[error("the loop holds fewer than two keyframes after its anchor")]
+    TooShort,
+    #[error("correction {correction} below the minimum share of the loop's path {path}")]
+    TooSmall { correction: f64, path: f64 },
+    #[error(
+        "correction {correction} beyond the share of the loop's path {path} drift can explain"
+    )]
+    TooLarge { correction: f64, path: f64 },
 }
 
 /// What closing a loop did.
@@ -234,13 +254,14 @@ fn scale_is_drift(scale: f64, max_change: f64) -> bool {
 
 impl MapBuilder {
     /// Spreads the loop's correction over the keyframes after its anchor (see the module
-    /// documentation); `None` (nothing changed) when the correction is below
-    /// `min_correction_fraction` of the loop's path or the loop has < 2 keyframes.
+    /// documentation); nothing changes when the correction is outside
+    /// `min_correction_fraction`..`max_correction_fraction` of the loop's path or the loop
+    /// has < 2 keyframes.
     pub fn close_loop(
         &mut self,
         closure: &LoopClosure,
-        min_correction_fraction: f64,
-    ) -> Option<LoopReport> {
+        options: &LoopOptions,
+    ) -> Result<LoopReport, LoopNotApplied> {
         // Keyframes an earlier loop put onto the older map stay there: the drift to
         // correct is the chain's since then.
         let start = match self.loop_pinned {
@@ -256,7 +277,7 @@ impl MapBuilder {
             .map(|(id, _)| *id)
             .collect();
         if ids.len() < 2 {
-            return None;
+            return Err(LoopNotApplied::TooShort);
         }
         let old: Vec<StampedPose> = ids.iter().map(|id| self.keyframes[id].1).collect();
         let mut along = vec![0.0; old.len()];
@@ -267,8 +288,11 @@ impl MapBuilder {
         let newest = old[old.len() - 1];
         let target = closure.transform.apply(&newest.position);
         let correction = (target - newest.position).norm();
-        if path <= 0.0 || correction < min_correction_fraction * path {
-            return None;
+        if path <= 0.0 || correction < options.min_correction_fraction * path {
+            return Err(LoopNotApplied::TooSmall { correction, path });
+        }
+        if closure.scale_steps.is_empty() && correction > options.max_correction_fraction * path {
+            return Err(LoopNotApplied::TooLarge { correction, path });
         }
         let turn = UnitQuaternion::from_rotation_matrix(&closure.transform.rotation);
         // The breaks' steps, and the rest of the scale correction as drift.
@@ -332,7 +356,7 @@ impl MapBuilder {
             points += 1;
         }
         self.loop_pinned = ids.last().map(|id| (closure.segment, *id));
-        Some(LoopReport {
+        Ok(LoopReport {
             keyframes: ids.len() - 1,
             points,
             correction,
@@ -442,7 +466,10 @@ mod tests {
         let before: f64 = (0..n)
             .map(|i| (drifted(i).position - square_pose(i).position).norm_squared())
             .sum::<f64>();
-        let report = map.close_loop(&closure, 0.002).expect("closed");
+        let unclosed = map.to_parts();
+        let report = map
+            .close_loop(&closure, &LoopOptions::default())
+            .expect("closed");
         assert_eq!(report.keyframes, 80);
         assert_eq!(report.points, 1);
         assert_eq!(map.add_loop_sightings(0, &closure.sightings), 1);
@@ -477,7 +504,26 @@ mod tests {
             transform: Similarity::identity(),
             ..closure
         };
-        assert!(map.close_loop(&tiny, 0.002).is_none());
+        let mut fresh = MapBuilder::from_parts(unclosed.clone());
+        assert!(matches!(
+            fresh.close_loop(&tiny, &LoopOptions::default()),
+            Err(LoopNotApplied::TooSmall { .. })
+        ));
+        // One that would move the newest keyframe by half the loop's path is a wrong place.
+        let far = LoopClosure {
+            transform: Similarity {
+                scale: 1.0,
+                rotation: Rotation3::identity(),
+                translation: Vector3::new(20.0, 0.0, 0.0),
+            },
+            ..tiny
+        };
+        let mut fresh = MapBuilder::from_parts(unclosed.clone());
+        assert!(matches!(
+            fresh.close_loop(&far, &LoopOptions::default()),
+            Err(LoopNotApplied::TooLarge { .. })
+        ));
+        assert_eq!(fresh.to_parts(), unclosed);
     }
 
     #[test]
@@ -528,7 +574,9 @@ mod tests {
                 .fold(0.0, f64::max)
         };
         let mut stepped = build();
-        stepped.close_loop(&closure, 0.002).expect("closed");
+        stepped
+            .close_loop(&closure, &LoopOptions::default())
+            .expect("closed");
         assert!(error(&stepped) < 1e-9, "{}", error(&stepped));
         // The point seen first after the break came back with its keyframe.
         let truth_point = square_pose(79).position + Vector3::new(0.0, 0.0, 2.0) / factor;
@@ -539,7 +587,9 @@ mod tests {
             scale_steps: Vec::new(),
             ..closure.clone()
         };
-        spread.close_loop(&as_drift, 0.002).expect("closed");
+        spread
+            .close_loop(&as_drift, &LoopOptions::default())
+            .expect("closed");
         assert!(error(&spread) > 0.5, "{}", error(&spread));
         // A loop asking for 5 % more than the break: the step stays the break's, the rest
         // is spread as drift, and the newest keyframe lands where the loop puts it.
@@ -552,7 +602,9 @@ mod tests {
             ..closure
         };
         let newest_before = with_drift.keyframe(n - 1).expect("kf").1.position;
-        with_drift.close_loop(&more, 0.002).expect("closed");
+        with_drift
+            .close_loop(&more, &LoopOptions::default())
+            .expect("closed");
         let kf = |i: u64| with_drift.keyframe(i).expect("kf").1.position;
         let newest_target = more.transform.apply(&newest_before);
         assert!((kf(n - 1) - newest_target).norm() < 1e-9);
@@ -599,7 +651,8 @@ mod tests {
             scale_steps: Vec::new(),
             sightings: Vec::new(),
         };
-        map.close_loop(&first, 0.002).expect("first loop closed");
+        map.close_loop(&first, &LoopOptions::default())
+            .expect("first loop closed");
         let pinned: Vec<StampedPose> = (0..=40).map(|i| *map.keyframe(i).expect("kf").1).collect();
         map.add_window(&WindowInput {
             poses: (39..n)
@@ -616,7 +669,9 @@ mod tests {
             transform: drift_after(n - 1).inverse(),
             ..first
         };
-        let report = map.close_loop(&second, 0.002).expect("second loop closed");
+        let report = map
+            .close_loop(&second, &LoopOptions::default())
+            .expect("second loop closed");
         assert_eq!(report.keyframes, 40, "spread over 41-80 only");
         for (i, before) in pinned.iter().enumerate() {
             assert_eq!(

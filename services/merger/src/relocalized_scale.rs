@@ -48,7 +48,7 @@ pub struct RelocalizedScaleOptions {
 impl Default for RelocalizedScaleOptions {
     fn default() -> Self {
         Self {
-            recent_keyframes: 300,
+            recent_keyframes: usize::MAX,
             min_window_points: 30,
             min_shared_points: 10,
             link: LinkOptions::default(),
