@@ -44,10 +44,11 @@ pub fn compact_if_due<const N: usize>(
         .flat_map(|f| f.iter())
         .map(|(k, f)| features_to_pb(*k, f, patches.get(k).map_or(&[], Vec::as_slice)))
         .collect();
-    let live: u64 = records
-        .iter()
-        .map(|r| (prost::length_delimiter_len(r.encoded_len()) + r.encoded_len()) as u64)
-        .sum();
+    let live: u64 = crate::record_log::HEADER_LEN
+        + records
+            .iter()
+            .map(|r| (prost::length_delimiter_len(r.encoded_len()) + r.encoded_len()) as u64)
+            .sum::<u64>();
     if 2 * size <= 3 * live {
         return Ok(0);
     }
