@@ -61,19 +61,12 @@ impl MapBuilder {
             .keyframes
             .iter()
             .filter_map(|(id, (segment, pose))| {
-                let depths = self
-                    .observations
-                    .range((*id, 0)..=(*id, u64::MAX))
-                    .filter_map(|((_, t), _)| self.points.get(t))
-                    .map(|(_, x)| (pose.rotation.inverse() * (x - pose.position)).z)
-                    .filter(|d| *d > 0.0)
-                    .collect();
                 Some(Entry {
                     id: *id,
                     segment: *segment,
                     centre: pose.position,
-                    axis: pose.rotation * Vector3::z(),
-                    depth: crate::median(depths)?,
+                    axis: crate::keyframe_coverage::axis(pose),
+                    depth: self.observed_depth(*id, pose)?,
                 })
             })
             .collect();

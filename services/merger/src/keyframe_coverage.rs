@@ -46,7 +46,8 @@ pub struct OlderKeyframes {
     options: CoverageOptions,
 }
 
-fn axis(pose: &StampedPose) -> Vector3<f64> {
+/// The optical axis of the camera at `pose`, in the map.
+pub(crate) fn axis(pose: &StampedPose) -> Vector3<f64> {
     pose.rotation * Vector3::z()
 }
 
@@ -66,22 +67,15 @@ impl OlderKeyframes {
         }
     }
 
-    /// Whether keyframe `id` of `segment` at `pose`, whose points are at `depths` in its
-    /// camera, is covered by an older keyframe, and not needed for the spine.
-    pub fn cover(
-        &self,
-        map: &MapBuilder,
-        id: u64,
-        segment: u32,
-        pose: &StampedPose,
-        depths: impl Iterator<Item = f64>,
-    ) -> bool {
+    /// Whether keyframe `id` of `segment` at `pose` is covered by an older keyframe, and
+    /// not needed for the spine.
+    pub fn cover(&self, map: &MapBuilder, id: u64, segment: u32, pose: &StampedPose) -> bool {
         let o = &self.options;
         let previous = map.keyframes.range(..id).next_back().map(|(k, _)| *k);
         if previous.is_none_or(|k| id - k > o.spine) {
             return false;
         }
-        let Some(depth) = crate::median(depths.filter(|d| *d > 0.0).collect()) else {
+        let Some(depth) = map.observed_depth(id, pose) else {
             return false;
         };
         let (reach, centre, view) = (o.max_offset * depth, pose.position, axis(pose));

@@ -109,12 +109,9 @@ impl MapBuilder {
             let redundant =
                 (seen_elsewhere as f64) >= options.redundant_fraction * tracks.len() as f64;
             let covered = || {
-                older.as_ref().is_some_and(|older| {
-                    let points = tracks.iter().filter_map(|t| self.points.get(t));
-                    let depths =
-                        points.map(|(_, x)| (pose.rotation.inverse() * (x - pose.position)).z);
-                    older.cover(self, id, segment, &pose, depths)
-                })
+                older
+                    .as_ref()
+                    .is_some_and(|older| older.cover(self, id, segment, &pose))
             };
             if !redundant && !covered() {
                 continue;

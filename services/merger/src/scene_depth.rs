@@ -25,16 +25,24 @@ const MIN_POINTS: usize = 10;
 /// Map keyframes searched back from the newest (a stop can hold this many without points).
 const MAX_SEARCHED: usize = 400;
 
+/// Depths (along the optical axis) of those of `points` in front of the camera at `pose`.
+fn depths_in_front<'a>(
+    pose: &StampedPose,
+    points: impl Iterator<Item = &'a Vector3<f64>>,
+) -> Vec<f64> {
+    let to_camera = pose.rotation.inverse();
+    points
+        .map(|x| (to_camera * (x - pose.position)).z)
+        .filter(|z| *z > 0.0 && z.is_finite())
+        .collect()
+}
+
 /// Median depth (along the optical axis) of `points` seen from `pose`, if enough are in front.
 fn keyframe_depth<'a>(
     pose: &StampedPose,
     points: impl Iterator<Item = &'a Vector3<f64>>,
 ) -> Option<f64> {
-    let to_camera = pose.rotation.inverse();
-    let depths: Vec<f64> = points
-        .map(|x| (to_camera * (x - pose.position)).z)
-        .filter(|z| *z > 0.0 && z.is_finite())
-        .collect();
+    let depths = depths_in_front(pose, points);
     (depths.len() >= MIN_POINTS)
         .then(|| median(depths))
         .flatten()
@@ -59,6 +67,17 @@ pub(crate) fn window_scene_depth(window: &WindowInput) -> Option<f64> {
 }
 
 impl MapBuilder {
+    /// Median depth of the map points keyframe `id`, at `pose`, observes (any number of
+    /// them in front of it).
+    pub(crate) fn observed_depth(&self, id: u64, pose: &StampedPose) -> Option<f64> {
+        let points = self
+            .observations
+            .range((id, 0)..=(id, u64::MAX))
+            .filter_map(|((_, track), _)| self.points.get(track))
+            .map(|(_, x)| x);
+        median(depths_in_front(pose, points))
+    }
+
     /// Median scene depth of the latest keyframes of `segment` that see enough map points.
     pub(crate) fn recent_scene_depth(&self, segment: u32) -> Option<f64> {
         let depths: Vec<f64> = self
