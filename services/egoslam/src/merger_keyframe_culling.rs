@@ -134,12 +134,9 @@ impl Merger {
             self.state.patches.remove(&keyframe);
             return;
         }
-        let patched: std::collections::BTreeSet<u64> = patches.iter().map(|(t, _)| *t).collect();
-        let kept: Vec<_> = features
-            .into_iter()
-            .filter(|f| patched.contains(&f.track_id))
-            .collect();
-        self.state.culled_features.insert(keyframe, kept);
+        self.state
+            .culled_features
+            .insert(keyframe, patched_features(features, patches));
     }
 
     /// Keeps each culled keyframe's frame, and every frame posed against a culled keyframe,
@@ -194,6 +191,19 @@ impl Merger {
             }
         }
     }
+}
+
+/// Those of a culled keyframe's `features` whose tracks it keeps a patch of: what the saved
+/// relocalization map needs of it.
+pub(super) fn patched_features(
+    features: Vec<egoslam_relocalization::MapFeature>,
+    patches: &[(u64, egoslam_relocalization::patch_alignment::Patch)],
+) -> Vec<egoslam_relocalization::MapFeature> {
+    let patched: std::collections::BTreeSet<u64> = patches.iter().map(|(t, _)| *t).collect();
+    features
+        .into_iter()
+        .filter(|f| patched.contains(&f.track_id))
+        .collect()
 }
 
 /// The kept keyframes (`kept`, in time order) just before and after time `t`, when both

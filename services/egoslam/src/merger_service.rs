@@ -516,11 +516,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             if state.map.keyframe(keyframe).is_some() {
                 state.features.insert(keyframe, features);
             } else if let Some(p) = patches.get(&keyframe) {
-                let patched: BTreeSet<u64> = p.iter().map(|(t, _)| *t).collect();
-                let kept = features
-                    .into_iter()
-                    .filter(|f| patched.contains(&f.track_id));
-                state.culled_features.insert(keyframe, kept.collect());
+                let kept = keyframe_culling::patched_features(features, p);
+                state.culled_features.insert(keyframe, kept);
             }
         }
         let kept =
