@@ -280,6 +280,26 @@ pub struct RunArgs {
     pub egress: EgressArgs,
     #[command(flatten)]
     pub map: MapArgs,
+    #[command(flatten)]
+    pub view: ViewArgs,
+}
+
+/// The live view and recording (docs/viewer.md).
+#[derive(Args, Debug, Clone, Default)]
+pub struct ViewArgs {
+    /// Serve the run to Foxglove (WebSocket, `foxglove.sdk.v1`) on HOST:PORT from the start,
+    /// e.g. 127.0.0.1:8765 (port 0: a free one, logged).
+    #[arg(long, value_name = "HOST:PORT")]
+    pub foxglove: Option<String>,
+    /// Record the same channels into this MCAP file (replaced if present).
+    #[arg(long, value_name = "FILE.mcap")]
+    pub record: Option<PathBuf>,
+}
+
+impl ViewArgs {
+    pub fn wanted(&self) -> bool {
+        self.foxglove.is_some() || self.record.is_some()
+    }
 }
 
 /// The saved map (docs/relocalization.md).

@@ -28,6 +28,14 @@ pub struct OutputSection {
     pub dir: Option<PathBuf>,
 }
 
+/// `[view]`: the live view and recording of `egoslam run` (docs/viewer.md).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ViewSection {
+    pub foxglove: Option<String>,
+    pub record: Option<PathBuf>,
+}
+
 /// `[frontend]`: tracking and the paper's keyframe rule.
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -113,6 +121,8 @@ pub struct Config {
     pub zenoh: ZenohSection,
     #[serde(default)]
     pub bus: BusSection,
+    #[serde(default)]
+    pub view: ViewSection,
 }
 
 impl Config {
@@ -313,6 +323,8 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill(m, "out", &mut a.out, &c.output.dir);
             fill(m, "fps", &mut a.fps, &c.input.fps);
             fill(m, "realtime", &mut a.realtime, &c.input.realtime);
+            fill_optional(m, "foxglove", &mut a.view.foxglove, &c.view.foxglove);
+            fill_optional(m, "record", &mut a.view.record, &c.view.record);
             fill_pipeline(c, m, &mut a.pipeline);
             fill_egress(c, m, &mut a.egress);
         }

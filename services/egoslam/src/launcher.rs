@@ -199,6 +199,7 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
 
 pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    let live_view = crate::live_view::LiveView::start(&args.view, &args.egress)?;
     let input = args.input.clone().unwrap_or_else(default_input);
     let layout = detect_layout(&input)?;
     // Open the sequence and decode the first frame now: a bad path, an empty sequence, an
@@ -285,6 +286,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let mut children = Vec::new();
     let mut merger_args = common.clone();
     merger_args.extend(args.egress.to_flags());
+    if let Some(view) = &live_view {
+        merger_args.push(view.merger_flag());
+    }
     if let Some(path) = &args.map.map_out {
         merger_args.push(format!("--map-out={}", path.display()));
     }
@@ -319,6 +323,12 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         interrupted_by,
     } = supervision?;
     let interrupted = interrupted_by.is_some();
+    if let Some(view) = live_view {
+        // The recording must be closed whatever the rest of the report does.
+        if let Err(e) = view.finish(interrupted) {
+            tracing::error!("the live view: {e:#}");
+        }
+    }
 
     // A service stopped before it wrote its statistics left none: counted as nothing.
     let stats: Vec<ServiceStats> = ["replay", "frontend", "solver", "merger"]

@@ -19,6 +19,7 @@ mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
 mod launcher;
+mod live_view;
 mod log_compaction;
 mod map_file;
 mod map_state;

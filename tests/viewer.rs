@@ -1,0 +1,135 @@
+//! `egoslam run --foxglove --record` on the embedded TUM clip, replayed in real time: a
+//! WebSocket client sees the channels advertised within 3 s of the launch, and the MCAP
+//! recording has a pose for every frame and the map's points.
+
+mod common;
+
+use common::*;
+use foxglove::messages::{PointCloud, PoseInFrame};
+use prost::Message;
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+/// The JSON ops a `foxglove.sdk.v1` client receives first: serverInfo, then advertise.
+fn first_ops(port: u16, deadline: Instant) -> Vec<serde_json::Value> {
+    use tungstenite::client::IntoClientRequest;
+    let mut request = format!("ws://127.0.0.1:{port}")
+        .into_client_request()
+        .expect("request");
+    request.headers_mut().insert(
+        "Sec-WebSocket-Protocol",
+        "foxglove.sdk.v1".parse().expect("header"),
+    );
+    let stream = loop {
+        match std::net::TcpStream::connect(("127.0.0.1", port)) {
+            Ok(s) => break s,
+            Err(e) => {
+                assert!(Instant::now() < deadline, "no server on {port}: {e}");
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+    };
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .expect("timeout");
+    let (mut socket, _) = tungstenite::client(request, stream).expect("handshake");
+    let mut ops = Vec::new();
+    while ops.len() < 2 {
+        match socket.read().expect("a message") {
+            tungstenite::Message::Text(t) => {
+                ops.push(serde_json::from_str(t.as_str()).expect("json"))
+            }
+            _ => continue,
+        }
+    }
+    ops
+}
+
+#[test]
+fn a_run_is_served_to_foxglove_and_recorded_into_mcap() {
+    let out = tempfile::tempdir().expect("tempdir");
+    let recording = out.path().join("run.mcap");
+    let port = free_port();
+    let launched = Instant::now();
+    let run = egoslam()
+        .args(["run", "--realtime", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path().join("out"))
+        .arg("--foxglove")
+        .arg(format!("127.0.0.1:{port}"))
+        .arg("--record")
+        .arg(&recording)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("run");
+    let ops = first_ops(port, launched + Duration::from_secs(3));
+    assert!(
+        launched.elapsed() < Duration::from_secs(3),
+        "{:?}",
+        launched.elapsed()
+    );
+    assert_eq!(ops[0]["op"], "serverInfo", "{ops:?}");
+    assert_eq!(ops[1]["op"], "advertise", "{ops:?}");
+    let topics: Vec<&str> = ops[1]["channels"]
+        .as_array()
+        .expect("channels")
+        .iter()
+        .filter_map(|c| c["topic"].as_str())
+        .collect();
+    for topic in ["/egoslam/pose", "/tf", "/egoslam/map", "/egoslam/keyframes"] {
+        assert!(topics.contains(&topic), "{topic} not in {topics:?}");
+    }
+    let status = run.wait_with_output().expect("run").status;
+    assert!(status.success(), "{status}");
+
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("out/report.json")).expect("report"))
+            .expect("json");
+    let posed = report["posed_frames"].as_u64().expect("posed_frames");
+    let bytes = std::fs::read(&recording).expect("recording");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("a summary section: the recording was closed");
+    let stats = summary.stats.expect("statistics");
+    let counts: BTreeMap<String, u64> = summary
+        .channels
+        .iter()
+        .map(|(id, c)| {
+            let n = stats.channel_message_counts.get(id).copied().unwrap_or(0);
+            (c.topic.clone(), n)
+        })
+        .collect();
+    // Every posed frame once as revision 0 (the camera transform), more poses with the
+    // refinements' revisions.
+    assert_eq!(counts["/tf"], posed, "{counts:?}");
+    assert!(counts["/egoslam/pose"] >= posed, "{counts:?}");
+    let mut frames = std::collections::BTreeSet::new();
+    let mut last_cloud = None;
+    for message in mcap::MessageStream::new(&bytes).expect("messages") {
+        let message = message.expect("message");
+        match message.channel.topic.as_str() {
+            "/egoslam/pose" => {
+                let p = PoseInFrame::decode(&*message.data).expect("pose");
+                let t = p.timestamp.expect("stamped");
+                frames.insert((t.sec(), t.nsec()));
+            }
+            "/egoslam/map" => last_cloud = Some(PointCloud::decode(&*message.data).expect("cloud")),
+            _ => {}
+        }
+    }
+    assert_eq!(
+        frames.len() as u64,
+        posed,
+        "one capture time per posed frame"
+    );
+    let points = report["map_points"].as_u64().expect("map_points");
+    let cloud = last_cloud.expect("a point cloud");
+    // The cloud holds every point published (the map's, and those culled since).
+    assert!(
+        cloud.data.len() as u64 >= 12 * points / 2,
+        "{} bytes, {points} points",
+        cloud.data.len()
+    );
+}
