@@ -26,6 +26,8 @@ pub enum Command {
     Run(RunArgs),
     /// ATE RMSE of a TUM trajectory against ground truth (TUM, KITTI or EuRoC layout).
     Eval(EvalArgs),
+    /// Write a finished run's map for COLMAP or nerfstudio (docs/export.md).
+    Export(crate::export_command::ExportArgs),
     /// Run the benchmark suite (real and rendered sequences) and write the table.
     Bench(crate::bench_command::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).

@@ -349,6 +349,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill_egress(c, m, &mut a.egress);
         }
         Command::Eval(_)
+        | Command::Export(_)
         | Command::Synth(_)
         | Command::Bench(_)
         | Command::Localize(_)

@@ -372,6 +372,8 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         // The id every status message over zenoh carries.
         "run_id": run_id,
         "input": input.display().to_string(),
+        // The rate image folders were stamped with (`egoslam export` names their images).
+        "fps": args.fps,
         "layout": format!("{layout:?}"),
         "calibration": calibration.origin.display().to_string(),
         "frames": replay.frames,

@@ -11,6 +11,7 @@ mod config;
 mod convert;
 mod endurance_bench;
 mod eval;
+mod export_command;
 mod features_log;
 mod focal;
 mod frame_poses;
@@ -73,6 +74,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),
+        cli::Command::Export(args) => export_command::run(args),
         cli::Command::Synth(args) => synth_command::run(args),
         cli::Command::CalibrateReadout(args) => readout::calibrate(args),
         cli::Command::Bench(args) => bench_command::run(args, cli.config.as_deref()),

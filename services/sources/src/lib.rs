@@ -29,4 +29,4 @@ pub use error::SourceError;
 pub use frame_stream::{FrameStream, FrameStreamOptions, SkipReason, SkippedFrames};
 pub use ground_truth::load_ground_truth;
 pub use layout::{detect_layout, Layout};
-pub use reader::{open_source, Frame, FrameSource};
+pub use reader::{image_files, open_source, Frame, FrameSource};

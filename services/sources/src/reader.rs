@@ -236,6 +236,18 @@ fn folder_entries(dir: &Path, fps: f64) -> Result<Vec<(f64, PathBuf)>, SourceErr
         .collect())
 }
 
+/// The image files of a sequence with their timestamps, in order (for exports that name
+/// the images); `None` for a video or a camera, whose frames are not files.
+pub fn image_files(layout: &Layout, fps: f64) -> Result<Option<Vec<(f64, PathBuf)>>, SourceError> {
+    Ok(Some(match layout {
+        Layout::Tum { dir } => tum_entries(dir)?,
+        Layout::Kitti { dir } => kitti_entries(dir)?,
+        Layout::Euroc { cam_dir } => euroc_entries(cam_dir)?,
+        Layout::ImageFolder { dir } => folder_entries(dir, fps)?,
+        Layout::Video { .. } | Layout::Camera { .. } => return Ok(None),
+    }))
+}
+
 /// Opens the sequence at `path` (any supported layout) as a [`FrameStream`], which skips and
 /// counts the frames that cannot be used. `fps` sets the timestamps of image folders (which
 /// carry none) and is the fallback for videos that report no rate.

@@ -1,0 +1,29 @@
+//! egoslam's map in the formats of the tools users reconstruct with (docs/export.md):
+//! [`colmap`] text models (cameras.txt, images.txt, points3D.txt) and [`nerfstudio`]'s
+//! transforms.json, both from one [`ExportModel`] built from the map's keyframes,
+//! observations and points.
+
+pub mod colmap;
+pub mod model;
+pub mod nerfstudio;
+
+pub use model::{ExportImage, ExportModel, ExportPoint, Keypoint, MapView};
+
+/// Why an export could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error("writing {path}: {source}")]
+    Write {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("nothing to export: {0}")]
+    Empty(String),
+}
+
+pub(crate) fn write_file(path: &std::path::Path, text: &str) -> Result<(), ExportError> {
+    std::fs::write(path, text).map_err(|source| ExportError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
