@@ -18,7 +18,8 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 # The Python client (clients/python) and its test run in a virtual environment of their
-# own (target/python), never in the system's Python.
+# own (target/python), never in the system's Python; the package is reinstalled each time
+# so that the tests use the source as it is.
 repo="$(cd "$(dirname "$0")/.." && pwd)"
 venv="$repo/target/python"
 if ! "$venv/bin/python" -c "import zenoh, google.protobuf" >/dev/null 2>&1; then
@@ -27,3 +28,6 @@ if ! "$venv/bin/python" -c "import zenoh, google.protobuf" >/dev/null 2>&1; then
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
     -r "$repo/clients/python/requirements.txt"
 fi
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  --force-reinstall "$repo/clients/python"
+rm -rf "$repo/clients/python/build" "$repo"/clients/python/src/*.egg-info
