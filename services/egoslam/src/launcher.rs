@@ -69,7 +69,16 @@ fn resolve_readout(
         return json!({ "setting": "auto", "estimated_by": "the frontend, online" });
     }
     let started = Instant::now();
-    let estimate = estimate_from_source(first, source, camera, &args.pipeline);
+    let frames = args.pipeline.readout_frames as usize;
+    let total = source.len_hint().map_or(frames, |n| n.min(frames));
+    let bar = crate::progress::frames_bar("rolling-shutter readout", Some(total as u64));
+    bar.inc(1);
+    let mut counted = crate::progress::Counted {
+        inner: source,
+        bar: &bar,
+    };
+    let estimate = estimate_from_source(first, &mut counted, camera, &args.pipeline);
+    bar.finish_and_clear();
     let (readout_ms, details) = match estimate {
         Ok(e) => (
             e.readout_s * 1e3,
@@ -282,6 +291,10 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     std::env::set_var("EGOSLAM_RUN_ID", &run_id);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
     catch_stop_signals()?;
+    if crate::progress::on_terminal() && std::env::var_os("EGOSLAM_LOG").is_none() {
+        // The bar shows the progress; the services only say what needs attention.
+        std::env::set_var("EGOSLAM_LOG", format!("warn,{}", crate::QUIET_TARGETS));
+    }
     // Consumers first; every producer also waits for its consumer to connect.
     let mut children = Vec::new();
     let mut merger_args = common.clone();
@@ -314,6 +327,13 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             stop_all(&mut children);
             return Err(e);
         }
+    }
+    if let Some(view) = &live_view {
+        let total = total_frames.map(|n| n as u64);
+        view.follow_with(crate::progress::frames_bar(
+            "pipeline (frames posed)",
+            total,
+        ));
     }
     let supervision = supervise(children);
     // Every service has ended (or was stopped): their bus files are of no further use.

@@ -27,6 +27,7 @@ mod map_state;
 mod merger_service;
 mod option_checks;
 mod output;
+mod progress;
 mod readout;
 mod record_log;
 mod relocalization_commands;
@@ -103,21 +104,28 @@ fn main() -> std::process::ExitCode {
     }
 }
 
+/// Libraries' lines an operator has no use for: zenoh's and foxglove's sessions and clients
+/// coming and going, and zenoh's warning that gossip is off (egoslam turns it off: peers
+/// connect explicitly).
+pub const QUIET_TARGETS: &str = "zenoh=warn,foxglove=warn,zenoh::net::routing::hat::peer=error";
+
 fn init_tracing(verbose: u8) {
     let default = match verbose {
         0 => "info",
         1 => "debug",
         _ => "trace",
     };
-    // zenoh's own INFO lines (sessions opening and closing) are noise to an operator.
-    let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{default},zenoh=warn")));
+    // zenoh's and foxglove's own INFO lines (sessions and clients coming and going) are
+    // noise to an operator.
+    let filter = tracing_subscriber::EnvFilter::try_from_env("EGOSLAM_LOG").unwrap_or_else(|_| {
+        tracing_subscriber::EnvFilter::new(format!("{default},{QUIET_TARGETS}"))
+    });
     // EGOSLAM_LOG_FORMAT=json: one JSON object per line, for journald (the systemd units).
     // Colour only on a terminal: a log file or a pipe gets plain lines.
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
+        .with_writer(|| progress::LogWriter)
         .with_ansi(colour)
         .with_target(false);
     if std::env::var("EGOSLAM_LOG_FORMAT").is_ok_and(|f| f == "json") {

@@ -3,6 +3,7 @@
 //! again from its start, and reports what it did for report.json.
 
 use crate::cli::RunArgs;
+use crate::focal::FOCAL_FRAMES;
 use crate::readout::Readout;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::{open_source, FrameSource, Layout};
@@ -34,7 +35,21 @@ fn read_ahead<T>(
     };
     let result = open_source(input, args.fps)
         .map_err(anyhow::Error::from)
-        .and_then(|source| estimate(&mut source.quiet(), readout_s));
+        .and_then(|source| {
+            let mut source = source.quiet();
+            let total = source
+                .len_hint()
+                .map_or(FOCAL_FRAMES, |n| n.min(FOCAL_FRAMES));
+            let bar =
+                crate::progress::frames_bar(&format!("{what} calibration"), Some(total as u64));
+            let mut counted = crate::progress::Counted {
+                inner: &mut source,
+                bar: &bar,
+            };
+            let estimate = estimate(&mut counted, readout_s);
+            bar.finish_and_clear();
+            estimate
+        });
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     result.map(|e| (e, elapsed_ms)).map_err(|e| {
         tracing::info!("no {what} estimate ({e:#}): the calibration is used as given");

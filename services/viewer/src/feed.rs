@@ -1,8 +1,8 @@
 //! The viewer's input: a zenoh session subscribed to one device's results
 //! (`egoslam/<device>/{pose,trajectory,map,status}`, docs/egress.md), each message decoded
-//! and handed to the [`Viewer`].
+//! and handed to a [`ResultSink`] (the [`crate::Viewer`], a progress display).
 
-use crate::{Viewer, ViewerError};
+use crate::ViewerError;
 use egoslam_egress::NetworkOptions;
 use egoslam_messages::v1 as pb;
 use prost::Message;
@@ -10,6 +10,29 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 use zenoh::Wait;
+
+/// What takes the decoded results; each kind is ignored unless implemented.
+pub trait ResultSink: Send + Sync {
+    fn pose(&self, _pose: &pb::Pose) {}
+    fn trajectory(&self, _trajectory: &pb::Trajectory) {}
+    fn map_points(&self, _points: &pb::MapPoints) {}
+    fn status(&self, _status: &pb::Status) {}
+}
+
+impl ResultSink for crate::Viewer {
+    fn pose(&self, pose: &pb::Pose) {
+        crate::Viewer::pose(self, pose)
+    }
+    fn trajectory(&self, trajectory: &pb::Trajectory) {
+        crate::Viewer::trajectory(self, trajectory)
+    }
+    fn map_points(&self, points: &pb::MapPoints) {
+        crate::Viewer::map_points(self, points)
+    }
+    fn status(&self, status: &pb::Status) {
+        crate::Viewer::status(self, status)
+    }
+}
 
 /// Seen from the feed: whether the merger said it finished, and messages not understood.
 #[derive(Default)]
@@ -57,7 +80,7 @@ impl Feed {
     pub fn open(
         network: &NetworkOptions,
         device: &str,
-        viewer: Arc<Viewer>,
+        sink: Arc<dyn ResultSink>,
     ) -> Result<Self, ViewerError> {
         let subscribe_error = |key: &str, reason: String| ViewerError::Subscribe {
             key: key.to_string(),
@@ -73,7 +96,7 @@ impl Feed {
         let mut subscribers = Vec::new();
         for topic in ["pose", "trajectory", "map", "status"] {
             let key = format!("egoslam/{device}/{topic}");
-            let viewer = viewer.clone();
+            let viewer = sink.clone();
             let progress = progress.clone();
             let on_sample = move |sample: zenoh::sample::Sample| {
                 progress.received.fetch_add(1, Ordering::Relaxed);
