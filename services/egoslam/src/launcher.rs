@@ -394,7 +394,10 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "input": input.display().to_string(),
         // The rate image folders were stamped with (`egoslam export` names their images).
         "fps": args.fps,
-        "layout": format!("{layout:?}"),
+        "layout": {
+            "kind": layout.kind(),
+            "path": layout.path().display().to_string(),
+        },
         "calibration": calibration.origin.display().to_string(),
         "frames": replay.frames,
         "dropped_frames": counter(replay, "dropped_frames"),
@@ -466,7 +469,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
 
 /// Version of report.json's layout: 2 since skipped frames are counted by reason
 /// (`skipped_frames`, replacing `corrupt_frames` and `wrong_size_frames`).
-const REPORT_SCHEMA_VERSION: u32 = 2;
+const REPORT_SCHEMA_VERSION: u32 = 3;
 
 /// The run was stopped by a signal after writing its results (exit status 128 + signal).
 #[derive(Debug, thiserror::Error)]

@@ -109,6 +109,29 @@ pub fn detect_layout(path: &Path) -> Result<Layout, SourceError> {
 }
 
 impl Layout {
+    /// The kind's name, as report.json gives it: `tum`, `kitti`, `euroc`, `video`,
+    /// `image_folder` or `camera`.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Layout::Tum { .. } => "tum",
+            Layout::Kitti { .. } => "kitti",
+            Layout::Euroc { .. } => "euroc",
+            Layout::Video { .. } => "video",
+            Layout::ImageFolder { .. } => "image_folder",
+            Layout::Camera { .. } => "camera",
+        }
+    }
+
+    /// The folder, file or device the frames are read from.
+    pub fn path(&self) -> &Path {
+        match self {
+            Layout::Tum { dir } | Layout::Kitti { dir } | Layout::ImageFolder { dir } => dir,
+            Layout::Euroc { cam_dir } => cam_dir,
+            Layout::Video { file } => file,
+            Layout::Camera { device } => device,
+        }
+    }
+
     /// The folder that holds the sequence (where calibration is looked for first).
     pub fn root(&self) -> &Path {
         match self {
