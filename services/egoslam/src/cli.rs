@@ -325,6 +325,14 @@ pub struct EvalArgs {
     /// Maximum timestamp difference for association, seconds.
     #[arg(long, default_value_t = 0.02)]
     pub max_dt: f64,
+    /// How the estimate is aligned to the ground truth: sim3 (rotation, translation and
+    /// scale: monocular) or se3 (scale kept: judges the scale too).
+    #[arg(long, value_enum, default_value_t = crate::eval_plots::Alignment::Sim3)]
+    pub alignment: crate::eval_plots::Alignment,
+    /// Write eval.json (errors per pose), trajectory.svg (top view, estimate coloured by
+    /// error) and error.svg (error over time) into this folder.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -258,14 +258,31 @@ pub fn accuracy(
 }
 
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    use crate::eval_plots::{aligned, Alignment};
     let estimate = read_tum_file(&args.estimate)?;
     let gt = load_ground_truth(&args.ground_truth)?;
     let report = evaluate(&estimate, &gt.poses, args.max_dt)?;
-    println!("{}", summary(&report));
+    if args.alignment == Alignment::Sim3 {
+        println!("{}", summary(&report));
+    }
+    let (similarity, poses) = aligned(&estimate, &gt.poses, args.max_dt, args.alignment)?;
+    if args.alignment == Alignment::Se3 {
+        println!(
+            "ATE RMSE {:.4} m over {} poses, SE(3)-aligned (the estimate's scale kept; Sim(3) would give {:.4} m at scale {:.4})",
+            crate::eval_plots::rmse(&poses),
+            poses.len(),
+            report.rmse,
+            report.alignment.scale
+        );
+    }
     if let Some(rpe) = rpe_1s(&estimate, &gt.poses, &report) {
         println!("{}", rpe_summary(&rpe));
     }
     println!("ground truth: {}", gt.description);
+    if let Some(dir) = &args.plot {
+        crate::eval_plots::write(dir, args.alignment, &similarity, &poses)?;
+        println!("plots and errors per pose in {}", dir.display());
+    }
     Ok(())
 }
 

@@ -11,6 +11,7 @@ mod config;
 mod convert;
 mod endurance_bench;
 mod eval;
+mod eval_plots;
 mod export_command;
 mod features_log;
 mod focal;

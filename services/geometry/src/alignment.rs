@@ -124,6 +124,31 @@ pub fn nearest_rotation(m: &Matrix3<f64>) -> Rotation3<f64> {
     }
 }
 
+/// Least-squares rigid motion (scale 1) minimising `sum |dst_i - T(src_i)|^2`: Kabsch on
+/// the centred points. For trajectories whose scale is known (metric sensors, or to judge
+/// a monocular estimate's scale too).
+pub fn rigid_alignment(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+) -> Result<Similarity, AlignmentError> {
+    if src.len() != dst.len() {
+        return Err(AlignmentError::LengthMismatch(src.len(), dst.len()));
+    }
+    if src.len() < 3 {
+        return Err(AlignmentError::TooFewPoints(src.len()));
+    }
+    let n = src.len() as f64;
+    let cs = src.iter().sum::<Vector3<f64>>() / n;
+    let cd = dst.iter().sum::<Vector3<f64>>() / n;
+    let pairs: Vec<_> = src.iter().zip(dst).map(|(s, d)| (s - cs, d - cd)).collect();
+    let rotation = rotation_aligning(&pairs);
+    Ok(Similarity {
+        scale: 1.0,
+        rotation,
+        translation: cd - rotation * cs,
+    })
+}
+
 /// Least-squares similarity `T` minimising `sum |dst_i - T(src_i)|^2` (Umeyama 1991), with
 /// the reflection fix of the paper so the result is always a proper rotation.
 pub fn umeyama(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Result<Similarity, AlignmentError> {
@@ -252,6 +277,39 @@ pub fn umeyama_ransac(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_rigid_alignment_recovers_rotation_and_translation_and_keeps_the_scale() {
+        let truth = Similarity {
+            scale: 1.0,
+            rotation: Rotation3::from_euler_angles(0.2, -0.4, 1.1),
+            translation: Vector3::new(1.0, -2.0, 0.5),
+        };
+        let src: Vec<Vector3<f64>> = (0..10)
+            .map(|i| {
+                let t = f64::from(i);
+                Vector3::new(t.cos(), t.sin() * 2.0, 0.3 * t)
+            })
+            .collect();
+        let dst: Vec<Vector3<f64>> = src.iter().map(|p| truth.apply(p)).collect();
+        let fit = rigid_alignment(&src, &dst).expect("fit");
+        assert_eq!(fit.scale, 1.0);
+        assert!((fit.rotation.matrix() - truth.rotation.matrix()).norm() < 1e-12);
+        assert!((fit.translation - truth.translation).norm() < 1e-12);
+        // Twice as large a trajectory is not shrunk to fit.
+        let big: Vec<Vector3<f64>> = src.iter().map(|p| truth.apply(&(p * 2.0))).collect();
+        let fit = rigid_alignment(&src, &big).expect("fit");
+        let residual: f64 = src
+            .iter()
+            .zip(&big)
+            .map(|(s, d)| (fit.apply(s) - d).norm())
+            .sum();
+        assert!(residual > 1.0, "{residual}");
+        assert!(matches!(
+            rigid_alignment(&src[..2], &dst[..2]),
+            Err(AlignmentError::TooFewPoints(2))
+        ));
+    }
+
     use super::*;
 
     #[test]

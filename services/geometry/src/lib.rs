@@ -11,8 +11,8 @@ pub mod structure_error;
 pub mod trajectory;
 
 pub use alignment::{
-    nearest_rotation, rotation_aligning, rotation_aligning_trimmed, umeyama, umeyama_ransac,
-    AlignmentError, BearingPair, RobustAlignmentOptions, Similarity,
+    nearest_rotation, rigid_alignment, rotation_aligning, rotation_aligning_trimmed, umeyama,
+    umeyama_ransac, AlignmentError, BearingPair, RobustAlignmentOptions, Similarity,
 };
 pub use camera::{CameraError, PinholeRadtan};
 pub use median::median;
