@@ -10,7 +10,7 @@
 //! | `/egoslam/pose` | `foxglove.PoseInFrame` | every frame's pose, each revision |
 //! | `/tf` | `foxglove.FrameTransform` | `map` -> `camera`, at every new frame |
 //! | `/egoslam/keyframes` | `foxglove.PosesInFrame` | the keyframe trajectory, after each window |
-//! | `/egoslam/map` | `foxglove.PointCloud` | all points, at most every `cloud_interval` and at the end |
+//! | `/egoslam/map` | `foxglove.PointCloud` | all points, at most every `cloud_interval` (longer for a large map) and at the end |
 //! | `/egoslam/status` | `foxglove.Log` | each status of the merger |
 
 pub mod convert;
@@ -35,9 +35,12 @@ pub struct ViewerOptions {
     pub foxglove: Option<String>,
     /// MCAP file to record into (replaced if present); `None`: no recording.
     pub record: Option<PathBuf>,
-    /// The whole point cloud is sent at most this often (and once at the end): a map of
-    /// 150k points is 1.8 MB a message.
+    /// The whole point cloud is sent at most this often (and once at the end).
     pub cloud_interval: Duration,
+    /// ... and at most at this many bytes per second on average, so that a day's recording
+    /// stays within bounds (a map of 150k points is 1.8 MB a message: every 18 s at the
+    /// default 100 kB/s, 360 MB an hour).
+    pub cloud_bytes_per_second: f64,
 }
 
 impl Default for ViewerOptions {
@@ -46,6 +49,7 @@ impl Default for ViewerOptions {
             foxglove: None,
             record: None,
             cloud_interval: Duration::from_secs(2),
+            cloud_bytes_per_second: 100e3,
         }
     }
 }
@@ -99,6 +103,7 @@ pub struct Viewer {
     recording: Mutex<Option<(PathBuf, McapWriterHandle<BufWriter<File>>)>>,
     cloud: Mutex<Cloud>,
     cloud_interval: Duration,
+    cloud_bytes_per_second: f64,
 }
 
 /// Splits `HOST:PORT` (IPv6 hosts in brackets).
@@ -174,6 +179,7 @@ impl Viewer {
                 sent: None,
             }),
             cloud_interval: options.cloud_interval,
+            cloud_bytes_per_second: options.cloud_bytes_per_second,
         })
     }
 
@@ -221,9 +227,11 @@ impl Viewer {
 
     fn send_cloud(&self, now: bool) {
         let mut cloud = self.cloud.lock().unwrap_or_else(|e| e.into_inner());
-        let due = cloud
-            .sent
-            .is_none_or(|t| t.elapsed() >= self.cloud_interval);
+        let bytes = (cloud.points.len() * 12) as f64;
+        let pause = Duration::try_from_secs_f64(bytes / self.cloud_bytes_per_second)
+            .unwrap_or(Duration::MAX)
+            .max(self.cloud_interval);
+        let due = cloud.sent.is_none_or(|t| t.elapsed() >= pause);
         if cloud.changed && (now || due) {
             self.channels.map.log(&convert::point_cloud(
                 cloud.points.values(),

@@ -33,6 +33,7 @@ fn what_the_merger_publishes_is_recorded_on_foxglove_schemas() {
             foxglove: Some("127.0.0.1:0".into()),
             record: Some(recording.clone()),
             cloud_interval: Duration::ZERO,
+            ..ViewerOptions::default()
         })
         .expect("viewer"),
     );
