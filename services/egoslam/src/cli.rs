@@ -153,6 +153,10 @@ pub struct PipelineArgs {
     /// every point (docs/merger.md, "Published points").
     #[arg(long, default_value_t = 0.02)]
     pub max_point_std: f64,
+    /// Merger: also write map_all.ply, every triangulated point with its views and
+    /// relative standard deviation (NaN where the views do not fix it).
+    #[arg(long)]
+    pub map_all_points: bool,
 }
 
 /// Where results go over zenoh (docs/egress.md).

@@ -71,6 +71,7 @@ pub struct MergerSection {
     pub cull_keyframes: Option<bool>,
     pub max_map_keyframes: Option<usize>,
     pub max_point_std: Option<f64>,
+    pub map_all_points: Option<bool>,
 }
 
 /// `[zenoh]`: where results are published.
@@ -242,6 +243,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "max_point_std",
         &mut p.max_point_std,
         &c.merger.max_point_std,
+    );
+    fill(
+        m,
+        "map_all_points",
+        &mut p.map_all_points,
+        &c.merger.map_all_points,
     );
     fill(
         m,

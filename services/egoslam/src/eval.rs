@@ -65,26 +65,18 @@ pub fn rpe_json(r: &RpeReport) -> serde_json::Value {
     json!({"delta_s": r.delta_s, "translation_rmse_m": r.translation_rmse_m, "translation_per_metre": r.translation_per_metre, "rotation_rmse_deg": r.rotation_rmse_deg, "pairs": r.pairs})
 }
 
-/// Map points of an ASCII `map.ply` written by egoslam.
+/// Map points of a `map.ply` written by egoslam.
 fn read_ply(path: &Path) -> anyhow::Result<Vec<Vector3<f64>>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let body = text
-        .split_once("end_header\n")
-        .map(|(_, b)| b)
-        .with_context(|| format!("{}: not an ASCII PLY", path.display()))?;
-    body.lines()
-        .map(|l| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .filter_map(|x| x.parse().ok())
-                .collect();
-            match v[..] {
-                [x, y, z] => Ok(Vector3::new(x, y, z)),
-                _ => anyhow::bail!("{}: bad vertex line {l:?}", path.display()),
-            }
+    Ok(egoslam_export::map_ply::read(path)?
+        .iter()
+        .map(|p| {
+            Vector3::new(
+                p.position[0].into(),
+                p.position[1].into(),
+                p.position[2].into(),
+            )
         })
-        .collect()
+        .collect())
 }
 
 /// Structure error of `map.ply` against the sequence's depth maps (TUM `depth.txt`, 16-bit

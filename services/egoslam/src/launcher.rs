@@ -25,7 +25,7 @@ fn default_input() -> PathBuf {
 }
 
 fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
-    let flags = vec![
+    let mut flags = vec![
         format!("--keyframe-every={}", p.keyframe_every),
         format!("--keyframe-flow-px={}", p.keyframe_flow_px),
         format!("--tracks={}", p.tracks),
@@ -44,6 +44,9 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--rolling-shutter-ms={}", p.rolling_shutter_ms),
         format!("--readout-frames={}", p.readout_frames),
     ];
+    if p.map_all_points {
+        flags.push("--map-all-points".into());
+    }
     flags
 }
 
@@ -245,6 +248,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "trajectory.tum",
         "keyframes.tum",
         "map.ply",
+        "map_all.ply",
         "report.json",
         crate::checkpoint::FILE_NAME,
         crate::window_journal::FILE_NAME,

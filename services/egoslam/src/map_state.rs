@@ -2,8 +2,9 @@
 //! points; written to files and published over zenoh from the same values.
 
 use crate::convert::{pose_to_pb, vec3_to_pb};
-use crate::output::{ply_text, tum_text, write_atomically};
+use crate::output::{tum_text, write_atomically};
 use egoslam_egress::Egress;
+use egoslam_export::map_ply::{self, MapPlyPoint};
 use egoslam_geometry::StampedPose;
 use egoslam_merger::{interpolate_frames, MapBuilder, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
@@ -160,16 +161,34 @@ impl MapState {
         self
     }
 
-    /// The points map.ply holds: those known within `options` (every point when no
-    /// confidence was attached, as before the first window brought the camera).
-    fn known_points(&self, options: &PointConfidenceOptions) -> Vec<Vector3<f64>> {
+    /// The points as map.ply holds them: with their views, relative standard deviation
+    /// and grey level (`grey`, from the images); only those known within `options` unless
+    /// `all` (every point when no confidence was attached, as before the first window
+    /// brought the camera).
+    fn ply_points(
+        &self,
+        options: &PointConfidenceOptions,
+        all: bool,
+        grey: &dyn Fn(u64) -> Option<u8>,
+    ) -> Vec<MapPlyPoint> {
         self.points
             .iter()
-            .filter(|(track, _)| match &self.confidence {
-                None => true,
-                Some(c) => c.get(track).is_some_and(|c| c.is_known(options)),
+            .filter_map(|(track, p)| {
+                let confidence = self.confidence.as_ref().and_then(|c| c.get(track));
+                let known =
+                    self.confidence.is_none() || confidence.is_some_and(|c| c.is_known(options));
+                (all || known).then(|| {
+                    let g = grey(*track).unwrap_or(128);
+                    MapPlyPoint {
+                        position: [p.x as f32, p.y as f32, p.z as f32],
+                        colour: [g; 3],
+                        views: confidence.map_or(0, |c| c.views),
+                        relative_std: confidence
+                            .and_then(|c| c.relative_std)
+                            .map_or(f32::NAN, |s| s as f32),
+                    }
+                })
             })
-            .map(|p| p.1)
             .collect()
     }
 
@@ -181,9 +200,12 @@ impl MapState {
         &self,
         out: &Path,
         published: &PointConfidenceOptions,
+        all_points: bool,
+        grey: &dyn Fn(u64) -> Option<u8>,
     ) -> anyhow::Result<usize> {
         let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
-        let points = self.known_points(published);
+        let points = self.ply_points(published, false, grey);
+        let published_points = points.len();
         write_atomically(
             &out.join("trajectory.tum"),
             tum_text(&poses(&self.frames)).as_bytes(),
@@ -197,8 +219,18 @@ impl MapState {
             segments += &format!("{:.6} {}\n", k.pose.timestamp, k.segment);
         }
         write_atomically(&out.join("keyframe_segments.txt"), segments.as_bytes())?;
-        write_atomically(&out.join("map.ply"), ply_text(&points).as_bytes())?;
-        Ok(points.len())
+        write_atomically(
+            &out.join("map.ply"),
+            &map_ply::to_bytes(points, "egoslam map points (docs/merger.md)")?,
+        )?;
+        if all_points {
+            let all = self.ply_points(published, true, grey);
+            write_atomically(
+                &out.join("map_all.ply"),
+                &map_ply::to_bytes(all, "egoslam: every triangulated point")?,
+            )?;
+        }
+        Ok(published_points)
     }
 }
 

@@ -22,6 +22,28 @@ pub(super) struct Outputs {
     pub(super) confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
     /// Carried by every status message (`Status.run_id`).
     pub(super) run_id: String,
+    /// Also write map_all.ply (`--map-all-points`).
+    pub(super) all_points: bool,
+}
+
+/// Each described track's grey level: the centre of its patch (relocalization's patches,
+/// kept in the keyframe that first described the track).
+fn grey_levels(merger: &MergerState) -> HashMap<u64, u8> {
+    use egoslam_relocalization::patch_alignment::PATCH_SIDE;
+    let centre = |p: &[u8]| {
+        let (a, b) = (PATCH_SIDE / 2 - 1, PATCH_SIDE / 2);
+        let sum: u32 = [(a, a), (a, b), (b, a), (b, b)]
+            .iter()
+            .map(|(y, x)| u32::from(p[y * PATCH_SIDE + x]))
+            .sum();
+        (sum / 4) as u8
+    };
+    merger
+        .patches
+        .values()
+        .flatten()
+        .map(|(track, patch)| (*track, centre(patch)))
+        .collect()
 }
 
 impl Outputs {
@@ -56,7 +78,11 @@ impl Outputs {
             snapshot = snapshot.with_confidence(Arc::clone(confidence));
         }
         if persist {
-            let published = snapshot.write_files(out, &self.point_confidence)?;
+            let grey = grey_levels(merger);
+            let published =
+                snapshot.write_files(out, &self.point_confidence, self.all_points, &|track| {
+                    grey.get(&track).copied()
+                })?;
             stats
                 .counters
                 .insert("published_points".into(), published as u64);

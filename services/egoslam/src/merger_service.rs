@@ -469,6 +469,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         },
         confidence: None,
         run_id: run_id(&args.namespace),
+        all_points: args.pipeline.map_all_points,
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.

@@ -2,7 +2,6 @@
 
 use anyhow::Context;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
-use nalgebra::Vector3;
 use std::io::Write;
 use std::path::Path;
 
@@ -48,18 +47,6 @@ pub fn tum_text(poses: &[StampedPose]) -> String {
             "{:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
             p.timestamp, p.position.x, p.position.y, p.position.z, q.i, q.j, q.k, q.w
         ));
-    }
-    s
-}
-
-/// ASCII PLY of map points.
-pub fn ply_text(points: &[Vector3<f64>]) -> String {
-    let mut s = format!(
-        "ply\nformat ascii 1.0\ncomment egoslam map points\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
-        points.len()
-    );
-    for p in points {
-        s.push_str(&format!("{} {} {}\n", p.x as f32, p.y as f32, p.z as f32));
     }
     s
 }

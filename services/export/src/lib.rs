@@ -4,6 +4,7 @@
 //! observations and points.
 
 pub mod colmap;
+pub mod map_ply;
 pub mod model;
 pub mod nerfstudio;
 
@@ -19,6 +20,11 @@ pub enum ExportError {
     },
     #[error("nothing to export: {0}")]
     Empty(String),
+    #[error("reading {path}: {source}")]
+    Read {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
 }
 
 pub(crate) fn write_file(path: &std::path::Path, text: &str) -> Result<(), ExportError> {
