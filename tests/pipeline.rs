@@ -286,7 +286,7 @@ fn run_writes_every_output_and_the_report() {
     ] {
         assert!(report.get(key).is_some(), "report lacks {key}");
     }
-    assert_eq!(report["schema_version"], 2);
+    assert_eq!(report["schema_version"], 3);
     assert_eq!(report["frames"], 120);
     assert_eq!(report["dropped_frames"], 0);
     assert_eq!(report["skipped_frames"], serde_json::json!({}));
