@@ -133,3 +133,46 @@ fn a_run_is_served_to_foxglove_and_recorded_into_mcap() {
         cloud.data.len()
     );
 }
+
+/// `egoslam view` follows a run as a zenoh client (as it would a deployed merger), started
+/// before the merger listens, and records every posed frame.
+#[test]
+fn egoslam_view_records_a_run_it_follows() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recording = dir.path().join("view.mcap");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let view = egoslam()
+        .args([
+            "view",
+            "--device",
+            "vt",
+            "--until-finished",
+            "--connect",
+            &endpoint,
+        ])
+        .arg("--record")
+        .arg(&recording)
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("view");
+    let out = dir.path().join("out");
+    let report = run_report_with(
+        &tum_fixture(),
+        &out,
+        &["--device", "vt", "--zenoh-listen", &endpoint],
+    );
+    let status = view.wait_with_output().expect("view").status;
+    assert!(status.success(), "{status}");
+    let posed = report["posed_frames"].as_u64().expect("posed");
+    let bytes = std::fs::read(&recording).expect("recording");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("a summary section: the recording was closed");
+    let stats = summary.stats.expect("statistics");
+    let tf = summary
+        .channels
+        .iter()
+        .find(|(_, c)| c.topic == "/tf")
+        .map(|(id, _)| stats.channel_message_counts.get(id).copied().unwrap_or(0));
+    assert_eq!(tf, Some(posed));
+}

@@ -26,6 +26,9 @@ pub enum Command {
     Run(RunArgs),
     /// ATE RMSE of a TUM trajectory against ground truth (TUM, KITTI or EuRoC layout).
     Eval(EvalArgs),
+    /// Follow a running egoslam (a deployed merger) in Foxglove and/or record it into MCAP
+    /// (docs/viewer.md).
+    View(crate::live_view::ViewCommandArgs),
     /// Write a finished run's map for COLMAP or nerfstudio (docs/export.md).
     Export(crate::export_command::ExportArgs),
     /// Run the benchmark suite (real and rendered sequences) and write the table.

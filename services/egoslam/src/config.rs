@@ -357,6 +357,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
         }
         Command::Eval(_)
         | Command::Export(_)
+        | Command::View(_)
         | Command::Synth(_)
         | Command::Bench(_)
         | Command::Localize(_)

@@ -138,3 +138,52 @@ impl LiveView {
         Ok(())
     }
 }
+
+/// `egoslam view`: the live view of a running egoslam, as a client of its zenoh output.
+#[derive(clap::Args, Debug)]
+pub struct ViewCommandArgs {
+    /// The merger's zenoh endpoint (repeatable).
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    pub connect: Vec<String>,
+    /// Device name (egoslam/<device>/...).
+    #[arg(long, default_value = "default")]
+    pub device: String,
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Stop when the merger reports the stream finished (default: at Ctrl-C or SIGTERM).
+    #[arg(long)]
+    pub until_finished: bool,
+}
+
+pub fn view(args: ViewCommandArgs) -> anyhow::Result<()> {
+    if !args.view.wanted() {
+        anyhow::bail!("nothing to do: give --foxglove HOST:PORT and/or --record FILE.mcap");
+    }
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(signal, Arc::clone(&stop))
+            .with_context(|| format!("catching signal {signal}"))?;
+    }
+    let viewer = Arc::new(Viewer::start(&ViewerOptions {
+        foxglove: args.view.foxglove.clone(),
+        record: args.view.record.clone(),
+        ..ViewerOptions::default()
+    })?);
+    if let Some(port) = viewer.port() {
+        eprintln!("Foxglove: ws://127.0.0.1:{port} (open connection in the Foxglove app)");
+    }
+    let feed = Feed::open(
+        &NetworkOptions::client(&args.connect, None),
+        &args.device,
+        viewer.clone(),
+    )?;
+    tracing::info!(connect = ?args.connect, device = %args.device, "following egoslam");
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        if feed.wait_finished(Duration::from_millis(200)) && args.until_finished {
+            break;
+        }
+    }
+    drop(feed);
+    viewer.finish()?;
+    Ok(())
+}

@@ -77,6 +77,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Run(args) => launcher::run(args),
         cli::Command::Eval(args) => eval::run(args),
         cli::Command::Export(args) => export_command::run(args),
+        cli::Command::View(args) => live_view::view(args),
         cli::Command::Synth(args) => synth_command::run(args),
         cli::Command::CalibrateReadout(args) => readout::calibrate(args),
         cli::Command::Bench(args) => bench_command::run(args, cli.config.as_deref()),

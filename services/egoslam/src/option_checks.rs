@@ -164,6 +164,7 @@ pub fn validate(command: &Command) -> Result<(), InvalidOption> {
         Command::Frontend(a) | Command::Solver(a) | Command::Merger(a) => a.pipeline.validate(),
         Command::Eval(_)
         | Command::Export(_)
+        | Command::View(_)
         | Command::Synth(_)
         | Command::Bench(_)
         | Command::Localize(_)
