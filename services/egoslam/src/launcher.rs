@@ -73,15 +73,10 @@ fn resolve_readout(
     }
     let started = Instant::now();
     let frames = args.pipeline.readout_frames as usize;
-    let total = source.len_hint().map_or(frames, |n| n.min(frames));
-    let bar = crate::progress::frames_bar("rolling-shutter readout", Some(total as u64));
-    bar.inc(1);
-    let mut counted = crate::progress::Counted {
-        inner: source,
-        bar: &bar,
-    };
-    let estimate = estimate_from_source(first, &mut counted, camera, &args.pipeline);
-    bar.finish_and_clear();
+    let estimate =
+        crate::progress::reading_frames("rolling-shutter readout", source, frames, 1, |source| {
+            estimate_from_source(first, source, camera, &args.pipeline)
+        });
     let (readout_ms, details) = match estimate {
         Ok(e) => (
             e.readout_s * 1e3,

@@ -59,10 +59,31 @@ pub fn frames_bar(step: &str, total: Option<u64>) -> ProgressBar {
     bar
 }
 
+/// Runs `read` on `source` under a bar labelled `step` that counts the frames it reads, of
+/// the `frames` it reads at most (fewer when the sequence is shorter); `already` were read
+/// before (a first frame taken out to check the input).
+pub fn reading_frames<T>(
+    step: &str,
+    source: &mut dyn FrameSource,
+    frames: usize,
+    already: u64,
+    read: impl FnOnce(&mut dyn FrameSource) -> T,
+) -> T {
+    let total = source.len_hint().map_or(frames, |n| n.min(frames));
+    let bar = frames_bar(step, Some(total as u64));
+    bar.inc(already);
+    let result = read(&mut Counted {
+        inner: source,
+        bar: &bar,
+    });
+    bar.finish_and_clear();
+    result
+}
+
 /// A frame source that moves `bar` by one per frame read.
-pub struct Counted<'a> {
-    pub inner: &'a mut dyn FrameSource,
-    pub bar: &'a ProgressBar,
+struct Counted<'a> {
+    inner: &'a mut dyn FrameSource,
+    bar: &'a ProgressBar,
 }
 
 impl FrameSource for Counted<'_> {

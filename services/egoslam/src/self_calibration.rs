@@ -36,19 +36,10 @@ fn read_ahead<T>(
     let result = open_source(input, args.fps)
         .map_err(anyhow::Error::from)
         .and_then(|source| {
-            let mut source = source.quiet();
-            let total = source
-                .len_hint()
-                .map_or(FOCAL_FRAMES, |n| n.min(FOCAL_FRAMES));
-            let bar =
-                crate::progress::frames_bar(&format!("{what} calibration"), Some(total as u64));
-            let mut counted = crate::progress::Counted {
-                inner: &mut source,
-                bar: &bar,
-            };
-            let estimate = estimate(&mut counted, readout_s);
-            bar.finish_and_clear();
-            estimate
+            let step = format!("{what} calibration");
+            crate::progress::reading_frames(&step, &mut source.quiet(), FOCAL_FRAMES, 0, |s| {
+                estimate(s, readout_s)
+            })
         });
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     result.map(|e| (e, elapsed_ms)).map_err(|e| {

@@ -277,6 +277,8 @@ pub fn umeyama_ransac(
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn a_rigid_alignment_recovers_rotation_and_translation_and_keeps_the_scale() {
         let truth = Similarity {
@@ -309,8 +311,6 @@ mod tests {
             Err(AlignmentError::TooFewPoints(2))
         ));
     }
-
-    use super::*;
 
     #[test]
     fn recovers_a_known_similarity() {

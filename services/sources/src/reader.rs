@@ -259,10 +259,6 @@ pub fn open_source(path: &Path, fps: f64) -> Result<FrameStream, SourceError> {
 fn open_frames(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceError> {
     let layout = detect_layout(path)?;
     let entries = match &layout {
-        Layout::Tum { dir } => tum_entries(dir)?,
-        Layout::Kitti { dir } => kitti_entries(dir)?,
-        Layout::Euroc { cam_dir } => euroc_entries(cam_dir)?,
-        Layout::ImageFolder { dir } => folder_entries(dir, fps)?,
         Layout::Video { file } | Layout::Camera { device: file } => {
             let live = matches!(layout, Layout::Camera { .. });
             let backend = if live {
@@ -305,6 +301,8 @@ fn open_frames(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>, SourceErro
                 clock: None,
             }));
         }
+        // Every other layout lists its image files.
+        _ => image_files(&layout, fps)?.unwrap_or_default(),
     };
     if entries.is_empty() {
         return Err(SourceError::Empty {

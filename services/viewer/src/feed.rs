@@ -96,7 +96,7 @@ impl Feed {
         let mut subscribers = Vec::new();
         for topic in ["pose", "trajectory", "map", "status"] {
             let key = format!("egoslam/{device}/{topic}");
-            let viewer = sink.clone();
+            let sink = sink.clone();
             let progress = progress.clone();
             let on_sample = move |sample: zenoh::sample::Sample| {
                 progress.received.fetch_add(1, Ordering::Relaxed);
@@ -105,22 +105,22 @@ impl Feed {
                 match topic {
                     "pose" => {
                         if let Some(p) = decoded::<pb::Pose>(payload, &progress, key) {
-                            viewer.pose(&p);
+                            sink.pose(&p);
                         }
                     }
                     "trajectory" => {
                         if let Some(t) = decoded::<pb::Trajectory>(payload, &progress, key) {
-                            viewer.trajectory(&t);
+                            sink.trajectory(&t);
                         }
                     }
                     "map" => {
                         if let Some(m) = decoded::<pb::MapPoints>(payload, &progress, key) {
-                            viewer.map_points(&m);
+                            sink.map_points(&m);
                         }
                     }
                     _ => {
                         if let Some(s) = decoded::<pb::Status>(payload, &progress, key) {
-                            viewer.status(&s);
+                            sink.status(&s);
                             if s.state == pb::ServiceState::Finished as i32 {
                                 *progress.finished.lock().unwrap_or_else(|e| e.into_inner()) = true;
                                 progress.changed.notify_all();
