@@ -134,8 +134,8 @@ fn a_run_is_served_to_foxglove_and_recorded_into_mcap() {
     );
 }
 
-/// `egoslam view` follows a run as a zenoh client (as it would a deployed merger), started
-/// before the merger listens, and records every posed frame.
+/// `egoslam view` follows a run as a zenoh client (as it would a deployed merger whose
+/// `--zenoh-connect` names it) and records every posed frame.
 #[test]
 fn egoslam_view_records_a_run_it_follows() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -147,7 +147,7 @@ fn egoslam_view_records_a_run_it_follows() {
             "--device",
             "vt",
             "--until-finished",
-            "--connect",
+            "--listen",
             &endpoint,
         ])
         .arg("--record")
@@ -159,7 +159,7 @@ fn egoslam_view_records_a_run_it_follows() {
     let report = run_report_with(
         &tum_fixture(),
         &out,
-        &["--device", "vt", "--zenoh-listen", &endpoint],
+        &["--device", "vt", "--zenoh-connect", &endpoint],
     );
     let status = view.wait_with_output().expect("view").status;
     assert!(status.success(), "{status}");

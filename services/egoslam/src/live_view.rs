@@ -145,6 +145,11 @@ pub struct ViewCommandArgs {
     /// The merger's zenoh endpoint (repeatable).
     #[arg(long, default_value = "tcp/127.0.0.1:7447")]
     pub connect: Vec<String>,
+    /// Also listen here (repeatable), for a merger started with `--zenoh-connect` to it:
+    /// it then reaches the view before it publishes anything. A view that connects to a
+    /// running merger sees what is published from then on.
+    #[arg(long)]
+    pub listen: Vec<String>,
     /// Device name (egoslam/<device>/...).
     #[arg(long, default_value = "default")]
     pub device: String,
@@ -172,11 +177,11 @@ pub fn view(args: ViewCommandArgs) -> anyhow::Result<()> {
     if let Some(port) = viewer.port() {
         eprintln!("Foxglove: ws://127.0.0.1:{port} (open connection in the Foxglove app)");
     }
-    let feed = Feed::open(
-        &NetworkOptions::client(&args.connect, None),
-        &args.device,
-        viewer.clone(),
-    )?;
+    let network = NetworkOptions {
+        listen: args.listen.clone(),
+        ..NetworkOptions::client(&args.connect, None)
+    };
+    let feed = Feed::open(&network, &args.device, viewer.clone())?;
     tracing::info!(connect = ?args.connect, device = %args.device, "following egoslam");
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         if feed.wait_finished(Duration::from_millis(200)) && args.until_finished {
