@@ -318,6 +318,11 @@ pub struct MapArgs {
     /// for `egoslam localize --map`.
     #[arg(long)]
     pub map_out: Option<PathBuf>,
+    /// Start from this saved map (`--map-out` of an earlier run) and extend it: the run's
+    /// keyframes join it once they relocalize in it, from then on posed in its frame and
+    /// scale; `--map-out` then writes both (docs/relocalization.md, "Extending a map").
+    #[arg(long, value_name = "FILE.egomap")]
+    pub map_in: Option<PathBuf>,
     /// Vocabulary tree file (`egoslam vocab train`); default: the one built into egoslam.
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,

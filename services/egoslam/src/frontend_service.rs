@@ -310,6 +310,11 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         );
         tracker.resume_ids(kf, track);
         stats.count("restarts", 1);
+    } else if let Some(path) = &args.map.map_in {
+        // The run extends a saved map: its ids start above the map's, which are older.
+        let first = crate::map_file::next_free_id(path)?;
+        tracing::info!(first_id = first, map = %path.display(), "extending a saved map");
+        tracker.resume_ids(first, first);
     }
     let mut resume_path = frontend_resume::path(&args.namespace);
     continue_tracks(&mut tracker, resume_path.as_deref(), resuming, &mut stats);

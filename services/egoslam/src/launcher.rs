@@ -307,10 +307,19 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.map.vocabulary {
         merger_args.push(format!("--vocabulary={}", path.display()));
     }
+    let mut frontend_args = common.clone();
+    if let Some(path) = &args.map.map_in {
+        // Read once here, so that a map this egoslam cannot use stops the run before it
+        // starts, with the reason.
+        let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
+        crate::map_file::read_map(path, &vocabulary)?;
+        merger_args.push(format!("--map-in={}", path.display()));
+        frontend_args.push(format!("--map-in={}", path.display()));
+    }
     for (name, service_args) in [
         ("merger", &merger_args),
         ("solver", &common),
-        ("frontend", &common),
+        ("frontend", &frontend_args),
     ] {
         match spawn(name, service_args) {
             Ok(c) => children.push(c),

@@ -120,6 +120,28 @@ pub fn write_map(
     Ok(())
 }
 
+/// The first keyframe and track id free above those of the map file at `path` (the file's
+/// vocabulary is not checked: the merger reads it with its own).
+pub fn next_free_id(path: &Path) -> anyhow::Result<u64> {
+    let bytes = read_bounded(path, "map")?;
+    let (map, _) = decode_map(&bytes).with_context(|| format!("map {}", path.display()))?;
+    Ok(egoslam_merger::next_free_id(&map))
+}
+
+/// Makes the saved `map` the start of `state`'s map (egoslam_merger::base_map): its
+/// keyframes, points, descriptors and patches. Its keyframes are never culled: they are
+/// the map being extended.
+pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) {
+    state.map = egoslam_merger::MapBuilder::from_parts(egoslam_merger::MapParts::from_saved(&map));
+    state.culling_checked_before = egoslam_merger::next_free_id(&map);
+    for k in map.keyframes {
+        if !k.patches.is_empty() {
+            state.patches.insert(k.keyframe_id, k.patches);
+        }
+        state.features.insert(k.keyframe_id, k.features);
+    }
+}
+
 /// Reads a map file and checks that it was made for `vocabulary`.
 pub fn read_map(path: &Path, vocabulary: &Vocabulary) -> anyhow::Result<RelocalizationMap> {
     let bytes = read_bounded(path, "map")?;

@@ -236,13 +236,17 @@ impl MapState {
 
 /// The map's keyframes as posed frames, in time order.
 fn posed_keyframes(map: &MapBuilder, index: &FrameIndex) -> Vec<PosedFrame> {
+    // Keyframes of a saved map this run extends have no frame of this run: the run's
+    // frames are posed between the run's own keyframes only, whatever their timestamps.
     let mut keyframes: Vec<PosedFrame> = map
         .keyframes()
-        .map(|(kf, segment, pose)| PosedFrame {
-            frame_id: index.keyframe_frames.get(&kf).copied().unwrap_or(u64::MAX),
-            segment,
-            pose: *pose,
-            interpolated: false,
+        .filter_map(|(kf, segment, pose)| {
+            Some(PosedFrame {
+                frame_id: *index.keyframe_frames.get(&kf)?,
+                segment,
+                pose: *pose,
+                interpolated: false,
+            })
         })
         .collect();
     keyframes.sort_by(|a, b| a.pose.timestamp.total_cmp(&b.pose.timestamp));

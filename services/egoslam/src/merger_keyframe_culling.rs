@@ -139,6 +139,27 @@ impl Merger {
             .insert(keyframe, patched_features(features, patches));
     }
 
+    /// Drops the patches culled keyframes keep of tracks that left the map since (later
+    /// culls), with their features: otherwise they would pile up with the time walked, in
+    /// memory and in the features log's compactions.
+    pub(super) fn prune_culled_patches(&mut self) {
+        let map = &self.state.map;
+        let patches = &mut self.state.patches;
+        self.state.culled_features.retain(|keyframe, features| {
+            let Some(kept) = patches.get_mut(keyframe) else {
+                return false;
+            };
+            kept.retain(|(track, _)| map.point(*track).is_some());
+            if kept.is_empty() {
+                patches.remove(keyframe);
+                return false;
+            }
+            let patched: std::collections::BTreeSet<u64> = kept.iter().map(|(t, _)| *t).collect();
+            features.retain(|f| patched.contains(&f.track_id));
+            true
+        });
+    }
+
     /// Keeps each culled keyframe's frame, and every frame posed against a culled keyframe,
     /// at its pose in `before`, relative to the kept keyframes around it. Frames that were
     /// interpolated stay interpolated (now between the kept keyframes).

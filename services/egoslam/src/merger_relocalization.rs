@@ -9,6 +9,7 @@ use egoslam_merger::{
     find_link, find_loop, relocalized_window_scale, LinkOptions, LoopNotApplied, LoopOptions,
     RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions, WindowInput,
 };
+use egoslam_relocalization::saved_map::features_to_pb;
 use egoslam_relocalization::{KeyframeDatabase, Vocabulary};
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
@@ -49,6 +50,34 @@ fn sources<'a>(
 }
 
 impl Merger {
+    /// Starts the map from the saved map at `path` (egoslam_merger::base_map): its
+    /// keyframes' descriptors go into the features log and the linking index like the
+    /// run's own, so that a restarted merger and segment linking have them.
+    pub(super) fn extend_saved_map(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
+        let map = crate::map_file::read_map(path, &self.vocabulary)?;
+        let (keyframes, points) = (map.keyframes.len(), map.points.len());
+        crate::map_file::extend_state(&mut self.state, map);
+        for (keyframe, features) in &self.state.features {
+            let patches = self
+                .state
+                .patches
+                .get(keyframe)
+                .map_or(&[][..], |p| p.as_slice());
+            self.features_log
+                .append(&features_to_pb(*keyframe, features, patches))?;
+        }
+        for (keyframe, features) in self.state.features.clone() {
+            self.index_keyframe(keyframe, &features);
+        }
+        tracing::info!(
+            map = %path.display(),
+            keyframes,
+            points,
+            "extending a saved map"
+        );
+        Ok(())
+    }
+
     /// The scale of a window that shares too few points with the map, from its keyframes
     /// relocalized against the map's recent ones (egoslam_merger::relocalized_scale);
     /// `None` when it shares enough points or does not relocalize.

@@ -108,6 +108,9 @@ impl Merger {
         } else {
             self.state = MergerState::for_stream(stream_id);
             self.features_log.truncate()?;
+            if let Some(path) = self.args.map.map_in.clone() {
+                self.extend_saved_map(&path)?;
+            }
         }
         Ok(())
     }
@@ -184,6 +187,7 @@ impl Merger {
         if persist {
             self.state.revisions = self.outputs.revisions.numbers();
             let save_start = std::time::Instant::now();
+            self.prune_culled_patches();
             let features = [&self.state.features, &self.state.culled_features];
             let patches = &self.state.patches;
             if crate::features_log::compact_if_due(&mut self.features_log, features, patches)? > 0 {

@@ -2,6 +2,7 @@
 //! are chained by a 7-DoF similarity estimated on the keyframes they share; frames between
 //! keyframes are posed by interpolation.
 
+pub mod base_map;
 pub mod chaining;
 pub mod frame_localization;
 pub mod interior_cut;
@@ -21,6 +22,7 @@ pub mod segment_linking;
 pub mod speed_continuity;
 pub mod window_alignment;
 
+pub use base_map::next_free_id;
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
 
 /// The median of `values` (the upper one of an even count); `None` when empty. Scales,
