@@ -58,7 +58,7 @@ fn micros(t: f64) -> i64 {
 /// keyframe id -> timestamp of every keyframe the frontend sent (its keyframes.log,
 /// written before each send and kept across frontend restarts).
 fn logged_keyframes(out: &Path) -> BTreeMap<u64, i64> {
-    let bytes = std::fs::read(out.join("keyframes.log")).expect("keyframes.log");
+    let bytes = std::fs::read(out.join("state/keyframes.log")).expect("keyframes.log");
     // Magic `EGOSLAMR` and version (docs/durability.md).
     let mut rest = bytes
         .strip_prefix(b"EGOSLAMR")
@@ -77,7 +77,7 @@ fn logged_keyframes(out: &Path) -> BTreeMap<u64, i64> {
 
 /// Keyframe ids of every window the solver journaled (posed or not).
 fn windowed_keyframes(out: &Path) -> BTreeSet<u64> {
-    let bytes = std::fs::read(out.join("windows.journal")).expect("windows.journal");
+    let bytes = std::fs::read(out.join("state/windows.journal")).expect("windows.journal");
     let mut rest = &bytes[20..]; // magic, version, stream id (docs/durability.md)
     let mut ids = BTreeSet::new();
     while !rest.is_empty() {

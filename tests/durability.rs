@@ -51,7 +51,7 @@ fn a_killed_merger_resumes_and_loses_nothing() {
     let killed = tempfile::tempdir().expect("tempdir");
     let run = run_fixture(killed.path(), None);
     let start = Instant::now();
-    while !killed.path().join("merger.checkpoint").exists() {
+    while !killed.path().join("state/merger.checkpoint").exists() {
         assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
         std::thread::sleep(Duration::from_millis(5));
     }
@@ -97,7 +97,7 @@ fn a_merger_that_checkpoints_rarely_still_loses_nothing() {
         .spawn()
         .expect("run");
     let start = Instant::now();
-    while !rare.path().join("merger.checkpoint").exists() {
+    while !rare.path().join("state/merger.checkpoint").exists() {
         assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
         std::thread::sleep(Duration::from_millis(5));
     }
@@ -206,7 +206,7 @@ fn compacted_logs_still_recover_a_killed_merger_and_solver() {
     // The merger is killed once it has checkpointed (its mark lets the journal shrink),
     // the solver half a second later.
     let start = Instant::now();
-    while !out.path().join("merger.applied").exists() {
+    while !out.path().join("state/merger.applied").exists() {
         assert!(
             start.elapsed() < Duration::from_secs(60),
             "no merger checkpoint"
@@ -232,7 +232,7 @@ fn compacted_logs_still_recover_a_killed_merger_and_solver() {
     assert_eq!(in_map, 95, "{r}");
     assert_eq!(r["posed_frames"], 120, "{r}");
     // The journal was compacted: it starts after window 0.
-    let journal = std::fs::read(out.path().join("windows.journal")).expect("journal");
+    let journal = std::fs::read(out.path().join("state/windows.journal")).expect("journal");
     let first = u64::from_le_bytes(journal[20..28].try_into().expect("header"));
     assert!(first > 0, "journal not compacted");
 }

@@ -91,7 +91,7 @@ fn keyframe_stream_with(
     assert!(replay.wait().expect("replay exit").success());
     assert!(frontend.wait().expect("frontend exit").success());
     std::thread::sleep(Duration::from_millis(10));
-    let readout = std::fs::read_to_string(out.path().join("frontend.readout"))
+    let readout = std::fs::read_to_string(out.path().join("state/frontend.readout"))
         .ok()
         .and_then(|t| t.trim().parse().ok());
     (keyframes, frames, (camera, readout))

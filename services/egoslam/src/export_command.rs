@@ -101,7 +101,7 @@ fn colour_points(model: &mut ExportModel, files: &[PathBuf]) -> anyhow::Result<(
 }
 
 pub fn run(args: ExportArgs) -> anyhow::Result<()> {
-    let checkpoint = args.run.join(crate::checkpoint::FILE_NAME);
+    let checkpoint = crate::output::state_dir(&args.run).join(crate::checkpoint::FILE_NAME);
     let state = crate::checkpoint::MergerState::load(&checkpoint)?.with_context(|| {
         format!(
             "{}: no map (is it a run's output folder?)",

@@ -285,15 +285,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Live tracks whose patch went out with an earlier keyframe.
     let mut patched: HashSet<u64> = HashSet::new();
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
-    let state_path = args.out.join(ID_STATE_FILE);
+    let state = crate::output::create_state_dir(&args.out)?;
+    let state_path = state.join(ID_STATE_FILE);
     let resuming = state_path.exists();
-    let solver_mark = args.out.join(log_compaction::SOLVER_MARK);
+    let solver_mark = state.join(log_compaction::SOLVER_MARK);
     if !resuming {
         // The mark of an earlier run names its keyframe ids, which this one reuses.
         log_compaction::remove_mark(&solver_mark)?;
     }
-    let mut keyframe_log =
-        CompactingLog::open(&args.out.join(KEYFRAME_LOG), solver_mark, resuming)?;
+    let mut keyframe_log = CompactingLog::open(&state.join(KEYFRAME_LOG), solver_mark, resuming)?;
     if let Ok(text) = std::fs::read_to_string(&state_path) {
         let ids: serde_json::Value = serde_json::from_str(&text)
             .with_context(|| format!("{}: unreadable", state_path.display()))?;

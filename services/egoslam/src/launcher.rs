@@ -245,17 +245,11 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "map.ply",
         "map_all.ply",
         "report.json",
-        crate::checkpoint::FILE_NAME,
-        crate::window_journal::FILE_NAME,
-        crate::features_log::FILE_NAME,
-        crate::frontend_service::KEYFRAME_LOG,
-        crate::frontend_service::ID_STATE_FILE,
-        crate::readout::READOUT_STATE_FILE,
-        crate::log_compaction::MERGER_MARK,
-        crate::log_compaction::SOLVER_MARK,
     ] {
         let _ = std::fs::remove_file(out.join(stale));
     }
+    // A new run starts from no state: a checkpoint or journal left there would be resumed.
+    let _ = std::fs::remove_dir_all(crate::output::state_dir(out));
     let _ = std::fs::remove_dir_all(out.join("stats"));
     let camera_file = out.join("camera.yaml");
     write_atomically(&camera_file, camera_yaml(&camera, &origin).as_bytes())?;

@@ -85,7 +85,7 @@ fn persist_budget() -> f64 {
 
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
-        self.args.out.join(checkpoint::FILE_NAME)
+        crate::output::state_dir(&self.args.out).join(checkpoint::FILE_NAME)
     }
 
     /// Makes `stream_id` the current solver stream. A new stream while the previous one
@@ -198,7 +198,7 @@ impl Merger {
             // The solver may now drop the journal's records before the next one.
             if let Some(stream) = self.state.stream_id {
                 log_compaction::write_mark(
-                    &self.args.out.join(log_compaction::MERGER_MARK),
+                    &crate::output::state_dir(&self.args.out).join(log_compaction::MERGER_MARK),
                     stream,
                     self.state.next_sequence(),
                 )?;
@@ -455,7 +455,8 @@ fn run_id(namespace: &str) -> String {
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)?;
-    let checkpoint_path = args.out.join(checkpoint::FILE_NAME);
+    let state_dir = crate::output::create_state_dir(&args.out)?;
+    let checkpoint_path = state_dir.join(checkpoint::FILE_NAME);
     let resumed = MergerState::load(&checkpoint_path)?;
     let bus = Bus::open(
         "merger",
@@ -480,7 +481,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     crate::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-    let features_log = crate::features_log::open(&args.out)?;
+    let features_log = crate::features_log::open(&state_dir)?;
     let (global_ba_px, refine_keyframes, refinement_lag) = (
         args.pipeline.global_ba_px,
         args.pipeline.refine_keyframes,
@@ -515,7 +516,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
-        let (features, patches) = crate::features_log::read(&merger.args.out)?;
+        let (features, patches) =
+            crate::features_log::read(&crate::output::state_dir(&merger.args.out))?;
         // Culled keyframes keep only their patches (and those tracks' features).
         for (keyframe, features) in features {
             if state.map.keyframe(keyframe).is_some() {

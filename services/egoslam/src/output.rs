@@ -3,7 +3,26 @@
 use anyhow::Context;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// The folder of a run's internal state (checkpoint, journal, logs, marks) inside its
+/// output folder, apart from the results the user asked for (docs/durability.md).
+pub fn state_dir(out: &Path) -> PathBuf {
+    out.join("state")
+}
+
+/// [`state_dir`], created owner-only (0700: egocentric video's descriptors and patches are
+/// private) if it is not there yet.
+pub fn create_state_dir(out: &Path) -> anyhow::Result<PathBuf> {
+    use std::os::unix::fs::DirBuilderExt;
+    let dir = state_dir(out);
+    std::fs::DirBuilder::new()
+        .recursive(true)
+        .mode(0o700)
+        .create(&dir)
+        .with_context(|| format!("creating {}", dir.display()))?;
+    Ok(dir)
+}
 
 /// Writes `bytes` to `path` via a temporary file and a rename, so readers (and a crash)
 /// only ever see the old or the new complete file. The temporary file is `path` with

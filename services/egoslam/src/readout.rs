@@ -36,7 +36,7 @@ const ONLINE_ATTEMPTS: u32 = 4;
 /// The readout (ms) a frontend service of this run estimated online and saved in `out`,
 /// if any.
 fn saved_readout_ms(out: &Path) -> Option<f64> {
-    std::fs::read_to_string(out.join(READOUT_STATE_FILE))
+    std::fs::read_to_string(crate::output::state_dir(out).join(READOUT_STATE_FILE))
         .ok()
         .and_then(|t| t.trim().parse::<f64>().ok())
         .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms))
@@ -110,7 +110,7 @@ pub fn observe_online(
     };
     tracker.set_rolling_shutter_s(readout_s);
     crate::output::write_atomically(
-        &out.join(READOUT_STATE_FILE),
+        &crate::output::state_dir(out).join(READOUT_STATE_FILE),
         format!("{:.3}\n", readout_s * 1e3).as_bytes(),
     )?;
     Ok(true)

@@ -45,7 +45,7 @@ impl Resume {
 /// The resume point in `out`, or `None` for a fresh stream: no journal, a finished one, an
 /// unreadable one (with a warning), or a log that lacks what the journal refers to.
 pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
-    let path = out.join(window_journal::FILE_NAME);
+    let path = crate::output::state_dir(out).join(window_journal::FILE_NAME);
     if !path.exists() {
         return Ok(None);
     }
@@ -59,7 +59,8 @@ pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
     if journal.messages.last().is_some_and(|m| m.end_of_stream) {
         return Ok(None);
     }
-    let logged: Vec<pb::Keyframe> = read_records(&out.join(KEYFRAME_LOG))?;
+    let logged: Vec<pb::Keyframe> =
+        read_records(&crate::output::state_dir(out).join(KEYFRAME_LOG))?;
     let (tail_ids, covered) = match journal.messages.last() {
         Some(w) => {
             let ids = &w.keyframe_ids;

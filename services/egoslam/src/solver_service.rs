@@ -333,7 +333,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         },
     )?;
     std::fs::create_dir_all(&args.out)?;
-    let journal_path = args.out.join(window_journal::FILE_NAME);
+    let state_dir = crate::output::create_state_dir(&args.out)?;
+    let journal_path = state_dir.join(window_journal::FILE_NAME);
     // A restarted solver continues its predecessor's stream (docs/durability.md).
     let resume = crate::solver_resume::find(&args.out, args.pipeline.overlap)?;
     let (stream_id, mut journal, mut builder, next_sequence, replay, skip_up_to) = match resume {
@@ -375,8 +376,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
     let (merger_mark, solver_mark) = (
-        args.out.join(log_compaction::MERGER_MARK),
-        args.out.join(log_compaction::SOLVER_MARK),
+        state_dir.join(log_compaction::MERGER_MARK),
+        state_dir.join(log_compaction::SOLVER_MARK),
     );
     let overlap = args.pipeline.overlap;
     let mut schedule = log_compaction::CompactionSchedule::from_env();
