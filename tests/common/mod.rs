@@ -34,12 +34,19 @@ pub fn tum_fixture() -> PathBuf {
     repo().join("tests/data/tum_fr1_rpy_120")
 }
 
-/// A sequence from ../shared/data, or None (with a message) when it is absent.
+/// A sequence from ../shared/data, or None (with a message) when it is absent. Under CI
+/// (`CI` set, as .ci/run does) the data is always there, so its absence fails the test
+/// instead of passing it unchecked.
 pub fn shared(name: &str) -> Option<PathBuf> {
     let p = repo().join("../shared/data").join(name);
     if p.exists() {
         Some(p)
     } else {
+        assert!(
+            std::env::var_os("CI").is_none_or(|v| v.is_empty() || v == "false"),
+            "{} is absent, and CI always has the shared test data",
+            p.display()
+        );
         eprintln!(
             "skipping: {} is absent (shared test data not on this machine)",
             p.display()

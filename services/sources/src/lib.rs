@@ -21,6 +21,11 @@ pub(crate) fn shared_test_data(sub: &str) -> Option<std::path::PathBuf> {
         .join("../../../shared/data")
         .join(sub);
     p.exists().then_some(p).or_else(|| {
+        // CI (`CI` set, as .ci/run does) always has it: absent there is a failure.
+        assert!(
+            std::env::var_os("CI").is_none_or(|v| v.is_empty() || v == "false"),
+            "../shared/data/{sub} is absent, and CI always has the shared test data"
+        );
         eprintln!("skipping: ../shared/data/{sub} is absent");
         None
     })
