@@ -18,6 +18,21 @@ fn keyframe_ate(out: &Path, gt: &Path) -> (f64, f64) {
     (r.rmse, r.gt_path_length)
 }
 
+/// The ATE any trajectory, even one collapsed to a point, reaches under a free Sim(3)
+/// alignment: the RMS distance of the ground-truth positions at the keyframes from their
+/// mean (the constant-position baseline).
+fn constant_position_ate(out: &Path, gt: &Path) -> f64 {
+    let est = read_tum_file(&out.join("keyframes.tum")).expect("keyframes");
+    let gt = load_ground_truth(gt).expect("gt");
+    let positions: Vec<_> = associate(&est, &gt.poses, 0.02)
+        .into_iter()
+        .map(|(_, g)| gt.poses[g].position)
+        .collect();
+    let mean = positions.iter().sum::<nalgebra::Vector3<f64>>() / positions.len() as f64;
+    let sum: f64 = positions.iter().map(|p| (p - mean).norm_squared()).sum();
+    (sum / positions.len() as f64).sqrt()
+}
+
 #[test]
 fn tum_fixture_every_frame_posed_one_segment() {
     let out = tempfile::tempdir().expect("tempdir");
@@ -25,8 +40,14 @@ fn tum_fixture_every_frame_posed_one_segment() {
     assert_eq!(report["posed_frames"], 120);
     assert_eq!(report["segments"], 1);
     let (ate, path) = keyframe_ate(out.path(), &tum_fixture());
-    // Measured 0.025 m (JPEG clip); ORB-SLAM3 mono: 0.0149 m on the PNG originals.
-    assert!(ate < 0.04, "keyframe ATE {ate} m over {path} m");
+    // fr1_rpy mostly turns in place: under a free scale a collapsed trajectory would score
+    // the ground truth's own spread (3.76 cm at the keyframes). Measured 0.0147 m, 0.39 of
+    // that baseline (JPEG clip; ORB-SLAM3 mono: 0.0149 m on the PNG originals).
+    let baseline = constant_position_ate(out.path(), &tum_fixture());
+    assert!(
+        ate < 0.6 * baseline,
+        "keyframe ATE {ate} m over {path} m, constant-position baseline {baseline} m"
+    );
 }
 
 /// The merger's background refinement is folded at a fixed window lag
