@@ -49,18 +49,25 @@ impl Mutator {
     }
 }
 
-/// Feeds `n` mutations of `sample` to `decode`; a panic names the iteration.
-fn fuzz(name: &str, seed: u64, n: usize, sample: &[u8], mut decode: impl FnMut(&[u8])) -> usize {
+/// Feeds `n` mutations of `sample` to `decode` (which says whether it accepted the input);
+/// a panic names the iteration. At least 5 % must be accepted and at least one refused:
+/// the fuzzing then reaches both what runs on decoded data and the error paths, not only
+/// the first check.
+fn fuzz(name: &str, seed: u64, n: usize, sample: &[u8], mut decode: impl FnMut(&[u8]) -> bool) {
     let mut m = Mutator(seed);
+    let mut accepted = 0;
     for i in 0..n {
         let input = m.mutate(sample);
         let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| decode(&input)));
-        assert!(
-            caught.is_ok(),
-            "{name}: panic on iteration {i} (seed {seed})"
-        );
+        match caught {
+            Ok(ok) => accepted += usize::from(ok),
+            Err(_) => panic!("{name}: panic on iteration {i} (seed {seed})"),
+        }
     }
-    n
+    assert!(
+        accepted >= n / 20 && accepted < n,
+        "{name}: {accepted} of {n} mutated inputs accepted"
+    );
 }
 
 fn fixture() -> std::path::PathBuf {
@@ -114,17 +121,18 @@ fn window_sample() -> pb::WindowSolution {
 
 #[test]
 fn wire_messages_and_their_conversions() {
-    let mut total = 0;
     let window = window_sample().encode_to_vec();
-    total += fuzz("WindowSolution", 1, 3000, &window, |b| {
-        if let Ok(w) = pb::WindowSolution::decode(b) {
-            let input = crate::merger_service::window_input(&w);
-            if input.is_finite() {
-                let mut map = egoslam_merger::MapBuilder::new();
-                map.add_window(&input);
-                map.add_window(&input);
-            }
+    fuzz("WindowSolution", 1, 3000, &window, |b| {
+        let Ok(w) = pb::WindowSolution::decode(b) else {
+            return false;
+        };
+        let input = crate::merger_service::window_input(&w);
+        if input.is_finite() {
+            let mut map = egoslam_merger::MapBuilder::new();
+            map.add_window(&input);
+            map.add_window(&input);
         }
+        true
     });
     let keyframe = pb::Keyframe {
         keyframe_id: 4,
@@ -148,13 +156,14 @@ fn wire_messages_and_their_conversions() {
         ..Default::default()
     }
     .encode_to_vec();
-    total += fuzz("Keyframe", 2, 2000, &keyframe, |b| {
-        if let Ok(k) = pb::Keyframe::decode(b) {
-            let mut stats = crate::stats::ServiceStats::new("solver");
-            let _ = crate::solver_service::observations(&k, &mut stats);
-        }
+    fuzz("Keyframe", 2, 2000, &keyframe, |b| {
+        let Ok(k) = pb::Keyframe::decode(b) else {
+            return false;
+        };
+        let mut stats = crate::stats::ServiceStats::new("solver");
+        let _ = crate::solver_service::observations(&k, &mut stats);
+        true
     });
-    assert_eq!(total, 5000);
 }
 
 #[test]
@@ -168,9 +177,9 @@ fn files_the_services_read_back() {
         writer.append(&window_sample()).expect("append");
     }
     let journal = std::fs::read(&journal_path).expect("bytes");
-    let mut total = fuzz("journal", 3, 1500, &journal, |b| {
+    fuzz("journal", 3, 1500, &journal, |b| {
         std::fs::write(&path, b).expect("write");
-        let _ = window_journal::read(&path);
+        window_journal::read(&path).is_ok()
     });
     // Merger checkpoint.
     let mut state = MergerState::for_stream(5);
@@ -180,26 +189,28 @@ fn files_the_services_read_back() {
     let checkpoint_path = dir.path().join("checkpoint");
     state.save(&checkpoint_path).expect("save");
     let checkpoint = std::fs::read(&checkpoint_path).expect("bytes");
-    total += fuzz("checkpoint", 4, 1500, &checkpoint, |b| {
+    fuzz("checkpoint", 4, 1500, &checkpoint, |b| {
         std::fs::write(&path, b).expect("write");
-        let _ = MergerState::load(&path);
+        matches!(MergerState::load(&path), Ok(Some(_)))
     });
     // Config file.
     let config =
         std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/egoslam.toml"))
             .expect("config");
-    total += fuzz("config", 5, 1000, &config, |b| {
+    fuzz("config", 5, 1000, &config, |b| {
         std::fs::write(&path, b).expect("write");
-        let _ = Config::load(&path);
+        Config::load(&path).is_ok()
     });
     // Calibration and ground truth.
     let calib = std::fs::read(fixture().join("camera.yaml")).expect("calibration");
     let calib_path = dir.path().join("camera.yaml");
-    total += fuzz("calibration", 6, 1000, &calib, |b| {
+    fuzz("calibration", 6, 1000, &calib, |b| {
         std::fs::write(&calib_path, b).expect("write");
-        if let Ok(c) = egoslam_sources::calibration::read_calibration_file(&calib_path) {
-            let _ = c.camera_for(640, 480);
-        }
+        let Ok(c) = egoslam_sources::calibration::read_calibration_file(&calib_path) else {
+            return false;
+        };
+        let _ = c.camera_for(640, 480);
+        true
     });
     let gt: Vec<u8> = std::fs::read(fixture().join("groundtruth.txt"))
         .expect("ground truth")
@@ -207,11 +218,10 @@ fn files_the_services_read_back() {
         .take(2000)
         .collect();
     let gt_path = dir.path().join("groundtruth.txt");
-    total += fuzz("ground truth", 7, 1000, &gt, |b| {
+    fuzz("ground truth", 7, 1000, &gt, |b| {
         std::fs::write(&gt_path, b).expect("write");
-        let _ = egoslam_sources::ground_truth::read_tum_file(&gt_path);
+        egoslam_sources::ground_truth::read_tum_file(&gt_path).is_ok()
     });
-    assert_eq!(total, 6000);
 }
 
 #[test]
@@ -233,9 +243,8 @@ fn image_frames() {
     opencv::imgcodecs::imencode(".jpg", &crop, &mut jpeg, &Vector::new()).expect("encode");
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("frame.jpg");
-    let n = fuzz("jpeg frame", 8, 1000, jpeg.as_slice(), |b| {
+    fuzz("jpeg frame", 8, 1000, jpeg.as_slice(), |b| {
         std::fs::write(&path, b).expect("write");
-        let _ = egoslam_sources::reader::decode_grey(&path);
+        egoslam_sources::reader::decode_grey(&path).is_ok()
     });
-    assert_eq!(n, 1000);
 }
