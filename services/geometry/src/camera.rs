@@ -205,13 +205,20 @@ mod tests {
 
     #[test]
     fn distortion_moves_corners_by_the_expected_amount() {
-        // The fr1 lens moves the corner pixel by several pixels; a sign error in k1 would
-        // move it the other way.
+        // The fr1 lens (k1 0.26, k2 -0.95, k3 1.16) scales the corner's ideal radius by
+        // 1.045 (1 + k1 r^2 + k2 r^4 + k3 r^6 at the ideal r^2 = 0.53, the fixed point of
+        // the raw r^2 = 0.58): the raw corner lies outward, so undistorting pulls it toward
+        // the principal point, along the radius (the tangential terms move it ~0.2 px). A
+        // sign error in k1 (factor 0.75) or a dropped term would put it elsewhere.
         let cam = tum_fr1();
+        let centre = Point2::new(cam.cx, cam.cy);
         let raw = Point2::new(10.0, 10.0);
         let und = cam.undistort_pixel(raw);
-        let shift = (und - raw).norm();
-        assert!(shift > 2.0 && shift < 40.0, "shift {shift}");
+        let (r_raw, r_und) = ((raw - centre).norm(), (und - centre).norm());
+        let factor = r_raw / r_und;
+        assert!((factor - 1.045).abs() < 0.005, "radius factor {factor}");
+        let along = (raw - centre).normalize().dot(&(und - centre).normalize());
+        assert!(along > 0.9999, "direction cosine {along}");
     }
 
     #[test]
