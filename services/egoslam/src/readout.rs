@@ -312,7 +312,9 @@ mod tests {
     fn a_saved_readout_is_read_back_and_a_bad_one_ignored() {
         let dir = tempfile::tempdir().expect("tempdir");
         assert_eq!(saved_readout_ms(dir.path()), None);
-        let file = dir.path().join(READOUT_STATE_FILE);
+        let file = crate::output::create_state_dir(dir.path())
+            .expect("state folder")
+            .join(READOUT_STATE_FILE);
         std::fs::write(&file, "21.000\n").expect("write");
         assert_eq!(saved_readout_ms(dir.path()), Some(21.0));
         for bad in ["", "fast", "-3", "500", "NaN"] {
