@@ -28,6 +28,16 @@ pub struct OutputSection {
     pub dir: Option<PathBuf>,
 }
 
+/// `[map]`: saved maps (docs/relocalization.md).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapSection {
+    /// A saved map the run extends (`--map-in`).
+    pub extend: Option<PathBuf>,
+    /// Where the map is saved at the end of the stream (`--map-out`).
+    pub save: Option<PathBuf>,
+}
+
 /// `[view]`: the live view and recording of `egoslam run` (docs/viewer.md).
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -124,6 +134,8 @@ pub struct Config {
     pub bus: BusSection,
     #[serde(default)]
     pub view: ViewSection,
+    #[serde(default)]
+    pub map: MapSection,
 }
 
 impl Config {
@@ -321,6 +333,11 @@ fn fill_egress(c: &Config, m: &ArgMatches, e: &mut EgressArgs) {
     );
 }
 
+fn fill_map(c: &Config, m: &ArgMatches, a: &mut crate::cli::MapArgs) {
+    fill_optional(m, "map_in", &mut a.map_in, &c.map.extend);
+    fill_optional(m, "map_out", &mut a.map_out, &c.map.save);
+}
+
 /// Applies the file to the parsed command (`m`: the subcommand's matches).
 pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
     match command {
@@ -334,6 +351,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill_optional(m, "record", &mut a.view.record, &c.view.record);
             fill_pipeline(c, m, &mut a.pipeline);
             fill_egress(c, m, &mut a.egress);
+            fill_map(c, m, &mut a.map);
         }
         Command::Replay(a) => {
             fill_optional(m, "input", &mut a.input, &c.input.path);
@@ -354,6 +372,7 @@ pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
             fill(m, "out", &mut a.out, &c.output.dir);
             fill_pipeline(c, m, &mut a.pipeline);
             fill_egress(c, m, &mut a.egress);
+            fill_map(c, m, &mut a.map);
         }
         Command::Eval(_)
         | Command::Export(_)
@@ -414,6 +433,30 @@ mod tests {
         assert_eq!(a.pipeline.overlap, 6, "the flag wins");
         assert_eq!(a.egress.device, "glasses");
         assert_eq!(a.pipeline.tracks, 1000, "built-in default");
+    }
+
+    #[test]
+    fn the_map_section_reaches_frontend_and_merger() {
+        use clap::{CommandFactory, FromArgMatches};
+        let c =
+            parse("[map]\nextend = \"/var/lib/egoslam/home.egomap\"\nsave = \"today.egomap\"\n")
+                .expect("valid");
+        for service in ["frontend", "merger"] {
+            let matches = crate::cli::Cli::command()
+                .try_get_matches_from(["egoslam", service])
+                .expect("args");
+            let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
+            let (_, sub) = matches.subcommand().expect("subcommand");
+            apply(&c, sub, &mut cli.command);
+            let (Command::Frontend(a) | Command::Merger(a)) = cli.command else {
+                panic!("{service}")
+            };
+            let home = PathBuf::from("/var/lib/egoslam/home.egomap");
+            assert_eq!(a.map.map_in, Some(home), "{service}");
+            assert_eq!(a.map.map_out, Some(PathBuf::from("today.egomap")));
+        }
+        let e = parse("[map]\nextends = \"x\"\n").expect_err("unknown key");
+        assert!(format!("{e:#}").contains("extends"), "{e:#}");
     }
 
     #[test]
