@@ -270,9 +270,48 @@ mod tests {
 
     #[test]
     fn the_read_only_policy_is_accepted_by_zenoh() {
+        // What zenoh holds after parsing: access control on, everything denied but the
+        // two rules, and the subject restricted to the given names. (That remote writes
+        // are refused and reads served is tests/security.rs's, over real TLS.)
         for names in [vec![], vec!["viewer".to_string(), "ops".to_string()]] {
             let mut config = zenoh::Config::default();
             set(&mut config, "access_control", &read_only_acl(&names)).expect("valid ACL");
+            let get = |key: &str| config.get_json(key).expect(key);
+            assert_eq!(get("access_control/enabled"), "true");
+            assert_eq!(get("access_control/default_permission"), "\"deny\"");
+            let rules: serde_json::Value =
+                serde_json::from_str(&get("access_control/rules")).expect("rules");
+            let rules = rules.as_array().expect("a list");
+            assert_eq!(rules.len(), 2);
+            for rule in rules {
+                let has = |field: &str, value: &str| {
+                    rule[field]
+                        .as_array()
+                        .expect(field)
+                        .iter()
+                        .any(|v| v == value)
+                };
+                // Nothing from outside may write: no put or delete flows in.
+                if has("flows", "ingress") {
+                    assert!(
+                        !has("messages", "put") && !has("messages", "delete"),
+                        "{rule}"
+                    );
+                }
+                assert_eq!(
+                    rule["key_exprs"],
+                    serde_json::json!(["egoslam/**"]),
+                    "{rule}"
+                );
+            }
+            let subjects: serde_json::Value =
+                serde_json::from_str(&get("access_control/subjects")).expect("subjects");
+            let expected = if names.is_empty() {
+                serde_json::Value::Null
+            } else {
+                serde_json::json!(names)
+            };
+            assert_eq!(subjects[0]["cert_common_names"], expected);
         }
     }
 
