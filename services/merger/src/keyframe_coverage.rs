@@ -75,19 +75,24 @@ impl OlderKeyframes {
         if previous.is_none_or(|k| id - k > o.spine) {
             return false;
         }
-        let Some(depth) = map.observed_depth(id, pose) else {
-            return false;
-        };
-        let (reach, centre, view) = (o.max_offset * depth, pose.position, axis(pose));
+        // A keyframe without points of its own is measured by the scene depth of the
+        // older keyframe that would cover it.
+        let own_depth = map.observed_depth(id, pose);
+        let (centre, view) = (pose.position, axis(pose));
         let cos_max = o.max_angle_deg.to_radians().cos();
         let last = id.saturating_sub(o.min_age);
         self.entries
             .iter()
             .take_while(|(k, ..)| *k < last)
             .any(|(k, s, c, a)| {
-                *s == segment
-                    && (c - centre).norm() <= reach
-                    && a.dot(&view) >= cos_max
+                if *s != segment || a.dot(&view) < cos_max {
+                    return false;
+                }
+                let depth = own_depth.or_else(|| {
+                    let (_, older) = map.keyframes.get(k)?;
+                    map.observed_depth(*k, older)
+                });
+                depth.is_some_and(|d| (c - centre).norm() <= o.max_offset * d)
                     && map.keyframes.contains_key(k)
             })
     }
@@ -159,5 +164,39 @@ mod tests {
             ..options
         };
         assert!(map.cull_keyframes(&candidates, &without).culled.is_empty());
+    }
+
+    #[test]
+    fn a_revisit_keyframe_without_points_is_covered_by_the_depth_before_it() {
+        // The second pass's keyframes see no point except one in ten (the points of the
+        // others went with neighbours culled before them).
+        let mut parts = two_passes(5.0).to_parts();
+        parts
+            .observations
+            .retain(|(k, _), _| *k < 300 || k % 10 == 0);
+        let mut map = MapBuilder::from_parts(parts);
+        let options = crate::keyframe_culling::tests::any_size();
+        let candidates: Vec<u64> = (300..590).collect();
+        let report = map.cull_keyframes(&candidates, &options);
+        let kept: Vec<u64> = map
+            .keyframes()
+            .map(|(id, ..)| id)
+            .filter(|id| (300..590).contains(id))
+            .collect();
+        // As with points: covered, and one keyframe in 31 kept for the spine.
+        assert_eq!(kept.len(), 9, "{kept:?}");
+        assert_eq!(report.culled.len() + kept.len(), 290);
+        // Without the older pass there is nothing to cover them, and without points they
+        // are not redundant: none goes.
+        let mut parts = two_passes(5.0).to_parts();
+        parts.keyframes.retain(|k, _| *k >= 300);
+        parts.observations.retain(|(k, _), _| k % 10 == 0);
+        let mut alone = MapBuilder::from_parts(parts);
+        let report = alone.cull_keyframes(&candidates, &options);
+        assert!(
+            report.culled.iter().all(|c| c.keyframe_id % 10 == 0),
+            "{:?}",
+            report.culled
+        );
     }
 }

@@ -67,8 +67,9 @@ impl MapBuilder {
     /// Culls the redundant keyframes among `candidates` (oldest first, so that the counts
     /// of the later ones see the earlier removals). A keyframe is kept when it is the first
     /// or last of its segment (the frames around it need a keyframe on each side), when it
-    /// observes no point, or when fewer than `redundant_fraction` of its points are seen by
-    /// `other_views` other keyframes.
+    /// observes no point and no older keyframe covers it, or when fewer than
+    /// `redundant_fraction` of its points are seen by `other_views` other keyframes and no
+    /// older keyframe covers it ([`crate::keyframe_coverage`]).
     pub fn cull_keyframes(
         &mut self,
         candidates: &[u64],
@@ -99,15 +100,15 @@ impl MapBuilder {
                 .map(|((_, t), _)| *t)
                 .filter(|t| self.points.contains_key(t))
                 .collect();
-            if tracks.is_empty() {
-                continue;
-            }
             let seen_elsewhere = tracks
                 .iter()
                 .filter(|t| views.get(t).copied().unwrap_or(0) > options.other_views)
                 .count();
-            let redundant =
-                (seen_elsewhere as f64) >= options.redundant_fraction * tracks.len() as f64;
+            // A keyframe without points is never redundant by its points (it may be what
+            // poses the frames of a turn on the spot), but on a revisit it is covered like
+            // the others: there the neighbours culled before it took its points along.
+            let redundant = !tracks.is_empty()
+                && (seen_elsewhere as f64) >= options.redundant_fraction * tracks.len() as f64;
             let covered = || {
                 older
                     .as_ref()
