@@ -25,11 +25,13 @@ pub const MERGER_MARK: &str = "merger.applied";
 /// keyframe log (the first of the last window's overlap keyframes).
 pub const SOLVER_MARK: &str = "solver.applied";
 
-/// Growth after which the writer compacts its log, bytes (default 64 MiB: by the sizes
+/// Growth after which the writer compacts its log, bytes (default 16 MiB: by the sizes
 /// on the rendered walks, ~1.1 MB per window message and ~84 KB per keyframe message,
-/// about 60 windows or 800 keyframes, 40-50 s of walking). `EGOSLAM_COMPACT_ABOVE_BYTES`
-/// overrides it (the tests use 100 KB).
-pub const DEFAULT_COMPACT_ABOVE_BYTES: u64 = 64 << 20;
+/// about 15 windows or 200 keyframes, 10-15 s of walking). Each compaction copies only
+/// the records the reader still needs, so a lower threshold trades a little more copying
+/// for a log that stays near what recovery needs instead of swinging by the threshold.
+/// `EGOSLAM_COMPACT_ABOVE_BYTES` overrides it (the tests use 100 KB).
+pub const DEFAULT_COMPACT_ABOVE_BYTES: u64 = 16 << 20;
 
 /// Writes a mark `first second` atomically (temporary file and rename).
 pub fn write_mark(path: &Path, first: u64, second: u64) -> anyhow::Result<()> {
