@@ -8,8 +8,6 @@ use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts, ProvisionalScale};
 use egoslam_messages::v1 as pb;
-use egoslam_relocalization::patch_alignment::Patch;
-use egoslam_relocalization::MapFeature;
 use nalgebra::Point2;
 use prost::Message;
 use std::collections::BTreeMap;
@@ -37,15 +35,10 @@ pub struct MergerState {
     pub culling_checked_before: u64,
     /// frame id -> last revision published over zenoh.
     pub revisions: std::collections::BTreeMap<u64, u32>,
-    /// keyframe id -> its described tracks (relocalization map, --map-out). Not in the
-    /// checkpoint: kept in the append-only features log (features_log.rs).
-    pub features: BTreeMap<u64, Vec<MapFeature>>,
-    /// keyframe id -> the patches of the tracks first described in it (relocalization's patch
-    /// alignment). In the features log with the descriptors.
-    pub patches: BTreeMap<u64, Vec<(u64, Patch)>>,
-    /// Culled keyframe id -> the features of its tracks whose patches it keeps (their
-    /// pixels; merger_keyframe_culling.rs). In the features log.
-    pub culled_features: BTreeMap<u64, Vec<MapFeature>>,
+    /// keyframe id -> the tracks first described in it, whose patches (relocalization's
+    /// patch alignment) it holds in the features log, on disk only; with each patch's
+    /// grey level (map.ply's colour).
+    pub patched_tracks: BTreeMap<u64, Vec<(u64, u8)>>,
 }
 
 impl MergerState {
@@ -286,9 +279,7 @@ impl MergerState {
             windows: m.windows,
             unsolved_windows: m.unsolved_windows,
             culling_checked_before: m.culling_checked_before,
-            features: BTreeMap::new(),
-            patches: BTreeMap::new(),
-            culled_features: BTreeMap::new(),
+            patched_tracks: BTreeMap::new(),
             revisions: m
                 .revision_frame_ids
                 .iter()

@@ -1,137 +1,324 @@
-//! The merger's keyframe descriptors (and new tracks' patches) on disk: an append-only log of length-delimited
-//! `KeyframeFeatures` messages beside the checkpoint (docs/durability.md).
+//! The merger's keyframe descriptors and new tracks' patches on disk: an append-only log of
+//! length-delimited `KeyframeFeatures` messages beside the checkpoint (docs/durability.md).
 //!
-//! Descriptors are most of the map's bytes (~40 KB per keyframe). Inside the checkpoint,
-//! which is rewritten whole, they made a 12,000-frame walk write 363 MB every 5 s (103 s of
-//! its run); appended once each, they cost O(new keyframes). The log is flushed and synced
-//! before every checkpoint, so it always covers the windows the checkpoint has applied; a
-//! torn record at its end (a kill mid-append) is ignored, and the windows after the
-//! checkpoint are re-applied from the solver's journal, which re-appends their features.
+//! Descriptors and patches are most of the map's bytes (~45 KB per keyframe). Inside the
+//! checkpoint, which is rewritten whole, they would be written again every few seconds;
+//! appended once each, they cost O(new keyframes). They stay on disk only: the merger keeps
+//! each keyframe's record offset and reads descriptors back when loop closure, segment
+//! linking or culling asks for a keyframe's, and patches when a map is saved. The
+//! log is flushed and synced before every checkpoint, so it always covers the windows the
+//! checkpoint has applied; a torn record at its end (a kill mid-append) is ignored, and the
+//! windows after the checkpoint are re-applied from the solver's journal, which re-appends
+//! their features.
 
-use crate::record_log::{read_records, RecordLog};
+use crate::record_log::{for_each_record, LogReader, RecordLog};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::patch_alignment::Patch;
-use egoslam_relocalization::saved_map::{features_from_pb, features_to_pb, patches_from_pb};
+use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_relocalization::MapFeature;
-use prost::Message;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
-/// File name in the output folder.
+/// File name in the state folder.
 pub const FILE_NAME: &str = "keyframe_features.log";
-
-/// Opens `dir/keyframe_features.log` for appending (created if absent).
-pub fn open(dir: &Path) -> anyhow::Result<RecordLog> {
-    RecordLog::open(&dir.join(FILE_NAME))
-}
-
-/// Rewrites the log with the records of `features` (each map of them; and their `patches`) alone when it
-/// holds more than 1.5 times their size and at least [`COMPACT_ABOVE_BYTES`]: culled keyframes'
-/// records go, so the log grows with the map, not with the time walked. Returns the bytes
-/// written (0 when not due). Call it before a checkpoint: the log must cover every keyframe
-/// the checkpoint holds, and the windows after it re-append theirs when replayed.
-pub fn compact_if_due<const N: usize>(
-    log: &mut RecordLog,
-    features: [&BTreeMap<u64, Vec<MapFeature>>; N],
-    patches: &BTreeMap<u64, Vec<(u64, Patch)>>,
-) -> anyhow::Result<u64> {
-    let size = log.len_bytes()?;
-    if size < COMPACT_ABOVE_BYTES {
-        return Ok(0);
-    }
-    let records: Vec<pb::KeyframeFeatures> = features
-        .iter()
-        .flat_map(|f| f.iter())
-        .map(|(k, f)| features_to_pb(*k, f, patches.get(k).map_or(&[], Vec::as_slice)))
-        .collect();
-    let live: u64 = crate::record_log::HEADER_LEN
-        + records
-            .iter()
-            .map(|r| (prost::length_delimiter_len(r.encoded_len()) + r.encoded_len()) as u64)
-            .sum::<u64>();
-    if 2 * size <= 3 * live {
-        return Ok(0);
-    }
-    log.replace_with(&records)?;
-    tracing::info!(
-        before = size,
-        after = live,
-        "keyframe features log compacted"
-    );
-    Ok(live)
-}
 
 /// Logs smaller than this are left as they are (8 MiB: ~200 keyframes).
 pub const COMPACT_ABOVE_BYTES: u64 = 8 << 20;
 
-/// Features (keyframe -> described tracks) and patches (keyframe -> tracks first described in
-/// it) of the log at `dir`, later records replacing earlier ones.
-pub type Descriptions = (
-    BTreeMap<u64, Vec<MapFeature>>,
-    BTreeMap<u64, Vec<(u64, Patch)>>,
-);
+/// A log is compacted once it holds this many times the bytes of the records still
+/// wanted: the disk it takes stays within this factor of what the map needs, and each
+/// compaction rewrites the live records once (the write amplification is 1 / (factor - 1)).
+pub const COMPACT_AT_FACTOR: f64 = 1.25;
 
-/// The features and patches in the log at `dir`.
-pub fn read(dir: &Path) -> anyhow::Result<Descriptions> {
-    let (mut features, mut patches) = (BTreeMap::new(), BTreeMap::new());
-    for r in read_records::<pb::KeyframeFeatures>(&dir.join(FILE_NAME))? {
-        match features_from_pb(&r).zip(patches_from_pb(&r)) {
-            Some((f, p)) => {
-                features.insert(r.keyframe_id, f);
-                patches.insert(r.keyframe_id, p);
+/// Bytes a record keeps per track when compaction keeps only some of its tracks (a
+/// descriptor, its track id and pixel, and a patch).
+const BYTES_PER_KEPT_TRACK: u64 = 32 + 10 + 10 + 10 + 100;
+
+/// What compaction keeps of a keyframe's record.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Keep {
+    /// The whole record (a keyframe of the map).
+    Whole,
+    /// The features and patches of these tracks alone (a culled keyframe's patched
+    /// points).
+    Tracks(BTreeSet<u64>),
+    /// Nothing.
+    Nothing,
+}
+
+/// The tracks whose patch a keyframe's record holds, with each patch's grey level
+/// ([`patch_grey`]).
+pub type PatchedTracks = Vec<(u64, u8)>;
+
+/// A track's grey level: the centre of its patch (map.ply's colours).
+pub fn patch_grey(patch: &Patch) -> u8 {
+    use egoslam_relocalization::patch_alignment::PATCH_SIDE;
+    let (a, b) = (PATCH_SIDE / 2 - 1, PATCH_SIDE / 2);
+    let sum: u32 = [(a, a), (a, b), (b, a), (b, b)]
+        .iter()
+        .map(|(y, x)| u32::from(patch[y * PATCH_SIDE + x]))
+        .sum();
+    (sum / 4) as u8
+}
+
+/// The tracks of `patches` with their grey levels.
+pub fn patched_tracks(patches: &[(u64, Patch)]) -> Vec<(u64, u8)> {
+    patches.iter().map(|(t, p)| (*t, patch_grey(p))).collect()
+}
+
+/// The features log: where each keyframe's latest record is.
+pub struct FeaturesLog {
+    path: std::path::PathBuf,
+    log: RecordLog,
+    /// keyframe -> (byte offset, bytes) of its latest record.
+    records: BTreeMap<u64, (u64, u64)>,
+}
+
+impl FeaturesLog {
+    /// Opens `dir/keyframe_features.log` for appending (created if absent) and reads which
+    /// keyframes it describes and the tracks each holds a patch of, later records
+    /// replacing earlier ones (a resumed merger's).
+    pub fn open(dir: &Path) -> anyhow::Result<(Self, BTreeMap<u64, PatchedTracks>)> {
+        let path = dir.join(FILE_NAME);
+        let mut records = BTreeMap::new();
+        let mut descriptions = BTreeMap::new();
+        let mut ends = Vec::new();
+        for_each_record::<pb::KeyframeFeatures>(&path, |at, r| {
+            match features_from_pb(&r).zip(patches_from_pb(&r)) {
+                Some((_, patches)) => {
+                    descriptions.insert(r.keyframe_id, patched_tracks(&patches));
+                    records.insert(r.keyframe_id, (at, 0));
+                    ends.push(at);
+                }
+                None => tracing::warn!(
+                    keyframe = r.keyframe_id,
+                    "inconsistent features in the log skipped"
+                ),
             }
-            None => tracing::warn!(
-                keyframe = r.keyframe_id,
-                "inconsistent features in the log skipped"
-            ),
+        })?;
+        let mut log = RecordLog::open(&path)?;
+        let end = log.len_bytes()?;
+        // A record's size: up to the next record's offset (or the end of the log).
+        ends.push(end);
+        ends.sort_unstable();
+        for (at, bytes) in records.values_mut() {
+            let next = ends[ends.partition_point(|e| e <= at)..]
+                .first()
+                .copied()
+                .unwrap_or(end);
+            *bytes = next - *at;
+        }
+        Ok((Self { path, log, records }, descriptions))
+    }
+
+    /// Hands what was appended to the kernel, so that reads see it.
+    pub fn flush(&mut self) -> anyhow::Result<()> {
+        self.log.flush()
+    }
+
+    /// Keyframe `id`'s described tracks as its latest record holds them (after
+    /// [`FeaturesLog::flush`]); `None` for a keyframe without one or an unreadable record.
+    pub fn features_of(&self, id: u64) -> anyhow::Result<Option<Vec<MapFeature>>> {
+        let Some((at, _)) = self.records.get(&id) else {
+            return Ok(None);
+        };
+        let record: pb::KeyframeFeatures = LogReader::open(&self.path)?.read_at(*at)?;
+        Ok(features_from_pb(&record))
+    }
+
+    /// Appends `record` (buffered; [`FeaturesLog::sync`] makes it durable).
+    pub fn append(&mut self, record: &pb::KeyframeFeatures) -> anyhow::Result<()> {
+        use prost::Message;
+        let at = self.log.append(record)?;
+        let bytes =
+            (prost::length_delimiter_len(record.encoded_len()) + record.encoded_len()) as u64;
+        self.records.insert(record.keyframe_id, (at, bytes));
+        Ok(())
+    }
+
+    /// Makes everything appended durable.
+    pub fn sync(&mut self) -> anyhow::Result<()> {
+        self.log.sync()
+    }
+
+    /// Empties the log (a new stream starts a new map).
+    pub fn truncate(&mut self) -> anyhow::Result<()> {
+        self.records.clear();
+        self.log.truncate()
+    }
+
+    /// The patches of `keyframes` (those the log has a record of), read from disk.
+    pub fn patches(
+        &mut self,
+        keyframes: impl IntoIterator<Item = u64>,
+    ) -> anyhow::Result<BTreeMap<u64, Vec<(u64, Patch)>>> {
+        let mut reader = self.log.reader()?;
+        let mut out = BTreeMap::new();
+        for keyframe in keyframes {
+            let Some((at, _)) = self.records.get(&keyframe) else {
+                continue;
+            };
+            let record: pb::KeyframeFeatures = reader.read_at(*at)?;
+            if let Some(patches) = patches_from_pb(&record).filter(|p| !p.is_empty()) {
+                out.insert(keyframe, patches);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Rewrites the log with what `keep` keeps of each keyframe's latest record when it
+    /// holds more than [`COMPACT_AT_FACTOR`] times their size and at least
+    /// [`COMPACT_ABOVE_BYTES`]: culled keyframes' records go, so the log grows with the
+    /// map, not with the time walked. Records are copied one at a time. Returns the bytes
+    /// written (0 when not due). Call it before a checkpoint: the log must cover every
+    /// keyframe the checkpoint holds, and the windows after it re-append theirs when
+    /// replayed.
+    pub fn compact_if_due(&mut self, keep: impl Fn(u64) -> Keep) -> anyhow::Result<u64> {
+        let size = self.log.len_bytes()?;
+        if size < COMPACT_ABOVE_BYTES {
+            return Ok(0);
+        }
+        let decisions: Vec<(u64, u64, Keep)> = self
+            .records
+            .iter()
+            .map(|(k, (at, _))| (*k, *at, keep(*k)))
+            .filter(|(_, _, keep)| *keep != Keep::Nothing)
+            .collect();
+        let live: u64 = crate::record_log::HEADER_LEN
+            + decisions
+                .iter()
+                .map(|(k, _, keep)| match keep {
+                    Keep::Tracks(t) => BYTES_PER_KEPT_TRACK * t.len() as u64,
+                    _ => self.records.get(k).map_or(0, |(_, bytes)| *bytes),
+                })
+                .sum::<u64>();
+        if (size as f64) <= COMPACT_AT_FACTOR * live as f64 {
+            return Ok(0);
+        }
+        let mut records = BTreeMap::new();
+        self.log.rewrite(|reader, writer| {
+            use prost::Message;
+            for (keyframe, at, keep) in decisions {
+                let mut record: pb::KeyframeFeatures = reader.read_at(at)?;
+                if let Keep::Tracks(tracks) = keep {
+                    record = only_tracks(&record, &tracks);
+                }
+                let bytes = record.encoded_len();
+                let bytes = (prost::length_delimiter_len(bytes) + bytes) as u64;
+                records.insert(keyframe, (writer.append(&record)?, bytes));
+            }
+            Ok(())
+        })?;
+        self.records = records;
+        let after = self.log.len_bytes()?;
+        tracing::info!(before = size, after, "keyframe features log compacted");
+        Ok(after)
+    }
+}
+
+impl egoslam_merger::KeyframeFeatureSource for FeaturesLog {
+    fn is_described(&self, id: u64) -> bool {
+        self.records.contains_key(&id)
+    }
+
+    fn features(&self, id: u64) -> Option<Vec<MapFeature>> {
+        self.features_of(id).unwrap_or_else(|e| {
+            tracing::warn!(keyframe = id, error = %e, "keyframe descriptors unreadable");
+            None
+        })
+    }
+}
+
+/// `record` with the features and patches of `tracks` alone.
+fn only_tracks(record: &pb::KeyframeFeatures, tracks: &BTreeSet<u64>) -> pb::KeyframeFeatures {
+    let mut out = pb::KeyframeFeatures {
+        keyframe_id: record.keyframe_id,
+        ..Default::default()
+    };
+    for (i, track) in record.track_ids.iter().enumerate() {
+        let descriptor = record.descriptors.get(32 * i..32 * (i + 1));
+        if let (true, Some(d), Some(x), Some(y)) = (
+            tracks.contains(track),
+            descriptor,
+            record.x.get(i),
+            record.y.get(i),
+        ) {
+            out.track_ids.push(*track);
+            out.descriptors.extend_from_slice(d);
+            out.x.push(*x);
+            out.y.push(*y);
         }
     }
-    Ok((features, patches))
+    let side = record.patches.len() / record.patch_track_ids.len().max(1);
+    for (i, track) in record.patch_track_ids.iter().enumerate() {
+        if let (true, Some(p)) = (
+            tracks.contains(track),
+            record.patches.get(side * i..side * (i + 1)),
+        ) {
+            out.patch_track_ids.push(*track);
+            out.patches.extend_from_slice(p);
+        }
+    }
+    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use egoslam_relocalization::saved_map::features_to_pb;
     use prost::Message;
+
+    fn feature(k: u64) -> MapFeature {
+        MapFeature {
+            track_id: k,
+            descriptor: [k as u8; 32],
+            pixel: nalgebra::Point2::new(1.0, 2.0),
+        }
+    }
 
     #[test]
     fn compaction_keeps_the_live_keyframes_once_and_appending_goes_on() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let feature = |k: u64| MapFeature {
-            track_id: k,
-            descriptor: [k as u8; 32],
-            pixel: nalgebra::Point2::new(1.0, 2.0),
-        };
-        let mut log = open(dir.path()).expect("open");
-        // 800 keyframes of 500 features (~21 KB each), of which 200 stay.
-        let mut features = BTreeMap::new();
-        let mut patches = BTreeMap::new();
+        let (mut log, old) = FeaturesLog::open(dir.path()).expect("open");
+        assert!(old.is_empty());
+        // 800 keyframes of 500 features (~21 KB each): every fourth stays whole, and of
+        // keyframe 2 (culled) only track 7 with its patch.
         for k in 0..800u64 {
-            let f: Vec<MapFeature> = (0..500).map(|_| feature(k)).collect();
-            let p = vec![(k, [k as u8; 100])];
+            let f: Vec<MapFeature> = (0..500).map(|i| feature(k * 1000 + i)).collect();
+            let p = vec![(k * 1000 + 7, [k as u8; 100]), (k * 1000 + 8, [1; 100])];
             log.append(&features_to_pb(k, &f, &p)).expect("append");
-            if k % 4 == 0 {
-                features.insert(k, f);
-                patches.insert(k, p);
-            }
         }
-        let before = log.len_bytes().expect("len");
+        let keep = |k: u64| match k {
+            2 => Keep::Tracks(BTreeSet::from([2007])),
+            k if k % 4 == 0 => Keep::Whole,
+            _ => Keep::Nothing,
+        };
+        let before = log.log.len_bytes().expect("len");
         assert!(before > COMPACT_ABOVE_BYTES);
-        let after = compact_if_due(&mut log, [&features], &patches).expect("compact");
+        let after = log.compact_if_due(keep).expect("compact");
         assert!(after > 0 && after < before / 3, "{after} of {before}");
-        assert_eq!(log.len_bytes().expect("len"), after);
-        assert_eq!(
-            compact_if_due(&mut log, [&features], &patches).expect("again"),
-            0
-        );
+        assert_eq!(log.log.len_bytes().expect("len"), after);
+        assert_eq!(log.compact_if_due(keep).expect("again"), 0);
         log.append(&features_to_pb(800, &[feature(800)], &[]))
             .expect("append");
+        // Patches are read back by offset, before and after a restart.
+        let patches = log.patches([2, 8, 9, 800]).expect("patches");
+        assert_eq!(patches.keys().copied().collect::<Vec<_>>(), [2, 8]);
+        assert_eq!(patches[&2], vec![(2007, [2; 100])]);
+        assert_eq!(patches[&8][1], (8008, [1; 100]));
         log.sync().expect("sync");
-        let (back, back_patches) = read(dir.path()).expect("read");
-        assert_eq!(back.len(), 201);
-        assert_eq!(back[&8], features[&8]);
-        assert_eq!(back_patches[&8], patches[&8]);
+        let (mut back_log, back) = FeaturesLog::open(dir.path()).expect("reopen");
+        assert_eq!(back.len(), 202);
+        let features = |k: u64| back_log.features_of(k).expect("read").expect("features");
+        assert_eq!(features(8).len(), 500);
+        assert_eq!(features(8)[3], feature(8003));
+        assert_eq!(back[&8], [(8007, 8), (8008, 1)]);
+        assert_eq!(features(2), vec![feature(2007)]);
         assert!(back.contains_key(&800) && !back.contains_key(&1));
+        assert!(back_log.features_of(1).expect("read").is_none());
+        assert_eq!(back_log.patches([8]).expect("patches")[&8], patches[&8]);
+        // The sizes read back on opening drive the next compaction as before.
+        assert_eq!(back_log.compact_if_due(keep).expect("again"), 0);
     }
 
     #[test]
@@ -146,22 +333,26 @@ mod tests {
             patch_track_ids: vec![2],
             patches: vec![fill; 100],
         };
-        let mut log = open(dir.path()).expect("open");
+        let (mut log, _) = FeaturesLog::open(dir.path()).expect("open");
         log.append(&record(0, 1)).expect("append");
         log.append(&record(1, 2)).expect("append");
         log.append(&record(0, 3)).expect("append");
         log.sync().expect("sync");
-        let (back, patches) = read(dir.path()).expect("read");
+        let (mut reopened, back) = FeaturesLog::open(dir.path()).expect("read");
         assert_eq!(back.len(), 2);
-        assert_eq!(back[&0][0].descriptor, [3; 32]);
-        assert_eq!(patches[&1], vec![(2, [2; 100])]);
+        let features = reopened.features_of(0).expect("read").expect("features");
+        assert_eq!(features[0].descriptor, [3; 32]);
+        assert_eq!(
+            reopened.patches([1]).expect("patches")[&1],
+            vec![(2, [2; 100])]
+        );
         // A kill mid-append leaves half a record.
         let path = dir.path().join(FILE_NAME);
         let mut bytes = std::fs::read(&path).expect("bytes");
         bytes.extend_from_slice(&record(2, 4).encode_length_delimited_to_vec()[..20]);
         std::fs::write(&path, &bytes).expect("write");
-        assert_eq!(read(dir.path()).expect("read").0.len(), 2);
+        assert_eq!(FeaturesLog::open(dir.path()).expect("read").1.len(), 2);
         log.truncate().expect("truncate");
-        assert!(read(dir.path()).expect("read").0.is_empty());
+        assert!(FeaturesLog::open(dir.path()).expect("read").1.is_empty());
     }
 }

@@ -5,10 +5,13 @@ use crate::checkpoint::MergerState;
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_geometry::PinholeRadtan;
+use egoslam_merger::KeyframeFeatureSource;
+use egoslam_relocalization::patch_alignment::Patch;
+use egoslam_relocalization::MapFeature;
 use egoslam_relocalization::{
     decode_map, default_vocabulary, encode_map, MapKeyframe, RelocalizationMap, Vocabulary,
 };
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 /// Largest map or vocabulary file read (a bound on what is read from outside: 4 GiB holds
@@ -42,10 +45,13 @@ pub fn load_vocabulary(path: Option<&Path>) -> anyhow::Result<Vocabulary> {
 }
 
 /// The relocalization map of the merger's state: every keyframe of the map with its
-/// described tracks, the points, and the rolling-shutter readout its frames were corrected
-/// for (`rolling_shutter_s`, 0 when a global shutter or not known).
+/// described tracks (read from `features`), the points, the `patches` of their tracks, and
+/// the rolling-shutter readout its frames were corrected for (`rolling_shutter_s`, 0 when
+/// a global shutter or not known).
 pub fn relocalization_map(
     state: &MergerState,
+    features: &dyn KeyframeFeatureSource,
+    patches: &BTreeMap<u64, Vec<(u64, Patch)>>,
     camera: &PinholeRadtan,
     rolling_shutter_s: f64,
 ) -> RelocalizationMap {
@@ -55,19 +61,23 @@ pub fn relocalization_map(
         .map(|(track, segment, x)| (track, (segment, *x)))
         .collect();
     // Culled keyframes keep the patches of their points (merger_keyframe_culling.rs), at
-    // the pose their frame keeps.
+    // the pose their frame keeps, with those tracks' features.
     let frame_poses = crate::map_state::frame_poses(&state.map, &state.frames, ..);
-    let culled = state.culled_features.iter().filter_map(|(id, features)| {
-        let frame = state.frames.keyframe_frames.get(id)?;
-        let (segment, pose) = frame_poses.get(frame)?;
-        Some(MapKeyframe {
-            keyframe_id: *id,
-            segment: *segment,
-            pose: *pose,
-            features: features.clone(),
-            patches: Vec::new(),
-        })
-    });
+    let culled = state
+        .patched_tracks
+        .iter()
+        .filter(|(id, _)| state.map.keyframe(**id).is_none())
+        .filter_map(|(id, patched)| {
+            let frame = state.frames.keyframe_frames.get(id)?;
+            let (segment, pose) = frame_poses.get(frame)?;
+            Some(MapKeyframe {
+                keyframe_id: *id,
+                segment: *segment,
+                pose: *pose,
+                features: patched_features(features.features(*id)?, patched),
+                patches: Vec::new(),
+            })
+        });
     let mut keyframes: Vec<MapKeyframe> = state
         .map
         .keyframes()
@@ -77,7 +87,7 @@ pub fn relocalization_map(
             pose: *pose,
             // Every described track: all of them make the keyframe's bag of words, those
             // that are points give the matches.
-            features: state.features.get(&id).cloned().unwrap_or_default(),
+            features: features.features(id).unwrap_or_default(),
             patches: Vec::new(),
         })
         .chain(culled)
@@ -85,7 +95,7 @@ pub fn relocalization_map(
     keyframes.sort_by_key(|k| k.keyframe_id);
     for k in &mut keyframes {
         // Only for points: the other tracks' patches are never looked up.
-        if let Some(patches) = state.patches.get(&k.keyframe_id) {
+        if let Some(patches) = patches.get(&k.keyframe_id) {
             k.patches = patches
                 .iter()
                 .filter(|(track, _)| points.contains_key(track))
@@ -99,6 +109,16 @@ pub fn relocalization_map(
         points,
         rolling_shutter_s,
     }
+}
+
+/// Those of a culled keyframe's `features` whose tracks it keeps a patch of: what the saved
+/// relocalization map needs of it.
+fn patched_features(features: Vec<MapFeature>, patched_tracks: &[(u64, u8)]) -> Vec<MapFeature> {
+    let patched: std::collections::BTreeSet<u64> = patched_tracks.iter().map(|(t, _)| *t).collect();
+    features
+        .into_iter()
+        .filter(|f| patched.contains(&f.track_id))
+        .collect()
 }
 
 /// Writes the map file atomically.
@@ -129,17 +149,18 @@ pub fn next_free_id(path: &Path) -> anyhow::Result<u64> {
 }
 
 /// Makes the saved `map` the start of `state`'s map (egoslam_merger::base_map): its
-/// keyframes, points, descriptors and patches. Its keyframes are never culled: they are
-/// the map being extended.
-pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) {
+/// keyframes and points; returns each keyframe's descriptors and patches, which belong in
+/// the features log. Its keyframes are never culled: they are the map being extended.
+pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) -> Vec<MapKeyframe> {
     state.map = egoslam_merger::MapBuilder::from_parts(egoslam_merger::MapParts::from_saved(&map));
     state.culling_checked_before = egoslam_merger::next_free_id(&map);
-    for k in map.keyframes {
+    for k in &map.keyframes {
         if !k.patches.is_empty() {
-            state.patches.insert(k.keyframe_id, k.patches);
+            let tracks = crate::features_log::patched_tracks(&k.patches);
+            state.patched_tracks.insert(k.keyframe_id, tracks);
         }
-        state.features.insert(k.keyframe_id, k.features);
     }
+    map.keyframes
 }
 
 /// Reads a map file and checks that it was made for `vocabulary`.

@@ -96,12 +96,18 @@ impl Merger {
             report.culled.iter().map(|c| (c.keyframe_id, *c)).collect();
         self.keep_frames_posed(&culled, &before);
         for id in culled.keys() {
-            if let Some(features) = self.state.features.remove(id) {
-                let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
-                self.database
-                    .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
-                self.keep_patches_of(*id, features);
+            match self.features_log.features_of(*id) {
+                Ok(Some(features)) => {
+                    let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
+                    self.database
+                        .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    tracing::warn!(keyframe = id, error = %e, "culled keyframe's descriptors unreadable: left in the index");
+                }
             }
+            self.keep_patches_of(*id);
         }
         tracing::debug!(
             rule,
@@ -116,47 +122,33 @@ impl Merger {
     }
 
     /// A culled keyframe's patches of tracks still in the map stay, with those tracks'
-    /// features (their pixels): a patch is kept only in the keyframe that first described
-    /// its track, and relocalization's patch alignment (docs/relocalization.md) warps it
-    /// from that keyframe's pose, which its frame keeps (`map_file::relocalization_map`).
-    /// Without them, the rendered walks' relocalization error rose by a quarter to a half.
-    fn keep_patches_of(
-        &mut self,
-        keyframe: u64,
-        features: Vec<egoslam_relocalization::MapFeature>,
-    ) {
+    /// features (their pixels), in the features log: a patch is kept only in the keyframe
+    /// that first described its track, and relocalization's patch alignment
+    /// (docs/relocalization.md) warps it from that keyframe's pose, which its frame keeps
+    /// (`map_file::relocalization_map`). Without them, the rendered walks' relocalization
+    /// error rose by a quarter to a half.
+    fn keep_patches_of(&mut self, keyframe: u64) {
         let map = &self.state.map;
-        let Some(patches) = self.state.patches.get_mut(&keyframe) else {
+        let Some(patches) = self.state.patched_tracks.get_mut(&keyframe) else {
             return;
         };
         patches.retain(|(track, _)| map.point(*track).is_some());
         if patches.is_empty() {
-            self.state.patches.remove(&keyframe);
-            return;
+            self.state.patched_tracks.remove(&keyframe);
         }
-        self.state
-            .culled_features
-            .insert(keyframe, patched_features(features, patches));
     }
 
     /// Drops the patches culled keyframes keep of tracks that left the map since (later
-    /// culls), with their features: otherwise they would pile up with the time walked, in
-    /// memory and in the features log's compactions.
+    /// culls): otherwise they would pile up with the time walked, in memory and in the
+    /// features log's compactions.
     pub(super) fn prune_culled_patches(&mut self) {
         let map = &self.state.map;
-        let patches = &mut self.state.patches;
-        self.state.culled_features.retain(|keyframe, features| {
-            let Some(kept) = patches.get_mut(keyframe) else {
-                return false;
-            };
-            kept.retain(|(track, _)| map.point(*track).is_some());
-            if kept.is_empty() {
-                patches.remove(keyframe);
-                return false;
+        self.state.patched_tracks.retain(|keyframe, kept| {
+            if map.keyframe(*keyframe).is_some() {
+                return true;
             }
-            let patched: std::collections::BTreeSet<u64> = kept.iter().map(|(t, _)| *t).collect();
-            features.retain(|f| patched.contains(&f.track_id));
-            true
+            kept.retain(|(track, _)| map.point(*track).is_some());
+            !kept.is_empty()
         });
     }
 
@@ -212,19 +204,6 @@ impl Merger {
             }
         }
     }
-}
-
-/// Those of a culled keyframe's `features` whose tracks it keeps a patch of: what the saved
-/// relocalization map needs of it.
-pub(super) fn patched_features(
-    features: Vec<egoslam_relocalization::MapFeature>,
-    patches: &[(u64, egoslam_relocalization::patch_alignment::Patch)],
-) -> Vec<egoslam_relocalization::MapFeature> {
-    let patched: std::collections::BTreeSet<u64> = patches.iter().map(|(t, _)| *t).collect();
-    features
-        .into_iter()
-        .filter(|f| patched.contains(&f.track_id))
-        .collect()
 }
 
 /// The kept keyframes (`kept`, in time order) just before and after time `t`, when both

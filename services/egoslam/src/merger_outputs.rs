@@ -29,21 +29,7 @@ pub(super) struct Outputs {
 /// Each described track's grey level: the centre of its patch (relocalization's patches,
 /// kept in the keyframe that first described the track).
 fn grey_levels(merger: &MergerState) -> HashMap<u64, u8> {
-    use egoslam_relocalization::patch_alignment::PATCH_SIDE;
-    let centre = |p: &[u8]| {
-        let (a, b) = (PATCH_SIDE / 2 - 1, PATCH_SIDE / 2);
-        let sum: u32 = [(a, a), (a, b), (b, a), (b, b)]
-            .iter()
-            .map(|(y, x)| u32::from(p[y * PATCH_SIDE + x]))
-            .sum();
-        (sum / 4) as u8
-    };
-    merger
-        .patches
-        .values()
-        .flatten()
-        .map(|(track, patch)| (*track, centre(patch)))
-        .collect()
+    merger.patched_tracks.values().flatten().copied().collect()
 }
 
 impl Outputs {

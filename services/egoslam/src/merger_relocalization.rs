@@ -4,6 +4,7 @@
 
 use super::Merger;
 use crate::checkpoint::MergerState;
+use crate::features_log::FeaturesLog;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{
     find_link, find_loop, relocalized_window_scale, LinkOptions, LoopNotApplied, LoopOptions,
@@ -36,13 +37,14 @@ const LOOP_ATTEMPT_WINDOWS: u64 = 2;
 /// the fields, not of `&Merger`, so that `self.stats` stays free to time the call).
 fn sources<'a>(
     state: &'a MergerState,
+    features: &'a FeaturesLog,
     database: &'a KeyframeDatabase,
     vocabulary: &'a Vocabulary,
     camera: &'a PinholeRadtan,
 ) -> RelocalizationSources<'a> {
     RelocalizationSources {
         map: &state.map,
-        features: &state.features,
+        features,
         database,
         camera,
         vocabulary,
@@ -56,19 +58,12 @@ impl Merger {
     pub(super) fn extend_saved_map(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
         let map = crate::map_file::read_map(path, &self.vocabulary)?;
         let (keyframes, points) = (map.keyframes.len(), map.points.len());
-        crate::map_file::extend_state(&mut self.state, map);
-        for (keyframe, features) in &self.state.features {
-            let patches = self
-                .state
-                .patches
-                .get(keyframe)
-                .map_or(&[][..], |p| p.as_slice());
+        for k in crate::map_file::extend_state(&mut self.state, map) {
             self.features_log
-                .append(&features_to_pb(*keyframe, features, patches))?;
+                .append(&features_to_pb(k.keyframe_id, &k.features, &k.patches))?;
+            self.index_keyframe(k.keyframe_id, &k.features);
         }
-        for (keyframe, features) in self.state.features.clone() {
-            self.index_keyframe(keyframe, &features);
-        }
+        self.features_log.flush()?;
         tracing::info!(
             map = %path.display(),
             keyframes,
@@ -87,7 +82,13 @@ impl Merger {
         if !self.state.map.lacks_shared_points(window) {
             return None;
         }
-        let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+        let sources = sources(
+            &self.state,
+            &self.features_log,
+            &self.database,
+            &self.vocabulary,
+            &camera,
+        );
         let options = RelocalizedScaleOptions::default();
         let scale = self.stats.time("relocalized_scale", || {
             relocalized_window_scale(&sources, segment, window, &options)
@@ -125,7 +126,13 @@ impl Merger {
                 only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
                 ..LinkOptions::default()
             };
-            let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+            let sources = sources(
+                &self.state,
+                &self.features_log,
+                &self.database,
+                &self.vocabulary,
+                &camera,
+            );
             let link = self
                 .stats
                 .time("link_segments", || find_link(&sources, segment, &options));
@@ -165,7 +172,13 @@ impl Merger {
         }
         self.loop_attempt_owed = false;
         let options = LoopOptions::default();
-        let sources = sources(&self.state, &self.database, &self.vocabulary, &camera);
+        let sources = sources(
+            &self.state,
+            &self.features_log,
+            &self.database,
+            &self.vocabulary,
+            &camera,
+        );
         let closure = self
             .stats
             .time("find_loop", || find_loop(&sources, segment, &options));

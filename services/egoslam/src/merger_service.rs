@@ -9,10 +9,10 @@ use crate::background_refinement::BackgroundRefiner;
 use crate::checkpoint::{self, MergerState};
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
+use crate::features_log::{FeaturesLog, Keep};
 use crate::frame_poses;
 use crate::log_compaction;
 use crate::map_state::{MapState, Revisions};
-use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 
 #[path = "merger_journal_recovery.rs"]
@@ -51,7 +51,7 @@ struct Merger {
     /// For relocalization: linking segments after a break, and the saved map.
     vocabulary: Vocabulary,
     /// Where keyframe descriptors are persisted (not in the checkpoint).
-    features_log: RecordLog,
+    features_log: FeaturesLog,
     /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
     database: KeyframeDatabase,
     /// A loop attempt fell due while a background refinement ran: it is made at the first
@@ -125,12 +125,12 @@ impl Merger {
             use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
             match features_from_pb(f).zip(patches_from_pb(f)) {
                 Some((features, patches)) => {
-                    self.features_log.append(f)?;
-                    if !self.state.features.contains_key(&f.keyframe_id) {
+                    if !self.database.contains(f.keyframe_id) {
                         self.index_keyframe(f.keyframe_id, &features);
                     }
-                    self.state.features.insert(f.keyframe_id, features);
-                    self.state.patches.insert(f.keyframe_id, patches);
+                    self.features_log.append(f)?;
+                    let patched = crate::features_log::patched_tracks(&patches);
+                    self.state.patched_tracks.insert(f.keyframe_id, patched);
                 }
                 None => {
                     tracing::warn!(
@@ -141,6 +141,8 @@ impl Merger {
                 }
             }
         }
+        // Loop closure and linking read descriptors back from the log.
+        self.features_log.flush()?;
         for f in &w.trailing_frames {
             self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
         }
@@ -188,9 +190,17 @@ impl Merger {
             self.state.revisions = self.outputs.revisions.numbers();
             let save_start = std::time::Instant::now();
             self.prune_culled_patches();
-            let features = [&self.state.features, &self.state.culled_features];
-            let patches = &self.state.patches;
-            if crate::features_log::compact_if_due(&mut self.features_log, features, patches)? > 0 {
+            let (map, patched) = (&self.state.map, &self.state.patched_tracks);
+            let keep = |keyframe: u64| {
+                if map.keyframe(keyframe).is_some() {
+                    Keep::Whole
+                } else if let Some(tracks) = patched.get(&keyframe) {
+                    Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
+                } else {
+                    Keep::Nothing
+                }
+            };
+            if self.features_log.compact_if_due(keep)? > 0 {
                 self.stats.count("features_log_compactions", 1);
             }
             self.features_log.sync()?;
@@ -481,7 +491,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
     crate::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-    let features_log = crate::features_log::open(&state_dir)?;
+    let (features_log, descriptions) = FeaturesLog::open(&state_dir)?;
     let (global_ba_px, refine_keyframes, refinement_lag) = (
         args.pipeline.global_ba_px,
         args.pipeline.refine_keyframes,
@@ -516,22 +526,18 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "resuming from the checkpoint"
         );
         merger.stats.count("restarts", 1);
-        let (features, patches) =
-            crate::features_log::read(&crate::output::state_dir(&merger.args.out))?;
         // Culled keyframes keep only their patches (and those tracks' features).
-        for (keyframe, features) in features {
-            if state.map.keyframe(keyframe).is_some() {
-                state.features.insert(keyframe, features);
-            } else if let Some(p) = patches.get(&keyframe) {
-                let kept = keyframe_culling::patched_features(features, p);
-                state.culled_features.insert(keyframe, kept);
+        state.patched_tracks = descriptions
+            .into_iter()
+            .filter(|(keyframe, patched)| {
+                state.map.keyframe(*keyframe).is_some() || !patched.is_empty()
+            })
+            .collect();
+        let keyframes: Vec<u64> = state.map.keyframes().map(|(id, ..)| id).collect();
+        for keyframe in keyframes {
+            if let Some(features) = merger.features_log.features_of(keyframe)? {
+                merger.index_keyframe(keyframe, &features);
             }
-        }
-        let kept =
-            |k: &u64| state.features.contains_key(k) || state.culled_features.contains_key(k);
-        state.patches = patches.into_iter().filter(|(k, _)| kept(k)).collect();
-        for (keyframe, features) in &state.features {
-            merger.index_keyframe(*keyframe, features);
         }
         let resumed_poses = MapState::of(&state.map, &state.frames);
         merger.outputs.revisions = Revisions::resume(&state.revisions, &resumed_poses);
@@ -593,7 +599,16 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let readout_ms = crate::readout::known_readout_ms(&merger.args.pipeline, &merger.args.out)
             .unwrap_or(0.0);
         let readout_s = readout_ms / 1000.0;
-        let map = crate::map_file::relocalization_map(&merger.state, camera, readout_s);
+        let patches = merger
+            .features_log
+            .patches(merger.state.patched_tracks.keys().copied())?;
+        let map = crate::map_file::relocalization_map(
+            &merger.state,
+            &merger.features_log,
+            &patches,
+            camera,
+            readout_s,
+        );
         let source = merger.args.out.display().to_string();
         crate::map_file::write_map(path, &map, &merger.vocabulary, &source)?;
     }

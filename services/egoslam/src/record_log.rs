@@ -31,6 +31,9 @@ fn header() -> Vec<u8> {
 pub struct RecordLog {
     path: PathBuf,
     writer: std::io::BufWriter<std::fs::File>,
+    /// Byte offset at which the next record starts (the file's length with what is
+    /// buffered).
+    end: u64,
 }
 
 impl RecordLog {
@@ -45,8 +48,10 @@ impl RecordLog {
         let mut log = Self {
             path,
             writer: std::io::BufWriter::new(file),
+            end: 0,
         };
-        if log.len_bytes()? == 0 {
+        log.end = log.len_bytes()?;
+        if log.end == 0 {
             log.write_header()?;
         }
         Ok(log)
@@ -55,14 +60,27 @@ impl RecordLog {
     fn write_header(&mut self) -> anyhow::Result<()> {
         self.writer
             .write_all(&header())
-            .with_context(|| format!("writing the header of {}", self.path.display()))
+            .with_context(|| format!("writing the header of {}", self.path.display()))?;
+        self.end = HEADER_LEN;
+        Ok(())
     }
 
-    /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]).
-    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<()> {
+    /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]);
+    /// returns its byte offset, at which [`LogReader::read_at`] finds it.
+    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<u64> {
+        let bytes = record.encode_length_delimited_to_vec();
         self.writer
-            .write_all(&record.encode_length_delimited_to_vec())
-            .with_context(|| format!("appending to {}", self.path.display()))
+            .write_all(&bytes)
+            .with_context(|| format!("appending to {}", self.path.display()))?;
+        let at = self.end;
+        self.end += bytes.len() as u64;
+        Ok(at)
+    }
+
+    /// A reader of everything appended so far (flushed first).
+    pub fn reader(&mut self) -> anyhow::Result<LogReader> {
+        self.flush()?;
+        LogReader::open(&self.path)
     }
 
     /// Hands everything appended to the kernel: it survives the process being killed.
@@ -84,12 +102,13 @@ impl RecordLog {
     /// Bytes in the log, including what is still buffered.
     pub fn len_bytes(&mut self) -> anyhow::Result<u64> {
         self.flush()?;
-        Ok(self
+        self.end = self
             .writer
             .get_ref()
             .metadata()
             .with_context(|| format!("reading the size of {}", self.path.display()))?
-            .len())
+            .len();
+        Ok(self.end)
     }
 
     /// Drops the records before byte `offset` (a record boundary): the rest is copied,
@@ -103,19 +122,17 @@ impl RecordLog {
         Ok(HEADER_LEN)
     }
 
-    /// Replaces the whole log, atomically, by `records` (compaction: the records still
-    /// wanted, written once each); appending goes on after them.
-    pub fn replace_with<'a, M: Message + 'a>(
+    /// Replaces the whole log, atomically, by what `write` appends to a new one while
+    /// reading the current one (compaction: the records still wanted, copied one at a time,
+    /// so memory does not grow with the log); appending goes on after them.
+    pub fn rewrite(
         &mut self,
-        records: impl IntoIterator<Item = &'a M>,
+        write: impl FnOnce(&mut LogReader, &mut LogWriter) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
-        self.flush()?;
-        let mut bytes = header();
-        for r in records {
-            r.encode_length_delimited(&mut bytes)
-                .with_context(|| format!("encoding a record of {}", self.path.display()))?;
-        }
-        crate::output::write_atomically(&self.path, &bytes)?;
+        let mut reader = self.reader()?;
+        let mut writer = LogWriter::create(&self.path)?;
+        write(&mut reader, &mut writer)?;
+        writer.commit()?;
         self.reopen()
     }
 
@@ -126,7 +143,7 @@ impl RecordLog {
             .open(&self.path)
             .with_context(|| format!("reopening {}", self.path.display()))?;
         self.writer = std::io::BufWriter::new(file);
-        Ok(())
+        self.len_bytes().map(|_| ())
     }
 
     /// Empties the log (a new stream starts a new map).
@@ -148,46 +165,219 @@ pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>>
 
 /// [`read_records`] with each record's byte offset in the log.
 pub fn read_records_at<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<(u64, M)>> {
-    let bytes = match std::fs::read(path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
-    };
     let mut out = Vec::new();
-    let mut rest = &bytes[..];
-    if rest.starts_with(MAGIC) {
-        let Some(version) = rest.get(8..12) else {
+    for_each_record(path, |at, record| out.push((at, record)))?;
+    Ok(out)
+}
+
+/// Calls `each` with every record of the log at `path` and its byte offset, in order, one
+/// record in memory at a time; as [`read_records`] for an absent log and a torn end.
+pub fn for_each_record<M: Message + Default>(
+    path: &Path,
+    mut each: impl FnMut(u64, M),
+) -> anyhow::Result<()> {
+    let mut reader = match LogReader::open(path) {
+        Ok(r) => r,
+        Err(e) if !path.exists() => {
+            tracing::debug!(error = %e, "no log yet");
+            return Ok(());
+        }
+        Err(e) => return Err(e),
+    };
+    let mut at = reader.first_record()?;
+    loop {
+        match reader.next_record::<M>(at) {
+            Ok(Some((record, next))) => {
+                match record {
+                    Some(r) => each(at, r),
+                    None => {
+                        tracing::warn!(path = %path.display(), "invalid record in a log skipped")
+                    }
+                }
+                at = next;
+            }
+            Ok(None) => return Ok(()),
+            Err(NextRecordError::Torn) => {
+                tracing::warn!(path = %path.display(), offset = at, "torn record at the end of a log ignored");
+                return Ok(());
+            }
+            Err(NextRecordError::Io(e)) => {
+                return Err(e).with_context(|| format!("reading {}", path.display()))
+            }
+        }
+    }
+}
+
+/// Why the record at an offset could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum NextRecordError {
+    #[error("a torn or oversized record")]
+    Torn,
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+/// Reads records of a log at their byte offsets.
+pub struct LogReader {
+    path: PathBuf,
+    file: std::io::BufReader<std::fs::File>,
+    len: u64,
+}
+
+impl LogReader {
+    /// Opens the log at `path` for reading.
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let file =
+            std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+        let len = file
+            .metadata()
+            .with_context(|| format!("reading the size of {}", path.display()))?
+            .len();
+        Ok(Self {
+            path: path.to_path_buf(),
+            file: std::io::BufReader::new(file),
+            len,
+        })
+    }
+
+    /// The offset of the first record: after the header, when the log has one (a log
+    /// written before headers existed starts with its first record).
+    fn first_record(&mut self) -> anyhow::Result<u64> {
+        use std::io::{Read, Seek};
+        let mut head = [0u8; HEADER_LEN as usize];
+        self.file
+            .seek(std::io::SeekFrom::Start(0))
+            .with_context(|| format!("reading {}", self.path.display()))?;
+        let mut got = 0;
+        while got < head.len() {
+            match self.file.read(&mut head[got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) => {
+                    return Err(e).with_context(|| format!("reading {}", self.path.display()))
+                }
+            }
+        }
+        if got < MAGIC.len() || &head[..MAGIC.len()] != MAGIC {
+            return Ok(0);
+        }
+        if got < head.len() {
             // A header torn by a kill right after the file was created: no record yet.
-            return Ok(out);
-        };
-        let version = u32::from_le_bytes([version[0], version[1], version[2], version[3]]);
+            return Ok(self.len);
+        }
+        let version = u32::from_le_bytes([head[8], head[9], head[10], head[11]]);
         if version != FORMAT_VERSION {
             anyhow::bail!(
                 "{}: record log format version {version}, this egoslam reads {FORMAT_VERSION} \
                  (and logs without a header)",
-                path.display()
+                self.path.display()
             );
         }
-        rest = &rest[HEADER_LEN as usize..];
+        Ok(HEADER_LEN)
     }
-    while !rest.is_empty() {
-        let mut probe = rest;
-        let length = match prost::encoding::decode_varint(&mut probe) {
-            Ok(l) if (l as usize) <= MAX_RECORD_BYTES && (l as usize) <= probe.len() => l as usize,
-            _ => {
-                tracing::warn!(path = %path.display(), bytes = rest.len(), "torn record at the end of a log ignored");
+
+    /// The record at byte `offset` (one that [`RecordLog::append`] returned).
+    pub fn read_at<M: Message + Default>(&mut self, offset: u64) -> anyhow::Result<M> {
+        match self.next_record::<M>(offset) {
+            Ok(Some((Some(record), _))) => Ok(record),
+            Ok(Some((None, _))) => anyhow::bail!(
+                "{}: the record at byte {offset} does not decode",
+                self.path.display()
+            ),
+            Ok(None) => anyhow::bail!("{}: no record at byte {offset}", self.path.display()),
+            Err(e) => Err(e).with_context(|| {
+                format!(
+                    "{}: reading the record at byte {offset}",
+                    self.path.display()
+                )
+            }),
+        }
+    }
+
+    /// The record at `offset` (`None` when it does not decode) and the offset of the
+    /// next; `None` at the end of the log.
+    fn next_record<M: Message + Default>(
+        &mut self,
+        offset: u64,
+    ) -> Result<Option<(Option<M>, u64)>, NextRecordError> {
+        use std::io::{Read, Seek};
+        if offset >= self.len {
+            return Ok(None);
+        }
+        self.file.seek(std::io::SeekFrom::Start(offset))?;
+        let mut length: u64 = 0;
+        let mut varint_len = 0u64;
+        loop {
+            let mut byte = [0u8; 1];
+            if self.file.read(&mut byte)? == 0 || varint_len == 10 {
+                return Err(NextRecordError::Torn);
+            }
+            length |= u64::from(byte[0] & 0x7f) << (7 * varint_len);
+            varint_len += 1;
+            if byte[0] & 0x80 == 0 {
                 break;
             }
-        };
-        match M::decode(&probe[..length]) {
-            Ok(record) => out.push(((bytes.len() - rest.len()) as u64, record)),
-            Err(e) => {
-                tracing::warn!(path = %path.display(), error = %e, "invalid record in a log skipped")
-            }
         }
-        rest = &probe[length..];
+        let start = offset + varint_len;
+        if length > MAX_RECORD_BYTES as u64 || start + length > self.len {
+            return Err(NextRecordError::Torn);
+        }
+        let mut bytes = vec![0u8; length as usize];
+        self.file.read_exact(&mut bytes)?;
+        Ok(Some((M::decode(&bytes[..]).ok(), start + length)))
     }
-    Ok(out)
+}
+
+/// A new log being written beside the one it replaces ([`RecordLog::rewrite`]).
+pub struct LogWriter {
+    tmp: PathBuf,
+    path: PathBuf,
+    writer: std::io::BufWriter<std::fs::File>,
+    end: u64,
+}
+
+impl LogWriter {
+    fn create(path: &Path) -> anyhow::Result<Self> {
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(".tmp");
+        let tmp = PathBuf::from(tmp);
+        let file =
+            std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        let mut writer = std::io::BufWriter::new(file);
+        writer
+            .write_all(&header())
+            .with_context(|| format!("writing {}", tmp.display()))?;
+        Ok(Self {
+            tmp,
+            path: path.to_path_buf(),
+            writer,
+            end: HEADER_LEN,
+        })
+    }
+
+    /// Appends one record; returns its byte offset in the new log.
+    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<u64> {
+        let bytes = record.encode_length_delimited_to_vec();
+        self.writer
+            .write_all(&bytes)
+            .with_context(|| format!("writing {}", self.tmp.display()))?;
+        let at = self.end;
+        self.end += bytes.len() as u64;
+        Ok(at)
+    }
+
+    /// Makes the new log durable and puts it in place of the old one.
+    fn commit(self) -> anyhow::Result<()> {
+        let file = self
+            .writer
+            .into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(|| format!("writing {}", self.tmp.display()))?;
+        file.sync_all()
+            .with_context(|| format!("syncing {}", self.tmp.display()))?;
+        std::fs::rename(&self.tmp, &self.path)
+            .with_context(|| format!("renaming to {}", self.path.display()))
+    }
 }
 
 #[cfg(test)]

@@ -41,4 +41,6 @@ pub use provisional_scale::{ProvisionalScale, SettledScale};
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use relocalized_scale::{relocalized_window_scale, RelocalizedScale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;
-pub use segment_linking::{find_link, LinkOptions, RelocalizationSources, SegmentLink};
+pub use segment_linking::{
+    find_link, KeyframeFeatureSource, LinkOptions, RelocalizationSources, SegmentLink,
+};

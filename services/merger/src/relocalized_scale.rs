@@ -100,7 +100,7 @@ pub fn relocalized_window_scale(
     let queries: Vec<_> = window
         .poses
         .iter()
-        .filter(|(id, _)| sources.features.contains_key(id))
+        .filter(|(id, _)| sources.features.is_described(*id))
         .copied()
         .collect();
     // Only keyframes that see map points can give pairs: the keyframes of the stop itself

@@ -105,6 +105,26 @@ fn query_of(features: &[MapFeature]) -> QueryFeatures {
     }
 }
 
+/// Where relocalization inside the map finds the keyframes' described tracks: a map in
+/// memory, or a store that reads them from disk when asked (a long run keeps its
+/// descriptors there: ~48 KB per keyframe, most of a map's bytes).
+pub trait KeyframeFeatureSource {
+    /// Whether keyframe `id` has descriptors.
+    fn is_described(&self, id: u64) -> bool;
+    /// Keyframe `id`'s described tracks.
+    fn features(&self, id: u64) -> Option<Vec<MapFeature>>;
+}
+
+impl KeyframeFeatureSource for BTreeMap<u64, Vec<MapFeature>> {
+    fn is_described(&self, id: u64) -> bool {
+        self.contains_key(&id)
+    }
+
+    fn features(&self, id: u64) -> Option<Vec<MapFeature>> {
+        self.get(&id).cloned()
+    }
+}
+
 /// What relocalizing keyframes against the map needs: the map, every keyframe's
 /// descriptors, their bag-of-words index, the ideal camera of the undistorted pixels and
 /// the vocabulary. Segment linking, loop closure and the relocalized chaining scale all
@@ -112,7 +132,7 @@ fn query_of(features: &[MapFeature]) -> QueryFeatures {
 #[derive(Clone, Copy)]
 pub struct RelocalizationSources<'a> {
     pub map: &'a MapBuilder,
-    pub features: &'a BTreeMap<u64, Vec<MapFeature>>,
+    pub features: &'a dyn KeyframeFeatureSource,
     pub database: &'a KeyframeDatabase,
     pub camera: &'a PinholeRadtan,
     pub vocabulary: &'a Vocabulary,
@@ -123,7 +143,7 @@ impl RelocalizationSources<'_> {
     pub(crate) fn described_keyframes(&self, segment: u32) -> Vec<(u64, StampedPose)> {
         self.map
             .keyframes()
-            .filter(|(id, s, _)| *s == segment && self.features.contains_key(id))
+            .filter(|(id, s, _)| *s == segment && self.features.is_described(*id))
             .map(|(id, _, pose)| (id, *pose))
             .collect()
     }
@@ -223,7 +243,7 @@ pub(crate) fn relocalize_consistently(
         .collect();
     let mut chosen = BTreeSet::new();
     for (id, _) in queries {
-        let Some(query) = features.get(id) else {
+        let Some(query) = features.features(*id) else {
             continue;
         };
         let descriptors: Vec<_> = query.iter().map(|f| f.descriptor).collect();
@@ -250,7 +270,7 @@ pub(crate) fn relocalize_consistently(
                 keyframe_id: id,
                 segment: s,
                 pose: *pose,
-                features: features.get(&id)?.clone(),
+                features: features.features(id)?,
                 // Queries here are keyframes' own tracks, already where their points are.
                 patches: Vec::new(),
             })
@@ -279,10 +299,10 @@ pub(crate) fn relocalize_consistently(
     );
     let mut found: Vec<Relocalized> = Vec::new();
     for &(id, in_new) in queries {
-        let Some(kf_features) = features.get(&id) else {
+        let Some(kf_features) = features.features(id) else {
             continue;
         };
-        let Ok(r) = relocalizer.relocalize(&query_of(kf_features), &options.relocalizer) else {
+        let Ok(r) = relocalizer.relocalize(&query_of(&kf_features), &options.relocalizer) else {
             continue;
         };
         let pairs = r

@@ -55,6 +55,11 @@ impl KeyframeDatabase {
         }
     }
 
+    /// Whether keyframe `keyframe_id` is indexed now.
+    pub fn contains(&self, keyframe_id: u64) -> bool {
+        self.entries.contains_key(&keyframe_id)
+    }
+
     /// Number of keyframes indexed.
     pub fn len(&self) -> usize {
         self.entries.len()
@@ -118,6 +123,7 @@ mod tests {
         assert_eq!(got.len(), 1);
         assert_eq!(got[0].keyframe_id, 8);
         assert_eq!(db.len(), 2);
+        assert!(!db.contains(7) && db.contains(8));
         assert!(!db.inverted.contains_key(&4), "an emptied word's list goes");
     }
 }
