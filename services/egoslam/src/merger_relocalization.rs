@@ -3,15 +3,12 @@
 //! (docs/relocalization.md, docs/merger.md).
 
 use super::Merger;
-use crate::checkpoint::MergerState;
-use crate::features_log::FeaturesLog;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{
     find_link, find_loop, relocalized_window_scale, LinkOptions, LoopNotApplied, LoopOptions,
     RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions, WindowInput,
 };
 use egoslam_relocalization::saved_map::features_to_pb;
-use egoslam_relocalization::{KeyframeDatabase, Vocabulary};
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
 /// (three windows): after a break the first windows decide; a segment that found no link
@@ -33,25 +30,25 @@ const LINK_RETRY_KEYFRAMES: usize = 20;
 /// is folded in.
 const LOOP_ATTEMPT_WINDOWS: u64 = 2;
 
-/// The merger's map, descriptors and index as relocalization reads them (a function of
-/// the fields, not of `&Merger`, so that `self.stats` stays free to time the call).
-fn sources<'a>(
-    state: &'a MergerState,
-    features: &'a FeaturesLog,
-    database: &'a KeyframeDatabase,
-    vocabulary: &'a Vocabulary,
-    camera: &'a PinholeRadtan,
-) -> RelocalizationSources<'a> {
-    RelocalizationSources {
-        map: &state.map,
-        features,
-        database,
-        camera,
-        vocabulary,
-    }
-}
-
 impl Merger {
+    /// Runs `f` on the merger's map, descriptors and index as relocalization reads them,
+    /// timed as `stage`.
+    fn relocalize<T>(
+        &mut self,
+        camera: &PinholeRadtan,
+        stage: &str,
+        f: impl FnOnce(&RelocalizationSources) -> T,
+    ) -> T {
+        let sources = RelocalizationSources {
+            map: &self.state.map,
+            features: &self.features_log,
+            database: &self.database,
+            camera,
+            vocabulary: &self.vocabulary,
+        };
+        self.stats.time(stage, || f(&sources))
+    }
+
     /// Starts the map from the saved map at `path` (egoslam_merger::base_map): its
     /// keyframes' descriptors go into the features log and the linking index like the
     /// run's own, so that a restarted merger and segment linking have them.
@@ -82,16 +79,9 @@ impl Merger {
         if !self.state.map.lacks_shared_points(window) {
             return None;
         }
-        let sources = sources(
-            &self.state,
-            &self.features_log,
-            &self.database,
-            &self.vocabulary,
-            &camera,
-        );
         let options = RelocalizedScaleOptions::default();
-        let scale = self.stats.time("relocalized_scale", || {
-            relocalized_window_scale(&sources, segment, window, &options)
+        let scale = self.relocalize(&camera, "relocalized_scale", |sources| {
+            relocalized_window_scale(sources, segment, window, &options)
         });
         self.stats.count(
             if scale.is_some() {
@@ -126,16 +116,9 @@ impl Merger {
                 only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
                 ..LinkOptions::default()
             };
-            let sources = sources(
-                &self.state,
-                &self.features_log,
-                &self.database,
-                &self.vocabulary,
-                &camera,
-            );
-            let link = self
-                .stats
-                .time("link_segments", || find_link(&sources, segment, &options));
+            let link = self.relocalize(&camera, "link_segments", |sources| {
+                find_link(sources, segment, &options)
+            });
             let Some(link) = link else { continue };
             tracing::info!(
                 window = window_id,
@@ -172,16 +155,9 @@ impl Merger {
         }
         self.loop_attempt_owed = false;
         let options = LoopOptions::default();
-        let sources = sources(
-            &self.state,
-            &self.features_log,
-            &self.database,
-            &self.vocabulary,
-            &camera,
-        );
-        let closure = self
-            .stats
-            .time("find_loop", || find_loop(&sources, segment, &options));
+        let closure = self.relocalize(&camera, "find_loop", |sources| {
+            find_loop(sources, segment, &options)
+        });
         let Some(closure) = closure else { return };
         let report = match self.state.map.close_loop(&closure, &options) {
             Ok(report) => report,
