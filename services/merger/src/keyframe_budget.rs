@@ -43,14 +43,18 @@ struct Entry {
     segment: u32,
     centre: Vector3<f64>,
     axis: Vector3<f64>,
-    depth: f64,
+    /// Median scene depth of its points; `None` for a keyframe that sees none.
+    depth: Option<f64>,
 }
 
 impl MapBuilder {
     /// The keyframes older than `before` to cull to bring the map within `budget`, best
     /// covered first (nearest other keyframe of the segment looking the same way, in units
     /// of the keyframe's median scene depth); empty while within it. A chosen keyframe's
-    /// coverer is not chosen too, and the first and last keyframe of a segment stay.
+    /// coverer is not chosen too, and the first and last keyframe of a segment stay. A
+    /// keyframe that sees no point is measured in the depth of its coverer, and covers
+    /// nothing: otherwise such keyframes, never chosen, would fill the map past the
+    /// ceiling on a long walk.
     pub fn over_budget_keyframes(&self, before: u64, budget: &KeyframeBudget) -> Vec<u64> {
         if self.keyframes.len() <= budget.max_keyframes {
             return Vec::new();
@@ -60,14 +64,12 @@ impl MapBuilder {
         let entries: Vec<Entry> = self
             .keyframes
             .iter()
-            .filter_map(|(id, (segment, pose))| {
-                Some(Entry {
-                    id: *id,
-                    segment: *segment,
-                    centre: pose.position,
-                    axis: crate::keyframe_coverage::axis(pose),
-                    depth: self.observed_depth(*id, pose)?,
-                })
+            .map(|(id, (segment, pose))| Entry {
+                id: *id,
+                segment: *segment,
+                centre: pose.position,
+                axis: crate::keyframe_coverage::axis(pose),
+                depth: self.observed_depth(*id, pose),
             })
             .collect();
         let cos_max = budget.max_angle_deg.to_radians().cos();
@@ -78,9 +80,11 @@ impl MapBuilder {
             .filter_map(|e| {
                 entries
                     .iter()
-                    .filter(|o| o.id != e.id && o.segment == e.segment)
+                    .filter(|o| o.id != e.id && o.segment == e.segment && o.depth.is_some())
                     .filter(|o| o.axis.dot(&e.axis) >= cos_max)
-                    .map(|o| ((o.centre - e.centre).norm() / e.depth, o.id))
+                    .filter_map(|o| {
+                        Some(((o.centre - e.centre).norm() / e.depth.or(o.depth)?, o.id))
+                    })
                     .min_by(|a, b| a.0.total_cmp(&b.0))
                     .map(|(d, o)| (d, e.id, o))
             })
@@ -178,5 +182,31 @@ mod tests {
         let spine = KeyframeBudget { spine: 2, ..tight };
         let chosen = m.over_budget_keyframes(105, &spine);
         assert!(chosen.windows(2).all(|w| w[1] - w[0] >= 2), "{chosen:?}");
+    }
+
+    #[test]
+    fn keyframes_without_points_are_culled_in_their_coverers_depth_and_cover_nothing() {
+        // 0..100 a metre apart with points; 100..120 walk the start again, 1 cm beside
+        // 0..20, without points.
+        let mut parts = map(120, |k| {
+            if k < 100 {
+                k as f64
+            } else {
+                (k - 100) as f64 + 0.01
+            }
+        })
+        .to_parts();
+        parts.observations.retain(|(k, _), _| *k < 100);
+        let m = MapBuilder::from_parts(parts);
+        let tight = KeyframeBudget {
+            max_keyframes: 110,
+            culled_to: 1.0,
+            ..Default::default()
+        };
+        // Ten go: the pointless ones beside 1..20 (1 cm in 2-unit depths), not the
+        // keyframes with points they stand beside.
+        let chosen = m.over_budget_keyframes(119, &tight);
+        assert_eq!(chosen.len(), 10, "{chosen:?}");
+        assert!(chosen.iter().all(|k| (100..119).contains(k)), "{chosen:?}");
     }
 }
