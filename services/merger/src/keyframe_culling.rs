@@ -83,7 +83,8 @@ impl MapBuilder {
         if self.keyframes.len() <= options.min_map_keyframes {
             return report;
         }
-        let mut views = self.view_counts(oldest.saturating_sub(options.neighbourhood));
+        let first_nearby = oldest.saturating_sub(options.neighbourhood);
+        let mut views = ViewCounts::of(self, candidates, first_nearby);
         let older = options
             .revisits
             .map(|r| crate::keyframe_coverage::OlderKeyframes::of(self, newest, &r));
@@ -102,7 +103,7 @@ impl MapBuilder {
                 .collect();
             let seen_elsewhere = tracks
                 .iter()
-                .filter(|t| views.get(t).copied().unwrap_or(0) > options.other_views)
+                .filter(|t| views.nearby(**t) > options.other_views)
                 .count();
             // A keyframe without points is never redundant by its points (it may be what
             // poses the frames of a turn on the spot), but on a revisit it is covered like
@@ -124,7 +125,7 @@ impl MapBuilder {
     }
 
     /// Removes keyframe `id` into `report`.
-    fn cull_one(&mut self, id: u64, views: &mut HashMap<u64, usize>, report: &mut CullingReport) {
+    fn cull_one(&mut self, id: u64, views: &mut ViewCounts, report: &mut CullingReport) {
         let Some(&(segment, pose)) = self.keyframes.get(&id) else {
             return;
         };
@@ -148,7 +149,8 @@ impl MapBuilder {
         let Some(&oldest) = ids.iter().min() else {
             return report;
         };
-        let mut views = self.view_counts(oldest.saturating_sub(options.neighbourhood));
+        let first_nearby = oldest.saturating_sub(options.neighbourhood);
+        let mut views = ViewCounts::of(self, ids, first_nearby);
         for &id in ids {
             self.cull_one(id, &mut views, &mut report);
         }
@@ -167,15 +169,6 @@ impl MapBuilder {
         });
     }
 
-    /// Track id -> number of keyframes from `first` on that observe it.
-    fn view_counts(&self, first: u64) -> HashMap<u64, usize> {
-        let mut views: HashMap<u64, usize> = HashMap::new();
-        for ((_, track), _) in self.observations.range((first, 0)..) {
-            *views.entry(*track).or_default() += 1;
-        }
-        views
-    }
-
     /// Whether keyframe `id` has keyframes of `segment` both before and after it.
     fn has_neighbours_in(&self, segment: u32, id: u64) -> bool {
         let before = self
@@ -191,11 +184,9 @@ impl MapBuilder {
         before && after
     }
 
-    /// Removes keyframe `id` and its observations, and the points it leaves unobserved in
-    /// the neighbourhood `views` counts (an older keyframe that sighted one through a loop
-    /// keeps an observation of a point no longer in the map, which every use skips); returns
-    /// how many points were removed.
-    fn remove_keyframe(&mut self, id: u64, views: &mut HashMap<u64, usize>) -> usize {
+    /// Removes keyframe `id` and its observations, and the points it leaves unobserved;
+    /// returns how many points were removed.
+    fn remove_keyframe(&mut self, id: u64, views: &mut ViewCounts) -> usize {
         self.keyframes.remove(&id);
         let keys: Vec<(u64, u64)> = self
             .observations
@@ -205,15 +196,57 @@ impl MapBuilder {
         let mut removed = 0;
         for key in &keys {
             self.observations.remove(key);
-            let left = views.get_mut(&key.1).map_or(0, |v| {
-                *v = v.saturating_sub(1);
-                *v
-            });
-            if left == 0 && self.points.remove(&key.1).is_some() {
+            if views.remove_view(key.1) == 0 && self.points.remove(&key.1).is_some() {
                 removed += 1;
             }
         }
         removed
+    }
+}
+
+/// How many keyframes observe each track of the keyframes looked at: those from the
+/// neighbourhood's first keyframe on (the covisibility rule counts only these), and all of
+/// them (a point leaves the map only when no keyframe at all observes it: a revisit
+/// keyframe's loop sightings of an old point are often its only views near the candidates,
+/// and the old keyframes that made the point still see it).
+struct ViewCounts {
+    /// track -> (views from `first_nearby` on, all views).
+    counts: HashMap<u64, (usize, usize)>,
+}
+
+impl ViewCounts {
+    fn of(map: &MapBuilder, keyframes: &[u64], first_nearby: u64) -> Self {
+        let mut counts: HashMap<u64, (usize, usize)> = HashMap::new();
+        for &id in keyframes {
+            for ((_, track), _) in map.observations.range((id, 0)..=(id, u64::MAX)) {
+                counts.insert(*track, (0, 0));
+            }
+        }
+        for ((keyframe, track), _) in &map.observations {
+            if let Some((nearby, all)) = counts.get_mut(track) {
+                *all += 1;
+                if *keyframe >= first_nearby {
+                    *nearby += 1;
+                }
+            }
+        }
+        Self { counts }
+    }
+
+    /// Keyframes from the neighbourhood's first on that observe `track`.
+    fn nearby(&self, track: u64) -> usize {
+        self.counts.get(&track).map_or(0, |c| c.0)
+    }
+
+    /// Takes one view of `track` away (the keyframes looked at are all in the
+    /// neighbourhood); returns how many keyframes still observe it.
+    fn remove_view(&mut self, track: u64) -> usize {
+        let Some((nearby, all)) = self.counts.get_mut(&track) else {
+            return 0;
+        };
+        *nearby = nearby.saturating_sub(1);
+        *all = all.saturating_sub(1);
+        *all
     }
 }
 
@@ -279,6 +312,23 @@ pub(crate) mod tests {
         }
         assert_eq!(report.removed_points, 0);
         assert_eq!(m.points().count(), 30);
+    }
+
+    #[test]
+    fn an_old_point_a_culled_revisit_keyframe_sighted_stays_with_the_keyframes_that_made_it() {
+        // Keyframes 0..5 made tracks 0..20; keyframes 400..410, a revisit far past the
+        // neighbourhood, see tracks 1000..1020 and keyframe 405 also sighted old track 3.
+        let mut m = map(411, |k| match k {
+            0..=4 => (0..20).collect(),
+            400..=410 => (1000..1020).collect(),
+            _ => Vec::new(),
+        });
+        m.observations.insert((405, 3), Point2::new(4.0, 4.0));
+        let report = m.cull_keyframes(&[405], &any_size());
+        assert_eq!(report.culled.len(), 1, "20 of its 21 points are seen by 10 others");
+        assert_eq!(report.removed_points, 0);
+        assert!(m.point(3).is_some(), "keyframes 0..5 still observe track 3");
+        assert_eq!(m.points().count(), 40);
     }
 
     #[test]
