@@ -33,6 +33,13 @@ pub struct KeyframeCullingOptions {
     /// keyframe (culled, the rendered walks' median relocalization error rose by a
     /// quarter, and one TUM frame was relocalized a kilometre off).
     pub min_map_keyframes: usize,
+    /// A point left with fewer views than this by a culled keyframe leaves the map, with
+    /// its last observation (default 2: one view gives it no parallax, so no refinement
+    /// can move it and no pose rests on it; ORB-SLAM drops a point at two, Mur-Artal et al.
+    /// 2015, `MapPoint::EraseObservation`). Otherwise the survivors of culling keep every
+    /// point their culled neighbours shared with them, and the map's points keep growing
+    /// at its keyframe ceiling.
+    pub min_point_views: usize,
 }
 
 impl Default for KeyframeCullingOptions {
@@ -43,6 +50,7 @@ impl Default for KeyframeCullingOptions {
             neighbourhood: 300,
             revisits: Some(Default::default()),
             min_map_keyframes: 600,
+            min_point_views: 2,
         }
     }
 }
@@ -118,18 +126,24 @@ impl MapBuilder {
             if !redundant && !covered() {
                 continue;
             }
-            self.cull_one(id, &mut views, &mut report);
+            self.cull_one(id, &mut views, options.min_point_views, &mut report);
         }
         self.drop_weak_views(&report);
         report
     }
 
     /// Removes keyframe `id` into `report`.
-    fn cull_one(&mut self, id: u64, views: &mut ViewCounts, report: &mut CullingReport) {
+    fn cull_one(
+        &mut self,
+        id: u64,
+        views: &mut ViewCounts,
+        min_point_views: usize,
+        report: &mut CullingReport,
+    ) {
         let Some(&(segment, pose)) = self.keyframes.get(&id) else {
             return;
         };
-        report.removed_points += self.remove_keyframe(id, views);
+        report.removed_points += self.remove_keyframe(id, views, min_point_views);
         report.culled.push(CulledKeyframe {
             keyframe_id: id,
             segment,
@@ -152,7 +166,7 @@ impl MapBuilder {
         let first_nearby = oldest.saturating_sub(options.neighbourhood);
         let mut views = ViewCounts::of(self, ids, first_nearby);
         for &id in ids {
-            self.cull_one(id, &mut views, &mut report);
+            self.cull_one(id, &mut views, options.min_point_views, &mut report);
         }
         self.drop_weak_views(&report);
         report
@@ -184,9 +198,10 @@ impl MapBuilder {
         before && after
     }
 
-    /// Removes keyframe `id` and its observations, and the points it leaves unobserved;
-    /// returns how many points were removed.
-    fn remove_keyframe(&mut self, id: u64, views: &mut ViewCounts) -> usize {
+    /// Removes keyframe `id` and its observations, and the points it leaves with fewer
+    /// than `min_views` views (with their last observations); returns how many points were
+    /// removed.
+    fn remove_keyframe(&mut self, id: u64, views: &mut ViewCounts, min_views: usize) -> usize {
         self.keyframes.remove(&id);
         let keys: Vec<(u64, u64)> = self
             .observations
@@ -194,11 +209,18 @@ impl MapBuilder {
             .map(|(k, _)| *k)
             .collect();
         let mut removed = 0;
-        for key in &keys {
-            self.observations.remove(key);
-            if views.remove_view(key.1) == 0 && self.points.remove(&key.1).is_some() {
-                removed += 1;
+        for &(_, track) in &keys {
+            self.observations.remove(&(id, track));
+            let left = views.remove_view(track, id);
+            if left.len() >= min_views || !self.points.contains_key(&track) {
+                continue;
             }
+            for keyframe in left {
+                self.observations.remove(&(keyframe, track));
+            }
+            views.forget(track);
+            self.points.remove(&track);
+            removed += 1;
         }
         removed
     }
@@ -210,21 +232,22 @@ impl MapBuilder {
 /// keyframe's loop sightings of an old point are often its only views near the candidates,
 /// and the old keyframes that made the point still see it).
 struct ViewCounts {
-    /// track -> (views from `first_nearby` on, all views).
-    counts: HashMap<u64, (usize, usize)>,
+    /// track -> (views from the neighbourhood's first keyframe on, every keyframe that
+    /// observes it).
+    counts: HashMap<u64, (usize, Vec<u64>)>,
 }
 
 impl ViewCounts {
     fn of(map: &MapBuilder, keyframes: &[u64], first_nearby: u64) -> Self {
-        let mut counts: HashMap<u64, (usize, usize)> = HashMap::new();
+        let mut counts: HashMap<u64, (usize, Vec<u64>)> = HashMap::new();
         for &id in keyframes {
             for ((_, track), _) in map.observations.range((id, 0)..=(id, u64::MAX)) {
-                counts.insert(*track, (0, 0));
+                counts.insert(*track, (0, Vec::new()));
             }
         }
         for ((keyframe, track), _) in &map.observations {
             if let Some((nearby, all)) = counts.get_mut(track) {
-                *all += 1;
+                all.push(*keyframe);
                 if *keyframe >= first_nearby {
                     *nearby += 1;
                 }
@@ -238,15 +261,20 @@ impl ViewCounts {
         self.counts.get(&track).map_or(0, |c| c.0)
     }
 
-    /// Takes one view of `track` away (the keyframes looked at are all in the
-    /// neighbourhood); returns how many keyframes still observe it.
-    fn remove_view(&mut self, track: u64) -> usize {
+    /// Takes `keyframe`'s view of `track` away (the keyframes looked at are all in the
+    /// neighbourhood); returns the keyframes that still observe it.
+    fn remove_view(&mut self, track: u64, keyframe: u64) -> Vec<u64> {
         let Some((nearby, all)) = self.counts.get_mut(&track) else {
-            return 0;
+            return Vec::new();
         };
         *nearby = nearby.saturating_sub(1);
-        *all = all.saturating_sub(1);
-        *all
+        all.retain(|k| *k != keyframe);
+        all.clone()
+    }
+
+    /// `track` left the map: no view of it is counted any more.
+    fn forget(&mut self, track: u64) {
+        self.counts.remove(&track);
     }
 }
 
@@ -325,10 +353,49 @@ pub(crate) mod tests {
         });
         m.observations.insert((405, 3), Point2::new(4.0, 4.0));
         let report = m.cull_keyframes(&[405], &any_size());
-        assert_eq!(report.culled.len(), 1, "20 of its 21 points are seen by 10 others");
+        assert_eq!(
+            report.culled.len(),
+            1,
+            "20 of its 21 points are seen by 10 others"
+        );
         assert_eq!(report.removed_points, 0);
         assert!(m.point(3).is_some(), "keyframes 0..5 still observe track 3");
         assert_eq!(m.points().count(), 40);
+    }
+
+    #[test]
+    fn a_point_a_culled_keyframe_leaves_with_one_view_goes_with_that_view() {
+        // Keyframes 0..6 see tracks 0..20; keyframes 2 and 3 alone also see track 50.
+        let tracks = |k| {
+            let mut t: Vec<u64> = (0..20).collect();
+            if k == 2 || k == 3 {
+                t.push(50);
+            }
+            t
+        };
+        let mut m = map(6, tracks);
+        let report = m.cull_keyframes(&[2], &any_size());
+        assert_eq!(report.culled.len(), 1);
+        assert_eq!(report.removed_points, 1);
+        assert!(m.point(50).is_none());
+        assert!(
+            !m.observations.contains_key(&(3, 50)),
+            "keyframe 3's lone view went too"
+        );
+        assert_eq!(m.observations.range((3, 0)..(4, 0)).count(), 20);
+        let keep_single = KeyframeCullingOptions {
+            min_point_views: 1,
+            ..any_size()
+        };
+        let mut m = map(6, |k| {
+            if k == 2 || k == 3 {
+                vec![0, 50]
+            } else {
+                vec![0]
+            }
+        });
+        assert_eq!(m.cull_keyframes(&[2], &keep_single).removed_points, 0);
+        assert!(m.point(50).is_some());
     }
 
     #[test]
