@@ -245,7 +245,7 @@ impl ViewCounts {
                 counts.insert(*track, (0, Vec::new()));
             }
         }
-        for ((keyframe, track), _) in &map.observations {
+        for (keyframe, track) in map.observations.keys() {
             if let Some((nearby, all)) = counts.get_mut(track) {
                 all.push(*keyframe);
                 if *keyframe >= first_nearby {
