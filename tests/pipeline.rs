@@ -197,10 +197,12 @@ fn a_frontend_on_its_own_estimates_the_readout_online() {
             .tracks
             .iter()
             .map(|t| {
-                let u = camera.undistort_pixel(nalgebra::Point2::new(
-                    f64::from(t.raw_x),
-                    f64::from(t.raw_y),
-                ));
+                let u = camera
+                    .undistort_pixel(nalgebra::Point2::new(
+                        f64::from(t.raw_x),
+                        f64::from(t.raw_y),
+                    ))
+                    .expect("a radial-tangential pixel always undistorts");
                 ((u.x - f64::from(t.x)).powi(2) + (u.y - f64::from(t.y)).powi(2)).sqrt()
             })
             .sum();

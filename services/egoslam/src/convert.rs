@@ -1,6 +1,6 @@
 //! Conversions between wire messages and geometry types.
 
-use egoslam_geometry::StampedPose;
+use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
@@ -47,4 +47,31 @@ pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
         revision: 0,
         interpolated: false,
     }
+}
+
+/// A camera as the wire carries it.
+pub fn intrinsics_to_pb(camera: &PinholeRadtan) -> pb::Intrinsics {
+    pb::Intrinsics {
+        width: camera.width,
+        height: camera.height,
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        distortion: camera.distortion.to_vec(),
+        lens: egoslam_relocalization::lens_to_pb(camera.lens) as i32,
+    }
+}
+
+/// The camera of a message (a message from before lens models is radial-tangential);
+/// `None` when it is not a valid camera or its lens model is unknown to this version.
+pub fn camera_from_pb(i: &pb::Intrinsics) -> Option<PinholeRadtan> {
+    let mut distortion = [0.0; 5];
+    for (slot, v) in distortion.iter_mut().zip(&i.distortion) {
+        *slot = *v;
+    }
+    let lens = egoslam_relocalization::lens_from_pb(i.lens)?;
+    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], distortion)
+        .and_then(|camera| camera.with_lens(lens))
+        .ok()
 }

@@ -57,6 +57,7 @@ pub fn with_radial(camera: &PinholeRadtan, k: f64) -> PinholeRadtan {
 pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> PinholeRadtan {
     let options = FocalCalibrationOptions::default();
     let same_camera = (calibrated.width, calibrated.height) == (map.width, map.height)
+        && calibrated.lens == map.lens
         && calibrated.cx == map.cx
         && calibrated.cy == map.cy
         && calibrated.distortion[1..] == map.distortion[1..]

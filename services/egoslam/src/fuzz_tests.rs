@@ -144,6 +144,7 @@ fn wire_messages_and_their_conversions() {
             cx: 320.0,
             cy: 240.0,
             distortion: vec![0.0; 5],
+            ..Default::default()
         }),
         tracks: (0..20)
             .map(|t| pb::TrackObservation {

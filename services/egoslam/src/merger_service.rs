@@ -396,11 +396,9 @@ impl Merger {
 
 /// The ideal pinhole camera of a window's (undistorted) observations.
 fn window_camera(w: &pb::WindowSolution) -> Option<PinholeRadtan> {
-    let i = w.intrinsics.as_ref()?;
     // The map's geometry uses the ideal pinhole only (the observations are undistorted);
-    // the lens model rides along for the saved map. Older messages carry none.
-    let distortion: [f64; 5] = i.distortion.as_slice().try_into().unwrap_or([0.0; 5]);
-    PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], distortion).ok()
+    // the lens model rides along for the saved map and relocalization's raw pixels.
+    crate::convert::camera_from_pb(w.intrinsics.as_ref()?)
 }
 
 /// The geometry of a window message, as the map builder takes it.

@@ -74,8 +74,9 @@ pub fn tum_text(poses: &[StampedPose]) -> String {
 pub fn camera_yaml(camera: &PinholeRadtan, origin: &Path) -> String {
     let d = camera.distortion;
     format!(
-        "# resolved by egoslam from {}\nwidth: {}\nheight: {}\nfx: {}\nfy: {}\ncx: {}\ncy: {}\ndistortion: [{}, {}, {}, {}, {}]\n",
+        "# resolved by egoslam from {}\nmodel: {}\nwidth: {}\nheight: {}\nfx: {}\nfy: {}\ncx: {}\ncy: {}\ndistortion: [{}, {}, {}, {}, {}]\n",
         origin.display(),
+        camera.lens.name(),
         camera.width,
         camera.height,
         camera.fx,

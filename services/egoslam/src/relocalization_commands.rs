@@ -95,9 +95,9 @@ pub fn query_features(
     let descriptors = describer.describe(image, &corners)?;
     let mut q = QueryFeatures::default();
     for (c, d) in corners.iter().zip(descriptors) {
-        if let Some(d) = d {
-            let raw = nalgebra::Point2::new(f64::from(c.x), f64::from(c.y));
-            q.pixels.push(camera.undistort_pixel(raw));
+        let raw = nalgebra::Point2::new(f64::from(c.x), f64::from(c.y));
+        if let (Some(d), Some(ideal)) = (d, camera.undistort_pixel(raw)) {
+            q.pixels.push(ideal);
             q.descriptors.push(d);
         }
     }

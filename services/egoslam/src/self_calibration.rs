@@ -135,8 +135,14 @@ pub enum RadialSetting {
 }
 
 impl RadialSetting {
-    /// Whether to estimate for `camera`.
+    /// Whether to estimate for `camera`. The estimate is a residual `(1 + k r^2)` on the
+    /// pinhole plane, the first term of radial-tangential; a fisheye lens's first term acts
+    /// on the ray's angle, which this estimate does not measure, so it is never applied
+    /// to one.
     pub fn applies_to(self, camera: &PinholeRadtan) -> bool {
+        if camera.lens.is_fisheye() {
+            return false;
+        }
         match self {
             RadialSetting::Auto => camera.distortion.iter().all(|d| *d == 0.0),
             RadialSetting::On => true,

@@ -5,12 +5,12 @@
 use crate::output::{camera_yaml, tum_text, write_atomically};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
-use egoslam_geometry::PinholeRadtan;
+use egoslam_geometry::{LensModel, PinholeRadtan};
 use egoslam_synth::paths::aria_head_trajectory;
 use egoslam_synth::placement::place_in_free_space;
 use egoslam_synth::{
-    readout_poses, render_frame, CameraPath, Photo, RenderOptions, RobustnessEvent, Scene,
-    WalkerOptions,
+    readout_poses, render_fisheye_frame, render_frame, CameraPath, Photo, RenderOptions,
+    RobustnessEvent, Scene, WalkerOptions,
 };
 use opencv::core::Vector;
 use opencv::prelude::*;
@@ -60,6 +60,15 @@ pub enum SceneKind {
     Street,
 }
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SynthLens {
+    /// A pinhole without distortion.
+    Pinhole,
+    /// An ideal equidistant fisheye (Kannala-Brandt with k1..k4 zero), rendered from a
+    /// cube map.
+    Equidistant,
+}
+
 #[derive(Args, Debug)]
 pub struct SynthArgs {
     /// Output folder (created; existing rendered files are replaced).
@@ -84,6 +93,10 @@ pub struct SynthArgs {
     /// Focal length, pixels (default 500: ~65 deg horizontal field of view at 640 px).
     #[arg(long, default_value_t = 500.0)]
     pub focal: f64,
+    /// Lens: a pinhole, or a fisheye whose `--focal` is pixels per radian at the centre
+    /// (equidistant at 260 px/rad: 141 deg across 640 px, 176 deg across the diagonal).
+    #[arg(long, value_enum, default_value_t = SynthLens::Pinhole)]
+    pub lens: SynthLens,
     /// Sensor noise, grey levels.
     #[arg(long, default_value_t = 2.0)]
     pub noise: f64,
@@ -206,7 +219,11 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             f64::from(args.height) / 2.0,
         ],
         [0.0; 5],
-    )?;
+    )?
+    .with_lens(match args.lens {
+        SynthLens::Pinhole => LensModel::RadialTangential,
+        SynthLens::Equidistant => LensModel::Equidistant,
+    })?;
     let path = match args.path {
         PathKind::Frontal => CameraPath::Frontal,
         PathKind::LeftRight => CameraPath::LeftRight,
@@ -261,6 +278,9 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             args.rolling_shutter_ms,
             1000.0 / args.fps
         );
+    }
+    if rolling && camera.lens.is_fisheye() {
+        bail!("--rolling-shutter-ms with --lens {:?}: a rolling shutter is rendered through a pinhole only", args.lens);
     }
     // With both, each row's exposure (half the frame interval, as the global shutter's)
     // is blurred: the poses then span the readout and one exposure.
@@ -384,7 +404,11 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
                 blur_ghost_px(&shutter, args.focal)
             });
         }
-        let frame = render_frame(&scene, &camera, &shutter, i as u64, &frame_options);
+        let frame = if camera.lens.is_fisheye() {
+            render_fisheye_frame(&scene, &camera, &shutter, i as u64, &frame_options)?
+        } else {
+            render_frame(&scene, &camera, &shutter, i as u64, &frame_options)
+        };
         render_s += render_start.elapsed().as_secs_f64();
         if to_writer.send((i, frame)).is_err() {
             break; // the writer failed: its error is reported below

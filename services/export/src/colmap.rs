@@ -4,16 +4,25 @@
 //! pixel.
 
 use crate::{write_file, ExportError, ExportModel};
+use egoslam_geometry::LensModel;
 use std::fmt::Write;
 use std::path::Path;
 
 /// COLMAP's camera model and parameters for the calibration: PINHOLE without
-/// distortion, OPENCV for k1 k2 p1 p2, FULL_OPENCV when k3 is used.
-fn camera_line(model: &ExportModel) -> String {
+/// distortion, OPENCV for k1 k2 p1 p2, FULL_OPENCV when k3 is used, OPENCV_FISHEYE for an
+/// equidistant lens (COLMAP has no double sphere).
+fn camera_line(model: &ExportModel) -> Result<String, ExportError> {
     let c = &model.camera;
     let [k1, k2, p1, p2, k3] = c.distortion;
     let (cx, cy) = (c.cx + 0.5, c.cy + 0.5);
-    let (name, params) = if c.is_rectified() {
+    let (name, params) = if c.lens == LensModel::Equidistant {
+        ("OPENCV_FISHEYE", vec![c.fx, c.fy, cx, cy, k1, k2, p1, p2])
+    } else if c.lens != LensModel::RadialTangential {
+        return Err(ExportError::UnsupportedLens {
+            format: "COLMAP",
+            lens: c.lens.name(),
+        });
+    } else if c.is_rectified() {
         ("PINHOLE", vec![c.fx, c.fy, cx, cy])
     } else if k3 == 0.0 {
         ("OPENCV", vec![c.fx, c.fy, cx, cy, k1, k2, p1, p2])
@@ -24,7 +33,12 @@ fn camera_line(model: &ExportModel) -> String {
         )
     };
     let params: Vec<String> = params.iter().map(|p| format!("{p}")).collect();
-    format!("1 {name} {} {} {}\n", c.width, c.height, params.join(" "))
+    Ok(format!(
+        "1 {name} {} {} {}\n",
+        c.width,
+        c.height,
+        params.join(" ")
+    ))
 }
 
 /// Writes the three files into `dir` (which must exist).
@@ -36,7 +50,7 @@ pub fn write(model: &ExportModel, dir: &Path) -> Result<(), ExportError> {
         "# Camera list with one line of data per camera:\n\
          #   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n\
          # Number of cameras: 1\n{}",
-        camera_line(model)
+        camera_line(model)?
     );
     let mut images = String::from(
         "# Image list with two lines of data per image:\n\

@@ -20,6 +20,11 @@ pub enum ExportError {
     },
     #[error("nothing to export: {0}")]
     Empty(String),
+    #[error("the {format} format has no camera model for a {lens} lens")]
+    UnsupportedLens {
+        format: &'static str,
+        lens: &'static str,
+    },
     #[error("reading {path}: {source}")]
     Read {
         path: std::path::PathBuf,

@@ -4,6 +4,7 @@
 //! sparse_pc.ply, the coloured points splatfacto starts from.
 
 use crate::{write_file, ExportError, ExportModel};
+use egoslam_geometry::LensModel;
 use serde_json::json;
 use std::fmt::Write;
 use std::path::Path;
@@ -34,6 +35,17 @@ pub fn write(
     }
     let c = &model.camera;
     let [k1, k2, p1, p2, k3] = c.distortion;
+    // nerfstudio's OPENCV_FISHEYE reads k1..k4 (its `k4` key): the equidistant lens.
+    let (camera_model, k3, k4, p1, p2) = match c.lens {
+        LensModel::RadialTangential => ("OPENCV", k3, 0.0, p1, p2),
+        LensModel::Equidistant => ("OPENCV_FISHEYE", p1, p2, 0.0, 0.0),
+        LensModel::DoubleSphere => {
+            return Err(ExportError::UnsupportedLens {
+                format: "nerfstudio",
+                lens: c.lens.name(),
+            })
+        }
+    };
     let frames: Vec<serde_json::Value> = model
         .images
         .iter()
@@ -47,7 +59,7 @@ pub fn write(
         })
         .collect();
     let transforms = json!({
-        "camera_model": "OPENCV",
+        "camera_model": camera_model,
         "w": c.width,
         "h": c.height,
         "fl_x": c.fx,
@@ -57,6 +69,7 @@ pub fn write(
         "k1": k1,
         "k2": k2,
         "k3": k3,
+        "k4": k4,
         "p1": p1,
         "p2": p2,
         "ply_file_path": POINT_CLOUD,

@@ -58,9 +58,12 @@ impl Tracker {
                 point.raw.x - (after.x + before.x) * share as f32,
                 point.raw.y - (after.y + before.y) * share as f32,
             );
-            let undistorted = self
+            let Some(undistorted) = self
                 .camera
-                .undistort_pixel(Point2::new(f64::from(centred.x), f64::from(centred.y)));
+                .undistort_pixel(Point2::new(f64::from(centred.x), f64::from(centred.y)))
+            else {
+                continue;
+            };
             point.undistorted = Point2::new(undistorted.x as f32, undistorted.y as f32);
             moved += 1;
         }

@@ -293,7 +293,7 @@ impl Tracker {
         let step = old.len().div_ceil(max.max(1)).max(1);
         old.iter()
             .step_by(step)
-            .map(|t| self.track_point(t))
+            .filter_map(|t| self.track_point(t))
             .collect()
     }
 
@@ -547,17 +547,19 @@ impl Tracker {
     }
 
     /// A track as published: its raw image position and its undistorted geometric one
-    /// ([`Tracker::published_raw`]).
-    fn track_point(&self, t: &Track) -> TrackPoint {
+    /// ([`Tracker::published_raw`]); `None` for a fisheye track whose ray the ideal
+    /// pinhole plane does not carry (it keeps being tracked, and is published again if it
+    /// comes nearer the axis).
+    fn track_point(&self, t: &Track) -> Option<TrackPoint> {
         let p = self.published_raw(t);
         let und = self
             .camera
-            .undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)));
-        TrackPoint {
+            .undistort_pixel(Point2::new(f64::from(p.x), f64::from(p.y)))?;
+        Some(TrackPoint {
             track_id: t.id,
             raw: Point2::new(t.pos.x, t.pos.y),
             undistorted: Point2::new(und.x as f32, und.y as f32),
-        }
+        })
     }
 
     fn make_keyframe(
@@ -566,7 +568,11 @@ impl Tracker {
         reason: KeyframeReason,
         mean_flow_px: f64,
     ) -> KeyframeTracks {
-        let tracks = self.tracks.iter().map(|t| self.track_point(t)).collect();
+        let tracks = self
+            .tracks
+            .iter()
+            .filter_map(|t| self.track_point(t))
+            .collect();
         for t in &mut self.tracks {
             t.at_keyframe = Some(t.pos);
         }

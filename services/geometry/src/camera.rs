@@ -1,9 +1,11 @@
-//! Pinhole camera with the OpenCV radial-tangential distortion model (k1 k2 p1 p2 k3).
+//! The camera: pinhole intrinsics and a lens model (OpenCV radial-tangential k1 k2 p1 p2
+//! k3, or a fisheye model of [`crate::lens`]).
 //!
 //! Why in Rust and not `cv::undistortPoints`: the frontend undistorts every track of every
 //! frame, and the solver and tests need the same model without an OpenCV `Mat` round trip.
 //! The model and its iterative inverse are the ones of OpenCV's `calib3d` documentation.
 
+use crate::lens::{fisheye_project, fisheye_unproject, LensModel, MAX_TANGENT_PLANE_ANGLE};
 use nalgebra::{Point2, Vector3};
 
 /// Errors of building a camera from calibration values.
@@ -18,9 +20,12 @@ pub enum CameraError {
     /// A distortion coefficient is not finite.
     #[error("distortion coefficients must be finite, got {0:?}")]
     BadDistortion([f64; 5]),
+    /// Double-sphere coefficients outside the model's range.
+    #[error("double sphere needs alpha in [0, 1] and xi in (-1, 1], got xi={xi} alpha={alpha}")]
+    BadDoubleSphere { xi: f64, alpha: f64 },
 }
 
-/// Pinhole intrinsics plus OpenCV radial-tangential distortion.
+/// Pinhole intrinsics plus a lens model.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PinholeRadtan {
     pub width: u32,
@@ -29,8 +34,10 @@ pub struct PinholeRadtan {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
-    /// OpenCV order: k1, k2, p1, p2, k3. All zero for rectified images (KITTI).
+    /// The lens model's coefficients ([`LensModel`]); radial-tangential in OpenCV order
+    /// k1, k2, p1, p2, k3, all zero for rectified images (KITTI).
     pub distortion: [f64; 5],
+    pub lens: LensModel,
 }
 
 impl PinholeRadtan {
@@ -58,16 +65,34 @@ impl PinholeRadtan {
             cx,
             cy,
             distortion,
+            lens: LensModel::RadialTangential,
         })
+    }
+
+    /// The same intrinsics under another lens model, whose coefficients `distortion` holds.
+    pub fn with_lens(self, lens: LensModel) -> Result<Self, CameraError> {
+        if lens == LensModel::DoubleSphere {
+            let [xi, alpha, ..] = self.distortion;
+            if !((0.0..=1.0).contains(&alpha) && xi > -1.0 && xi <= 1.0) {
+                return Err(CameraError::BadDoubleSphere { xi, alpha });
+            }
+        }
+        Ok(Self { lens, ..self })
     }
 
     /// True when there is no distortion to remove (rectified input).
     pub fn is_rectified(&self) -> bool {
-        self.distortion.iter().all(|d| *d == 0.0)
+        self.lens == LensModel::RadialTangential && self.distortion.iter().all(|d| *d == 0.0)
     }
 
-    /// Applies distortion to normalised coordinates (x/z, y/z).
+    /// Applies distortion to normalised coordinates (x/z, y/z); not finite where a fisheye
+    /// model has no image of the ray.
     pub fn distort_normalized(&self, p: Point2<f64>) -> Point2<f64> {
+        if self.lens.is_fisheye() {
+            let ray = Vector3::new(p.x, p.y, 1.0);
+            return fisheye_project(self.lens, &self.distortion, &ray)
+                .unwrap_or(Point2::new(f64::NAN, f64::NAN));
+        }
         let [k1, k2, p1, p2, k3] = self.distortion;
         let (x, y) = (p.x, p.y);
         let r2 = x * x + y * y;
@@ -78,10 +103,21 @@ impl PinholeRadtan {
         )
     }
 
-    /// Inverse of [`Self::distort_normalized`] by fixed-point iteration (as OpenCV's
+    /// Inverse of [`Self::distort_normalized`]; `None` for a fisheye ray beyond
+    /// [`MAX_TANGENT_PLANE_ANGLE`] from the axis, or outside the model's image.
+    pub fn undistort_normalized(&self, d: Point2<f64>) -> Option<Point2<f64>> {
+        if self.lens.is_fisheye() {
+            let ray = fisheye_unproject(self.lens, &self.distortion, d)?;
+            return (ray.z >= MAX_TANGENT_PLANE_ANGLE.cos())
+                .then(|| Point2::new(ray.x / ray.z, ray.y / ray.z));
+        }
+        Some(self.undistort_radtan(d))
+    }
+
+    /// Inverse of the radial-tangential distortion by fixed-point iteration (as OpenCV's
     /// `undistortPoints`), refined with a few Gauss-Newton steps so that the round trip is
     /// exact to ~1e-10 even for the strong barrel distortion of wide lenses.
-    pub fn undistort_normalized(&self, d: Point2<f64>) -> Point2<f64> {
+    fn undistort_radtan(&self, d: Point2<f64>) -> Point2<f64> {
         if self.is_rectified() {
             return d;
         }
@@ -116,11 +152,27 @@ impl PinholeRadtan {
         p
     }
 
-    /// Raw (distorted) pixel -> ideal pinhole pixel with the same fx fy cx cy.
-    pub fn undistort_pixel(&self, raw: Point2<f64>) -> Point2<f64> {
+    /// Raw (distorted) pixel -> ideal pinhole pixel with the same fx fy cx cy; `None` for
+    /// a fisheye pixel whose ray the pinhole plane does not carry
+    /// ([`Self::undistort_normalized`]).
+    pub fn undistort_pixel(&self, raw: Point2<f64>) -> Option<Point2<f64>> {
         let d = Point2::new((raw.x - self.cx) / self.fx, (raw.y - self.cy) / self.fy);
-        let n = self.undistort_normalized(d);
-        Point2::new(n.x * self.fx + self.cx, n.y * self.fy + self.cy)
+        let n = self.undistort_normalized(d)?;
+        Some(Point2::new(
+            n.x * self.fx + self.cx,
+            n.y * self.fy + self.cy,
+        ))
+    }
+
+    /// Raw (distorted) pixel -> bearing (unit vector in the camera frame), for any ray the
+    /// lens images (beyond 90 degrees for a fisheye).
+    pub fn bearing_from_raw(&self, raw: Point2<f64>) -> Option<Vector3<f64>> {
+        let d = Point2::new((raw.x - self.cx) / self.fx, (raw.y - self.cy) / self.fy);
+        if self.lens.is_fisheye() {
+            return fisheye_unproject(self.lens, &self.distortion, d);
+        }
+        let n = self.undistort_radtan(d);
+        Some(Vector3::new(n.x, n.y, 1.0).normalize())
     }
 
     /// Ideal pinhole pixel -> bearing (unit vector in the camera frame).
@@ -143,7 +195,11 @@ impl PinholeRadtan {
         if pc.z <= 1e-9 {
             return None;
         }
-        let d = self.distort_normalized(Point2::new(pc.x / pc.z, pc.y / pc.z));
+        let d = if self.lens.is_fisheye() {
+            fisheye_project(self.lens, &self.distortion, pc)?
+        } else {
+            self.distort_normalized(Point2::new(pc.x / pc.z, pc.y / pc.z))
+        };
         Some(Point2::new(
             self.fx * d.x + self.cx,
             self.fy * d.y + self.cy,
@@ -196,7 +252,7 @@ mod tests {
                     1.0,
                 );
                 let raw = cam.project_raw(&pc).expect("in front");
-                let back = cam.undistort_pixel(raw);
+                let back = cam.undistort_pixel(raw).expect("radtan");
                 worst = worst.max((back - ideal).norm());
             }
         }
@@ -213,12 +269,47 @@ mod tests {
         let cam = tum_fr1();
         let centre = Point2::new(cam.cx, cam.cy);
         let raw = Point2::new(10.0, 10.0);
-        let und = cam.undistort_pixel(raw);
+        let und = cam.undistort_pixel(raw).expect("radtan");
         let (r_raw, r_und) = ((raw - centre).norm(), (und - centre).norm());
         let factor = r_raw / r_und;
         assert!((factor - 1.045).abs() < 0.005, "radius factor {factor}");
         let along = (raw - centre).normalize().dot(&(und - centre).normalize());
         assert!(along > 0.9999, "direction cosine {along}");
+    }
+
+    #[test]
+    fn a_fisheye_pixel_becomes_an_ideal_pixel_within_80_degrees_and_a_bearing_beyond() {
+        // 640x480 at 260 px/rad (an ideal equidistant lens): the corner is 400 px = 88 deg
+        // off the axis, a pixel 280 px left of centre 61.7 deg.
+        let cam = PinholeRadtan::new(640, 480, [260.0, 260.0, 320.0, 240.0], [0.0; 5])
+            .and_then(|c| c.with_lens(LensModel::Equidistant))
+            .expect("valid");
+        assert!(!cam.is_rectified());
+        let corner = Point2::new(0.0, 0.0);
+        assert!(cam.undistort_pixel(corner).is_none());
+        let ray = cam.bearing_from_raw(corner).expect("imaged");
+        assert!(
+            (ray.z.acos().to_degrees() - 400.0 / 260.0 * 180.0 / std::f64::consts::PI).abs() < 1e-9
+        );
+        let raw = Point2::new(40.0, 240.0);
+        let ideal = cam.undistort_pixel(raw).expect("within 80 deg");
+        let expected = 320.0 - 260.0 * (280.0f64 / 260.0).tan();
+        assert!(
+            (ideal.x - expected).abs() < 1e-6 && (ideal.y - 240.0).abs() < 1e-9,
+            "{ideal}"
+        );
+        let pc = cam.bearing_from_undistorted(ideal);
+        let back = cam.project_raw(&pc).expect("in front");
+        assert!((back - raw).norm() < 1e-6, "{back}");
+        assert!(matches!(
+            cam.with_lens(LensModel::DoubleSphere)
+                .map(|c| PinholeRadtan {
+                    distortion: [0.0, 1.5, 0.0, 0.0, 0.0],
+                    ..c
+                })
+                .and_then(|c| c.with_lens(LensModel::DoubleSphere)),
+            Err(CameraError::BadDoubleSphere { .. })
+        ));
     }
 
     #[test]

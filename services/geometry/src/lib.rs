@@ -4,6 +4,7 @@
 
 pub mod alignment;
 pub mod camera;
+pub mod lens;
 pub mod median;
 pub mod point_uncertainty;
 pub mod relative_pose_error;
@@ -15,6 +16,7 @@ pub use alignment::{
     umeyama_ransac, AlignmentError, BearingPair, RobustAlignmentOptions, Similarity,
 };
 pub use camera::{CameraError, PinholeRadtan};
+pub use lens::{LensModel, MAX_TANGENT_PLANE_ANGLE};
 pub use median::median;
 pub use point_uncertainty::PointInformation;
 pub use relative_pose_error::{relative_pose_error, RpeReport};

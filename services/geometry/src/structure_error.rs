@@ -123,7 +123,13 @@ pub fn structure_error(
             if pc.z <= 0.05 {
                 continue;
             }
-            let Some(px) = camera.project_undistorted(&pc) else {
+            // A rendered fisheye's depth image is in its own (distorted) pixels.
+            let px = if camera.lens.is_fisheye() {
+                camera.project_raw(&pc)
+            } else {
+                camera.project_undistorted(&pc)
+            };
+            let Some(px) = px else {
                 continue;
             };
             if !camera.contains(px) {
@@ -146,11 +152,16 @@ pub fn structure_error(
                     best = Some(best.map_or(e, |b: f64| b.min(e)));
                 }
                 // The rendered pixel u shows the ray through its centre, u + 0.5.
-                let surface_point = Vector3::new(
-                    (u as f64 + 0.5 - camera.cx) / camera.fx * d,
-                    (w as f64 + 0.5 - camera.cy) / camera.fy * d,
-                    d,
-                );
+                let centre = nalgebra::Point2::new(u as f64 + 0.5, w as f64 + 0.5);
+                let ray = if camera.lens.is_fisheye() {
+                    camera.bearing_from_raw(centre).filter(|r| r.z > 1e-9)
+                } else {
+                    Some(camera.bearing_from_undistorted(centre))
+                };
+                let Some(ray) = ray else {
+                    continue;
+                };
+                let surface_point = ray * (d / ray.z);
                 nearest = nearest.min((surface_point - pc).norm());
             }
         }

@@ -51,8 +51,9 @@ impl Relocalizer {
                 continue;
             };
             let patch = &keyframe.patches[p].1;
-            if let Some(raw) = align_patch(image, patch, predicted, &warp, &options.alignment) {
-                aligned.push((*point, raw_camera.undistort_pixel(raw)));
+            let aligned_raw = align_patch(image, patch, predicted, &warp, &options.alignment);
+            if let Some(ideal) = aligned_raw.and_then(|raw| raw_camera.undistort_pixel(raw)) {
+                aligned.push((*point, ideal));
                 tracks.push((track, feature));
             }
         }

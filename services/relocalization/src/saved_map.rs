@@ -10,7 +10,7 @@ use crate::descriptors::Descriptor;
 use crate::patch_alignment::{Patch, PATCH_SIDE};
 use crate::relocalizer::{MapFeature, MapKeyframe, RelocalizationMap};
 use crate::vocabulary::fnv1a;
-use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_geometry::{LensModel, PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
 use nalgebra::{Point2, Quaternion, UnitQuaternion, Vector3};
 use prost::Message;
@@ -109,6 +109,24 @@ fn vec3(v: &Vector3<f64>) -> pb::Vec3 {
     }
 }
 
+/// A lens model as the wire carries it.
+pub fn lens_to_pb(lens: LensModel) -> pb::LensModel {
+    match lens {
+        LensModel::RadialTangential => pb::LensModel::RadialTangential,
+        LensModel::Equidistant => pb::LensModel::Equidistant,
+        LensModel::DoubleSphere => pb::LensModel::DoubleSphere,
+    }
+}
+
+/// The lens model of a wire value; `None` for one this version does not know.
+pub fn lens_from_pb(value: i32) -> Option<LensModel> {
+    match pb::LensModel::try_from(value).ok()? {
+        pb::LensModel::RadialTangential => Some(LensModel::RadialTangential),
+        pb::LensModel::Equidistant => Some(LensModel::Equidistant),
+        pb::LensModel::DoubleSphere => Some(LensModel::DoubleSphere),
+    }
+}
+
 /// The file bytes of a map (`vocabulary_id`: [`crate::Vocabulary::id`] of the vocabulary
 /// its descriptors are meant for; `source`: the input it was built from).
 pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> Vec<u8> {
@@ -124,6 +142,7 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
             // The lens model the map's keyframes were undistorted with: what a query from
             // the same camera needs, including a radial term `egoslam run` self-calibrated.
             distortion: c.distortion.to_vec(),
+            lens: lens_to_pb(c.lens) as i32,
         }),
         vocabulary_id,
         source: source.to_string(),
@@ -227,7 +246,14 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
             SavedMapError::Invalid(format!("camera: {} distortion terms, not 5", d.len()))
         })?,
     };
+    let lens = lens_from_pb(c.lens).ok_or_else(|| {
+        SavedMapError::Invalid(format!(
+            "camera: lens model {} unknown to this version",
+            c.lens
+        ))
+    })?;
     let camera = PinholeRadtan::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], distortion)
+        .and_then(|camera| camera.with_lens(lens))
         .map_err(|e| SavedMapError::Invalid(format!("camera: {e}")))?;
     let readout_s = message.rolling_shutter_s;
     if !(0.0..=0.1).contains(&readout_s) {

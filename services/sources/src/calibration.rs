@@ -1,15 +1,14 @@
 //! Camera calibration from the dataset's own files or a YAML given with `--calib`.
 //!
 //! Accepted formats (see docs/config.md):
-//! - egoslam YAML: `width`, `height`, `fx`, `fy`, `cx`, `cy`, `distortion: [k1, k2, p1, p2, k3]`;
-//! - ORB-SLAM / pyslam YAML: `Camera.fx` ... `Camera.k3`, `Camera.width`, `Camera.height`;
-//! - Kalibr / EuRoC `sensor.yaml`: `intrinsics`, `distortion_coefficients`, `resolution`;
+//! - YAML: egoslam's own, ORB-SLAM2/3 settings, Kalibr camchain / EuRoC `sensor.yaml`,
+//!   OpenCV FileStorage ([`crate::calibration_yaml`]);
+//! - COLMAP `cameras.txt` ([`crate::calibration_colmap`]);
 //! - KITTI `calib.txt`: the `P0:` row (or an unlabeled first row of 12 numbers), rectified.
 
 use crate::error::{data_lines, parse_floats, read_text};
 use crate::{Layout, SourceError};
-use egoslam_geometry::PinholeRadtan;
-use serde_yaml::Value;
+use egoslam_geometry::{LensModel, PinholeRadtan};
 use std::path::{Path, PathBuf};
 
 /// Intrinsics as read from a file; the image size may be absent (KITTI calib.txt) and is
@@ -20,8 +19,10 @@ pub struct Calibration {
     pub height: Option<u32>,
     /// fx, fy, cx, cy.
     pub focal_center: [f64; 4],
-    /// k1, k2, p1, p2, k3 (OpenCV order).
+    /// The lens model's coefficients: k1, k2, p1, p2, k3 (OpenCV order) for
+    /// radial-tangential ([`LensModel`] for the others).
     pub distortion: [f64; 5],
+    pub lens: LensModel,
     /// Where it came from (a file, or "built-in TUM fr1" with the sequence path).
     pub origin: PathBuf,
 }
@@ -41,129 +42,13 @@ impl Calibration {
                 });
             }
         }
-        PinholeRadtan::new(width, height, self.focal_center, self.distortion).map_err(|source| {
-            SourceError::BadCalibration {
+        PinholeRadtan::new(width, height, self.focal_center, self.distortion)
+            .and_then(|camera| camera.with_lens(self.lens))
+            .map_err(|source| SourceError::BadCalibration {
                 path: self.origin.clone(),
                 source,
-            }
-        })
+            })
     }
-}
-
-fn yaml_number(v: &Value) -> Option<f64> {
-    match v {
-        Value::Number(n) => n.as_f64(),
-        Value::String(s) => s.trim().parse().ok(),
-        Value::Tagged(t) => yaml_number(&t.value),
-        _ => None,
-    }
-}
-
-fn yaml_numbers(v: &Value) -> Option<Vec<f64>> {
-    match v {
-        Value::Sequence(s) => s.iter().map(yaml_number).collect(),
-        Value::Tagged(t) => yaml_numbers(&t.value),
-        // OpenCV matrices: {rows, cols, data: [...]}
-        Value::Mapping(m) => m.get("data").and_then(yaml_numbers),
-        _ => None,
-    }
-}
-
-fn parse_yaml(path: &Path, text: &str) -> Result<Calibration, SourceError> {
-    // OpenCV FileStorage writes "%YAML:1.0", which is not a valid YAML directive.
-    let cleaned: String = text
-        .lines()
-        .filter(|l| !l.starts_with('%') && l.trim() != "---")
-        .collect::<Vec<_>>()
-        .join("\n");
-    let doc: Value = serde_yaml::from_str(&cleaned).map_err(|e| {
-        SourceError::parse(path, e.location().map_or(0, |l| l.line()), e.to_string())
-    })?;
-    let get = |keys: &[&str]| -> Option<f64> {
-        keys.iter().find_map(|k| doc.get(*k).and_then(yaml_number))
-    };
-    let missing = |what: &str| SourceError::parse(path, 0, format!("calibration lacks {what}"));
-    // A size that is not a positive whole number is no size: `camera_for` then takes the
-    // frames' (and the focal and centre are checked by the camera model).
-    let size = |w: Option<f64>, h: Option<f64>| {
-        let whole =
-            |v: f64| (v >= 1.0 && v <= f64::from(u32::MAX) && v.fract() == 0.0).then_some(v as u32);
-        (w.and_then(whole), h.and_then(whole))
-    };
-
-    if let Some(intr) = doc.get("intrinsics").and_then(yaml_numbers) {
-        // Kalibr / EuRoC sensor.yaml
-        if intr.len() != 4 {
-            return Err(SourceError::parse(
-                path,
-                0,
-                "intrinsics must be [fu, fv, cu, cv]",
-            ));
-        }
-        let mut distortion = [0.0; 5];
-        if let Some(d) = doc.get("distortion_coefficients").and_then(yaml_numbers) {
-            for (slot, v) in distortion.iter_mut().zip(d.iter().take(5)) {
-                *slot = *v;
-            }
-        }
-        if let Some(model) = doc.get("distortion_model").and_then(Value::as_str) {
-            if !matches!(model, "radial-tangential" | "radtan" | "plumb_bob" | "none") {
-                return Err(SourceError::parse(
-                    path,
-                    0,
-                    format!("distortion model {model:?} is not supported (radial-tangential only)"),
-                ));
-            }
-        }
-        let (width, height) = match doc.get("resolution") {
-            None => (None, None),
-            Some(v) => match yaml_numbers(v).as_deref() {
-                Some(&[w, h]) => size(Some(w), Some(h)),
-                _ => {
-                    return Err(SourceError::parse(
-                        path,
-                        0,
-                        "resolution must be [width, height] (two positive integers)",
-                    ))
-                }
-            },
-        };
-        return Ok(Calibration {
-            width,
-            height,
-            focal_center: [intr[0], intr[1], intr[2], intr[3]],
-            distortion,
-            origin: path.into(),
-        });
-    }
-    for prefix in ["", "Camera.", "Camera1."] {
-        let key = |k: &str| format!("{prefix}{k}");
-        let Some(fx) = get(&[&key("fx")]) else {
-            continue;
-        };
-        let fy = get(&[&key("fy")]).ok_or_else(|| missing("fy"))?;
-        let cx = get(&[&key("cx")]).ok_or_else(|| missing("cx"))?;
-        let cy = get(&[&key("cy")]).ok_or_else(|| missing("cy"))?;
-        let mut distortion = [0.0; 5];
-        if let Some(d) = doc.get("distortion").and_then(yaml_numbers) {
-            for (slot, v) in distortion.iter_mut().zip(d.iter().take(5)) {
-                *slot = *v;
-            }
-        } else {
-            for (slot, k) in distortion.iter_mut().zip(["k1", "k2", "p1", "p2", "k3"]) {
-                *slot = get(&[&key(k)]).unwrap_or(0.0);
-            }
-        }
-        let (width, height) = size(get(&[&key("width")]), get(&[&key("height")]));
-        return Ok(Calibration {
-            width,
-            height,
-            focal_center: [fx, fy, cx, cy],
-            distortion,
-            origin: path.into(),
-        });
-    }
-    Err(missing("fx/fy/cx/cy (or Camera.fx..., or intrinsics)"))
 }
 
 fn parse_kitti_calib(path: &Path, text: &str) -> Result<Calibration, SourceError> {
@@ -188,6 +73,7 @@ fn parse_kitti_calib(path: &Path, text: &str) -> Result<Calibration, SourceError
         height: None,
         focal_center: [values[0], values[5], values[2], values[6]],
         distortion: [0.0; 5],
+        lens: LensModel::RadialTangential,
         origin: path.into(),
     })
 }
@@ -197,7 +83,9 @@ pub fn read_calibration_file(path: &Path) -> Result<Calibration, SourceError> {
     let text = read_text(path)?;
     let is_yaml = path.extension().is_some_and(|e| e == "yaml" || e == "yml");
     if is_yaml {
-        parse_yaml(path, &text)
+        crate::calibration_yaml::parse_yaml(path, &text)
+    } else if crate::calibration_colmap::looks_like_colmap(&text) {
+        crate::calibration_colmap::parse_colmap_cameras(path, &text)
     } else {
         parse_kitti_calib(path, &text)
     }
@@ -227,6 +115,7 @@ fn builtin_tum(dir: &Path) -> Option<Calibration> {
         height: Some(480),
         focal_center: fc,
         distortion: d,
+        lens: LensModel::RadialTangential,
         origin: dir.join("(built-in TUM intrinsics)"),
     })
 }
@@ -246,7 +135,11 @@ fn candidate_files(dir: &Path) -> Vec<PathBuf> {
             .map(|n| n.to_string_lossy().to_ascii_lowercase())
             .unwrap_or_default();
         let ext_ok = name.ends_with(".yaml") || name.ends_with(".yml") || name.ends_with(".txt");
-        ext_ok && (name.starts_with("calib") || name.starts_with("camera") || name == "sensor.yaml")
+        ext_ok
+            && (name.starts_with("calib")
+                || name.starts_with("camera")
+                || name.starts_with("camchain")
+                || name == "sensor.yaml")
     });
     files.sort();
     files

@@ -6,6 +6,8 @@
 //! must say which one.
 
 pub mod calibration;
+mod calibration_colmap;
+mod calibration_yaml;
 pub mod error;
 pub mod frame_stream;
 pub mod ground_truth;

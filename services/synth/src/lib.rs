@@ -4,6 +4,7 @@
 //! replayed real head trajectories) and a ray-casting renderer that produces grey frames
 //! and depth. Pure computation: writing files is the `egoslam synth` command's job.
 
+pub mod fisheye;
 pub mod paths;
 pub mod photo;
 pub mod placement;
@@ -11,6 +12,7 @@ pub mod render;
 pub mod scene;
 pub mod texture;
 
+pub use fisheye::{render_fisheye_frame, FisheyeRenderError};
 pub use paths::{CameraPath, PathError, RobustnessEvent, WalkerOptions};
 pub use photo::{Photo, PhotoError};
 pub use render::{readout_poses, render_frame, Frame, RenderOptions};

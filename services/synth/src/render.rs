@@ -533,6 +533,19 @@ pub fn render_frame(
     }
 }
 
+/// Grey levels (before noise) to the sensor's bytes: the frame's Gaussian noise added,
+/// rounded and clamped as [`render_frame`] does.
+pub(crate) fn add_noise(levels: &[f64], index: u64, sigma: f64) -> Vec<u8> {
+    levels
+        .iter()
+        .enumerate()
+        .map(|(i, level)| {
+            let v = level + sigma * gaussian(index, i as u64);
+            v.round().clamp(0.0, 255.0) as u8
+        })
+        .collect()
+}
+
 #[cfg(test)]
 #[path = "render_tests.rs"]
 mod tests;
