@@ -1,18 +1,23 @@
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from typing import ClassVar as _ClassVar, Iterable as _Iterable, Mapping as _Mapping, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+LENS_MODEL_DOUBLE_SPHERE: LensModel
+LENS_MODEL_EQUIDISTANT: LensModel
+LENS_MODEL_RADIAL_TANGENTIAL: LensModel
 
 class Intrinsics(_message.Message):
-    __slots__ = ["cx", "cy", "distortion", "fx", "fy", "height", "width"]
+    __slots__ = ["cx", "cy", "distortion", "fx", "fy", "height", "lens", "width"]
     CX_FIELD_NUMBER: _ClassVar[int]
     CY_FIELD_NUMBER: _ClassVar[int]
     DISTORTION_FIELD_NUMBER: _ClassVar[int]
     FX_FIELD_NUMBER: _ClassVar[int]
     FY_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    LENS_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     cx: float
     cy: float
@@ -20,8 +25,9 @@ class Intrinsics(_message.Message):
     fx: float
     fy: float
     height: int
+    lens: LensModel
     width: int
-    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., distortion: _Optional[_Iterable[float]] = ...) -> None: ...
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., distortion: _Optional[_Iterable[float]] = ..., lens: _Optional[_Union[LensModel, str]] = ...) -> None: ...
 
 class Pose(_message.Message):
     __slots__ = ["frame_id", "interpolated", "orientation", "position", "revision", "segment_id", "timestamp_s"]
@@ -62,3 +68,6 @@ class Vec3(_message.Message):
     y: float
     z: float
     def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
+
+class LensModel(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = []
