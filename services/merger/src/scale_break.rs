@@ -142,9 +142,12 @@ pub fn strongest_pace_jump(
             })
         })
         .collect();
-    let paces: Vec<f64> = steps.iter().map(|s| s.2).collect();
+    // The typical pace of the steps that moved: a map that keeps mostly the keyframes of
+    // turns in place (a long walk's culling leaves those) has more steps of no length than
+    // of walking, and a typical pace of zero would let those in, whose ratio is 0 / 0.
+    let paces: Vec<f64> = steps.iter().map(|s| s.2).filter(|p| *p > 0.0).collect();
     let typical = median(paces)?;
-    let moving = |s: &&(f64, f64, f64)| s.2 >= options.min_pace_fraction * typical;
+    let moving = |s: &&(f64, f64, f64)| s.2 > 0.0 && s.2 >= options.min_pace_fraction * typical;
     let wanted = -loop_scale.ln();
     let mut best: Option<(f64, ScaleBreak)> = None;
     for (id, pose) in keyframes {
@@ -168,6 +171,9 @@ pub fn strongest_pace_jump(
             continue;
         };
         let jump = (a / b).ln();
+        if !jump.is_finite() {
+            continue;
+        }
         // The strongest jump in the direction the loop asks for.
         let strength = jump * wanted.signum();
         if best.as_ref().is_none_or(|(s, _)| strength > *s) {
@@ -263,6 +269,28 @@ mod tests {
         let found =
             locate_scale_break(&shrunk, 1.0 / 0.6, &ScaleBreakOptions::default()).expect("located");
         assert!((278..=282).contains(&found.after_keyframe));
+    }
+
+    #[test]
+    fn a_step_is_found_where_most_keyframes_are_turns_in_place() {
+        // The walk with three keyframes on the spot (a turn in place) after each step, as
+        // a long walk's map keeps them after culling: three quarters of the steps have no
+        // length, so their median pace is zero.
+        let mut keyframes = Vec::new();
+        for (i, (_, p)) in walk(11.0, 1.55).into_iter().enumerate() {
+            for k in 0..4u64 {
+                let mut turn = p;
+                turn.timestamp = p.timestamp + 0.01 * k as f64;
+                keyframes.push((4 * i as u64 + k, turn));
+            }
+        }
+        let found = locate_scale_break(&keyframes, 1.0 / 1.55, &ScaleBreakOptions::default())
+            .expect("located");
+        assert!(
+            (4 * 218..=4 * 222 + 3).contains(&found.after_keyframe),
+            "{found:?}"
+        );
+        assert!((found.pace_ratio - 1.55).abs() < 0.1, "{found:?}");
     }
 
     #[test]
