@@ -5,8 +5,9 @@
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use egoslam_geometry::{
-    absolute_trajectory_error, alignment_from_poses, relative_pose_error, structure_error,
-    AteReport, PinholeRadtan, RpeReport, Similarity, StampedPose, StructureReport,
+    absolute_trajectory_error, alignment_from_poses, orientation_error, relative_pose_error,
+    structure_error, AteReport, OrientationReport, PinholeRadtan, RpeReport, Similarity,
+    StampedPose, StructureReport,
 };
 use egoslam_sources::ground_truth::read_tum_file;
 use egoslam_sources::load_ground_truth;
@@ -58,6 +59,13 @@ pub fn rpe_summary(r: &RpeReport) -> String {
     format!(
         "RPE over {:.0} s: {:.4} m ({per_metre} of the distance), {:.3} deg, {} pairs",
         r.delta_s, r.translation_rmse_m, r.rotation_rmse_deg, r.pairs
+    )
+}
+
+pub fn orientation_summary(r: &OrientationReport) -> String {
+    format!(
+        "orientation error RMSE {:.3} deg (median {:.3}, max {:.3}) over {} poses, after the best constant rotation",
+        r.rmse_deg, r.median_deg, r.max_deg, r.matched
     )
 }
 
@@ -194,10 +202,20 @@ pub fn accuracy(
         ("keyframes", "keyframes.tum"),
     ] {
         let est = read_tum_file(&out.join(file))?;
+        // Defined without positions: kept even where the ATE is not.
+        let orientation = orientation_error(&est, &gt.poses, 0.02).map(|o| {
+            println!("{key}: {}", orientation_summary(&o));
+            json!({"orientation_rmse_deg": o.rmse_deg, "orientation_median_deg": o.median_deg, "orientation_max_deg": o.max_deg})
+        });
         match evaluate(&est, &gt.poses, 0.02) {
             Ok(r) => {
                 println!("{key}: {}", summary(&r));
                 let mut entry = json!({"ate_rmse_m": r.rmse, "ate_mean_m": r.mean, "ate_median_m": r.median, "ate_max_m": r.max, "matched": r.matched, "gt_path_m": r.gt_path_length, "scale": r.alignment.scale});
+                if let (Some(serde_json::Value::Object(o)), Some(e)) =
+                    (&orientation, entry.as_object_mut())
+                {
+                    e.extend(o.clone());
+                }
                 let segments = out.join("keyframe_segments.txt");
                 if let (true, Some(seg)) = (
                     key == "keyframes",
@@ -242,7 +260,12 @@ pub fn accuracy(
                 }
                 acc.insert(key.into(), entry);
             }
-            Err(e) => println!("{key}: not evaluated: {e}"),
+            Err(e) => {
+                println!("{key}: ATE not evaluated: {e}");
+                if let Some(o) = orientation {
+                    acc.insert(key.into(), o);
+                }
+            }
         }
     }
     acc.insert("ground_truth".into(), json!(gt.description));
@@ -253,6 +276,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     use crate::eval_plots::{aligned, Alignment};
     let estimate = read_tum_file(&args.estimate)?;
     let gt = load_ground_truth(&args.ground_truth)?;
+    if let Some(o) = orientation_error(&estimate, &gt.poses, args.max_dt) {
+        println!("{}", orientation_summary(&o));
+    }
     let report = evaluate(&estimate, &gt.poses, args.max_dt)?;
     if args.alignment == Alignment::Sim3 {
         println!("{}", summary(&report));

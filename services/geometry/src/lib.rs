@@ -6,6 +6,7 @@ pub mod alignment;
 pub mod camera;
 pub mod lens;
 pub mod median;
+pub mod orientation_error;
 pub mod point_uncertainty;
 pub mod relative_pose_error;
 pub mod structure_error;
@@ -18,6 +19,7 @@ pub use alignment::{
 pub use camera::{CameraError, PinholeRadtan};
 pub use lens::{LensModel, MAX_TANGENT_PLANE_ANGLE};
 pub use median::median;
+pub use orientation_error::{orientation_error, OrientationReport};
 pub use point_uncertainty::PointInformation;
 pub use relative_pose_error::{relative_pose_error, RpeReport};
 pub use structure_error::{alignment_from_poses, structure_error, StructureReport};
