@@ -130,6 +130,14 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
             3,
             &["--rolling-shutter-ms", "20", "--blur-samples", "9"],
         ));
+        // Seed 3 through an equidistant fisheye of 260 px/rad (141 deg across the image):
+        // the lenses head-mounted cameras wear (docs/synth.md, "Fisheye").
+        entries.push(walk_1500(
+            args,
+            FISHEYE_WALK.into(),
+            3,
+            &["--lens", "equidistant", "--focal", "260"],
+        ));
         return entries;
     }
     for (name, dir) in [
@@ -365,10 +373,12 @@ fn markdown(rows: &[serde_json::Value]) -> String {
     s
 }
 
-/// Names of the walks suite's rolling-shutter walks (without and with motion blur), kept
-/// out of the seeds' spread: they measure the camera model, not the seeds.
+/// Names of the walks suite's rolling-shutter walks (without and with motion blur) and
+/// its fisheye walk, kept out of the seeds' spread: they measure the camera model, not the
+/// seeds.
 const ROLLING_SHUTTER_WALK: &str = "synth_walker_1500_seed3_rs20";
 const BLURRED_ROLLING_SHUTTER_WALK: &str = "synth_walker_1500_seed3_rs20_blur";
+const FISHEYE_WALK: &str = "synth_walker_1500_seed3_fisheye";
 
 /// The median and range of the ATE as a share of the path over `rows` (the global-shutter
 /// walks), as a line under the table; `None` without two rows that have it.
@@ -377,7 +387,12 @@ fn spread(rows: &[serde_json::Value]) -> Option<String> {
         .iter()
         .filter(|r| {
             let name = r["name"].as_str().unwrap_or_default();
-            ![ROLLING_SHUTTER_WALK, BLURRED_ROLLING_SHUTTER_WALK].contains(&name)
+            ![
+                ROLLING_SHUTTER_WALK,
+                BLURRED_ROLLING_SHUTTER_WALK,
+                FISHEYE_WALK,
+            ]
+            .contains(&name)
         })
         .filter_map(|r| r["ate_percent_of_path"].as_f64())
         .collect();
