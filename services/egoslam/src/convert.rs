@@ -49,20 +49,6 @@ pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
     }
 }
 
-/// A camera as the wire carries it.
-pub fn intrinsics_to_pb(camera: &PinholeRadtan) -> pb::Intrinsics {
-    pb::Intrinsics {
-        width: camera.width,
-        height: camera.height,
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        distortion: camera.distortion.to_vec(),
-        lens: egoslam_relocalization::lens_to_pb(camera.lens) as i32,
-    }
-}
-
 /// The camera of a message (a message from before lens models is radial-tangential);
 /// `None` when it is not a valid camera or its lens model is unknown to this version.
 pub fn camera_from_pb(i: &pb::Intrinsics) -> Option<PinholeRadtan> {

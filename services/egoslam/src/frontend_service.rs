@@ -266,7 +266,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         calib.height.context("camera file lacks height")?,
     );
     let camera = calib.camera_for(w, h)?;
-    let intrinsics = crate::convert::intrinsics_to_pb(&camera);
+    let intrinsics = egoslam_relocalization::intrinsics_to_pb(&camera);
     // The readout is in range: checked where it is parsed (readout.rs). `auto` reaches this
     // service only for a live stream: it is estimated from the first frames (readout.rs).
     let (readout_s, mut online_readout) =

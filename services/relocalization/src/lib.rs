@@ -22,7 +22,7 @@ pub use relocalizer::{
     MapFeature, MapKeyframe, QueryFeatures, Relocalization, RelocalizationError, RelocalizationMap,
     Relocalizer, RelocalizerOptions, TentativePoseOptions,
 };
-pub use saved_map::{decode_map, encode_map, lens_from_pb, lens_to_pb, SavedMapError};
+pub use saved_map::{decode_map, encode_map, intrinsics_to_pb, lens_from_pb, SavedMapError};
 pub use vocabulary::{
     default_vocabulary, BowVector, Vocabulary, VocabularyError, VocabularyOptions,
 };

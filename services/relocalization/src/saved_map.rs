@@ -118,6 +118,20 @@ pub fn lens_to_pb(lens: LensModel) -> pb::LensModel {
     }
 }
 
+/// A camera as the wire carries it.
+pub fn intrinsics_to_pb(camera: &PinholeRadtan) -> pb::Intrinsics {
+    pb::Intrinsics {
+        width: camera.width,
+        height: camera.height,
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        distortion: camera.distortion.to_vec(),
+        lens: lens_to_pb(camera.lens) as i32,
+    }
+}
+
 /// The lens model of a wire value; `None` for one this version does not know.
 pub fn lens_from_pb(value: i32) -> Option<LensModel> {
     match pb::LensModel::try_from(value).ok()? {
@@ -132,18 +146,9 @@ pub fn lens_from_pb(value: i32) -> Option<LensModel> {
 pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> Vec<u8> {
     let c = &map.camera;
     let message = pb::SavedMap {
-        camera: Some(pb::Intrinsics {
-            width: c.width,
-            height: c.height,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            // The lens model the map's keyframes were undistorted with: what a query from
-            // the same camera needs, including a radial term `egoslam run` self-calibrated.
-            distortion: c.distortion.to_vec(),
-            lens: lens_to_pb(c.lens) as i32,
-        }),
+        // The lens model the map's keyframes were undistorted with: what a query from the
+        // same camera needs, including a radial term `egoslam run` self-calibrated.
+        camera: Some(intrinsics_to_pb(c)),
         vocabulary_id,
         source: source.to_string(),
         rolling_shutter_s: map.rolling_shutter_s,
