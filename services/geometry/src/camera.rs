@@ -152,11 +152,16 @@ impl PinholeRadtan {
         p
     }
 
+    /// Raw pixel -> its distorted normalised coordinates (before the lens model is undone).
+    fn normalized(&self, raw: Point2<f64>) -> Point2<f64> {
+        Point2::new((raw.x - self.cx) / self.fx, (raw.y - self.cy) / self.fy)
+    }
+
     /// Raw (distorted) pixel -> ideal pinhole pixel with the same fx fy cx cy; `None` for
     /// a fisheye pixel whose ray the pinhole plane does not carry
     /// ([`Self::undistort_normalized`]).
     pub fn undistort_pixel(&self, raw: Point2<f64>) -> Option<Point2<f64>> {
-        let d = Point2::new((raw.x - self.cx) / self.fx, (raw.y - self.cy) / self.fy);
+        let d = self.normalized(raw);
         let n = self.undistort_normalized(d)?;
         Some(Point2::new(
             n.x * self.fx + self.cx,
@@ -167,7 +172,7 @@ impl PinholeRadtan {
     /// Raw (distorted) pixel -> bearing (unit vector in the camera frame), for any ray the
     /// lens images (beyond 90 degrees for a fisheye).
     pub fn bearing_from_raw(&self, raw: Point2<f64>) -> Option<Vector3<f64>> {
-        let d = Point2::new((raw.x - self.cx) / self.fx, (raw.y - self.cy) / self.fy);
+        let d = self.normalized(raw);
         if self.lens.is_fisheye() {
             return fisheye_unproject(self.lens, &self.distortion, d);
         }
