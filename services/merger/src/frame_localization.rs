@@ -26,7 +26,7 @@ pub struct LocalizationOptions {
     /// left out (default 60: only a fisheye has them). PnP measures residuals on the ideal
     /// pinhole plane, which stretches a pixel's tracking noise by 1 / cos^2 of the angle
     /// (4x at 60 deg, 33x at 80): beyond it true matches fall outside the 2 px threshold,
-    /// and through a 260 px/rad fisheye frames were refused with 44-48 % inliers.
+    /// and a frame's inliers fall below half (37-50 % through a 260 px/rad fisheye).
     pub max_ray_angle_deg: f64,
 }
 
