@@ -18,6 +18,16 @@ pub struct FrameMeta {
     /// Bit 0: end of stream (the payload is empty).
     pub flags: u32,
     pub reserved: u32,
+    /// When the frame entered the pipeline (the replay's or camera's send time), Unix
+    /// nanoseconds; 0 when unknown. Where the latency figures start.
+    pub captured_unix_ns: u64,
+}
+
+/// Now as Unix nanoseconds (0 if the clock is before 1970).
+pub fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 impl FrameMeta {

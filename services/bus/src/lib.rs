@@ -21,9 +21,9 @@ mod message;
 mod port;
 mod stop;
 
-pub use channel::{Channel, Delivery, FRAMES, KEYFRAMES, WINDOWS};
+pub use channel::{Channel, Delivery, FRAMES, KEYFRAMES, LIVE_FRAMES, WINDOWS};
 pub use error::{BusOpenError, ReceiveError, SendError};
-pub use frame::{FrameMeta, FramePublisher, FrameSubscriber, ReceivedFrame};
+pub use frame::{unix_now_ns, FrameMeta, FramePublisher, FrameSubscriber, ReceivedFrame};
 pub use message::{MessagePublisher, MessageSubscriber};
 pub use stop::{stop_requested, watch_stop_requests, STOP_DEADLINE_EXIT, STOP_GRACE};
 

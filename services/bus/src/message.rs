@@ -1,4 +1,4 @@
-//! Lossless channels of protobuf messages (keyframes, windows).
+//! Channels of protobuf messages: lossless (keyframes, windows) and lossy (live frames).
 
 use crate::port::{Inbox, Outbox};
 use crate::{Bus, BusOpenError, Channel, Delivery, ReceiveError, SendError};
@@ -27,6 +27,24 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         })
     }
 
+    /// Opens a lossy channel (the live frames) as producer: a send never waits, and
+    /// reaches whichever consumer is there, if any (see [`Delivery::DropNewest`]).
+    pub fn create_lossy(bus: &'a Bus, channel: Channel) -> Result<Self, BusOpenError> {
+        Ok(Self {
+            bus,
+            channel,
+            outbox: Outbox::open_without_waiting(
+                bus,
+                &channel,
+                channel.initial_bytes,
+                Delivery::DropNewest,
+            )?,
+            buffer: Vec::with_capacity(channel.initial_bytes),
+            sequence: 0,
+            _message: PhantomData,
+        })
+    }
+
     /// Numbers the next message `sequence` instead of continuing from 0: a restarted
     /// producer that resumes its stream (the solver, from its journal) goes on where its
     /// predecessor stopped, so that the consumer sees no new stream and no gap.
@@ -49,6 +67,34 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
             .send(self.bus, &self.channel, self.sequence, &self.buffer)?;
         self.sequence += 1;
         Ok(())
+    }
+
+    /// On a lossy channel: sends, and sends again until a consumer took it or `patience`
+    /// has passed; whether one did. For the one message a consumer must not miss while it
+    /// may still be connecting (iceoryx2 connects a subscriber at its first receive).
+    pub fn send_patiently(
+        &mut self,
+        message: &M,
+        patience: std::time::Duration,
+    ) -> Result<bool, SendError> {
+        self.buffer.clear();
+        message
+            .encode(&mut self.buffer)
+            .map_err(|e| SendError::Loan {
+                service: self.bus.service_name(&self.channel),
+                reason: e.to_string(),
+            })?;
+        let start = std::time::Instant::now();
+        loop {
+            let delivered =
+                self.outbox
+                    .send(self.bus, &self.channel, self.sequence, &self.buffer)?;
+            if delivered > 0 || start.elapsed() >= patience {
+                self.sequence += 1;
+                return Ok(delivered > 0);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
     }
 
     /// Sends a payload that is already encoded (a recorded stream replayed by a tool) with
@@ -84,6 +130,7 @@ pub struct MessageSubscriber<'a, M> {
     inbox: Inbox<u64>,
     expected: Option<u64>,
     dropped: u64,
+    missed: u64,
     _message: PhantomData<M>,
 }
 
@@ -96,6 +143,7 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
             inbox: Inbox::open(bus, &channel)?,
             expected: None,
             dropped: 0,
+            missed: 0,
             _message: PhantomData,
         })
     }
@@ -131,6 +179,40 @@ impl<'a, M: prost::Message + Default> MessageSubscriber<'a, M> {
                 return Ok(Some(message));
             }
         }
+    }
+
+    /// For a lossy channel: the next valid message if one arrives within `timeout`. Gaps
+    /// in the numbering are messages the producer dropped: counted in [`Self::missed`],
+    /// not reported.
+    pub fn receive_lossy_within(
+        &mut self,
+        timeout: std::time::Duration,
+    ) -> Result<Option<M>, ReceiveError> {
+        let Some(sample) = self
+            .inbox
+            .next_sample_within(self.bus, &self.channel, timeout)?
+        else {
+            return Ok(None);
+        };
+        let sequence = *sample.user_header();
+        if let Some(expected) = self.expected {
+            self.missed += sequence.saturating_sub(expected);
+        }
+        self.expected = Some(sequence + 1);
+        match M::decode(sample.payload()) {
+            Ok(message) => Ok(Some(message)),
+            Err(e) => {
+                self.dropped += 1;
+                tracing::warn!(error = %e, dropped = self.dropped, "bus message dropped");
+                Ok(None)
+            }
+        }
+    }
+
+    /// Messages of a lossy channel that the producer dropped before they reached this
+    /// consumer (it was full or not there).
+    pub fn missed(&self) -> u64 {
+        self.missed
     }
 
     /// Messages dropped so far: undecodable payloads and sequence numbers going back. One

@@ -254,6 +254,22 @@ impl<H: Debug + ZeroCopySend> Inbox<H> {
         })
     }
 
+    /// The next sample, waiting at most `timeout` for one (woken by the producer's
+    /// notification); `Ok(None)` when none came. No liveness check: for a lossy channel
+    /// whose producer may be absent.
+    pub(crate) fn next_sample_within(
+        &self,
+        bus: &Bus,
+        channel: &Channel,
+        timeout: Duration,
+    ) -> Result<Option<iceoryx2::sample::Sample<ipc::Service, [u8], H>>, ReceiveError> {
+        if let Some(sample) = self.try_next_sample(bus, channel)? {
+            return Ok(Some(sample));
+        }
+        let _ = self.listener.timed_wait(|_| {}, timeout);
+        self.try_next_sample(bus, channel)
+    }
+
     pub(crate) fn next_sample(
         &self,
         bus: &Bus,
@@ -315,6 +331,19 @@ impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
         initial_bytes: usize,
         delivery: Delivery,
     ) -> Result<Self, BusOpenError> {
+        let outbox = Self::open_without_waiting(bus, channel, initial_bytes, delivery)?;
+        wait_for_subscriber(bus, channel, &outbox._service)?;
+        Ok(outbox)
+    }
+
+    /// As [`Self::open`], without waiting for a consumer (a lossy channel whose consumer
+    /// may come and go).
+    pub(crate) fn open_without_waiting(
+        bus: &Bus,
+        channel: &Channel,
+        initial_bytes: usize,
+        delivery: Delivery,
+    ) -> Result<Self, BusOpenError> {
         let service = open_service::<H>(bus, channel)?;
         let sized = Channel {
             initial_bytes: initial_bytes.max(1),
@@ -323,7 +352,6 @@ impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
         let publisher = create_publisher(bus, &sized, &service, delivery)?;
         let events = open_wakeup(bus, channel)?;
         let notifier = create_notifier(bus, channel, &events)?;
-        wait_for_subscriber(bus, channel, &service)?;
         Ok(Self {
             _service: service,
             publisher,

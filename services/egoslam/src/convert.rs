@@ -46,6 +46,8 @@ pub fn pose_to_pb(frame_id: u64, segment_id: u32, p: &StampedPose) -> pb::Pose {
         segment_id,
         revision: 0,
         interpolated: false,
+        tracking: pb::TrackingState::Refined as i32,
+        inliers: 0,
     }
 }
 

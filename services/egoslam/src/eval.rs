@@ -200,8 +200,13 @@ pub fn accuracy(
     for (key, file) in [
         ("trajectory", "trajectory.tum"),
         ("keyframes", "keyframes.tum"),
+        ("live", crate::merger_service::LIVE_TRAJECTORY_FILE),
     ] {
-        let est = read_tum_file(&out.join(file))?;
+        let path = out.join(file);
+        if key == "live" && !path.exists() {
+            continue; // a run from before live poses (`egoslam eval` on an old folder)
+        }
+        let est = read_tum_file(&path)?;
         // Defined without positions: kept even where the ATE is not.
         let orientation = orientation_error(&est, &gt.poses, 0.02).map(|o| {
             println!("{key}: {}", orientation_summary(&o));

@@ -6,7 +6,7 @@ use crate::log_compaction;
 use crate::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
-use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES};
+use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
 use egoslam_frontend::tracker::ResumePoint;
 use egoslam_frontend::{KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError};
 use egoslam_messages::v1 as pb;
@@ -254,6 +254,51 @@ fn continue_tracks(
     }
 }
 
+/// Sends the frame's live tracks to the merger's live tracker. A failed send costs that
+/// frame's live pose only (its refined pose comes with its keyframe): counted, not fatal.
+fn send_live_frame(
+    publisher: &mut MessagePublisher<pb::LiveFrame>,
+    meta: &egoslam_bus::FrameMeta,
+    (tracker, intrinsics): (&Tracker, &pb::Intrinsics),
+    first_of_stream: bool,
+    stats: &mut ServiceStats,
+) {
+    let started = Instant::now();
+    let message = pb::LiveFrame {
+        intrinsics: Some(intrinsics.clone()),
+        first_of_stream,
+        frame_id: meta.frame_id,
+        timestamp_s: meta.timestamp,
+        captured_unix_ns: meta.captured_unix_ns,
+        tracked_unix_ns: egoslam_bus::unix_now_ns(),
+        tracks: tracker
+            .live_track_points()
+            .iter()
+            .map(|t| pb::TrackObservation {
+                track_id: t.track_id,
+                x: t.undistorted.x,
+                y: t.undistorted.y,
+                ..Default::default()
+            })
+            .collect(),
+    };
+    // The stream's first frame anchors the live poses until the first window: it is worth
+    // a short wait for the live tracker to connect.
+    let sent = if first_of_stream {
+        publisher
+            .send_patiently(&message, std::time::Duration::from_millis(500))
+            .map(|_| ())
+    } else {
+        publisher.send(&message)
+    };
+    if let Err(e) = sent {
+        tracing::debug!(error = %e, "live frame not sent");
+        stats.count("live_frames_not_sent", 1);
+    }
+    stats.latency_since("frontend_tracked", meta.captured_unix_ns);
+    stats.add_time("publish_live", started.elapsed().as_secs_f64() * 1e3);
+}
+
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("frontend");
     let calib_path = args
@@ -319,6 +364,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     )?;
     let frames = FrameSubscriber::create(&bus)?;
     let mut keyframes = MessagePublisher::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
+    let mut live_frames = MessagePublisher::<pb::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
     crate::systemd::ready("frontend");
     let mut skipped: Vec<pb::FrameStamp> = Vec::new();
     let mut last_stamp: Option<pb::FrameStamp> = None;
@@ -336,6 +382,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         if meta.is_end_of_stream() {
             break;
         }
+        stats.latency_since("frontend_received", meta.captured_unix_ns);
         let image =
             Mat::new_rows_cols_with_data(meta.height as i32, meta.width as i32, frame.pixels())
                 .with_context(|| format!("frame {}: wrapping shared memory", meta.frame_id))?;
@@ -351,6 +398,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }
             Err(e) => return Err(e.into()),
         };
+        // First, before anything else the frame causes: a live pose waits for this.
+        let first_of_stream = !resuming && stats.frames == 0;
+        let camera = (&tracker, &intrinsics);
+        send_live_frame(&mut live_frames, &meta, camera, first_of_stream, &mut stats);
         if let Some((mut k, mut msg)) = pending.take() {
             if tracker.centre_keyframe(&mut k) > 0 {
                 for (m, t) in msg.tracks.iter_mut().zip(&k.tracks) {

@@ -443,6 +443,23 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "localized_frames": counter(merger, "localized_frames"),
         "interpolated_frames": counter(merger, "interpolated_frames"),
         "timings_ms": timings,
+        // Each frame's time from its capture (the replay's send) to each hop, over the
+        // frames that reached it (docs/benchmarks.md, "Pose latency"): the live pose is
+        // on zenoh at `live_published`.
+        "latency_ms": stats
+            .iter()
+            .flat_map(|s| s.latency.iter())
+            .filter_map(|(hop, h)| Some((hop.clone(), json!(h.summary()?))))
+            .collect::<serde_json::Map<_, _>>(),
+        // How the live tracker posed the frames (revision 0; docs/merger.md, "Live poses").
+        "live_poses": {
+            "tracking": counter(merger, "live_tracking"),
+            "rotation": counter(merger, "live_rotation"),
+            "predicted": counter(merger, "live_predicted"),
+            "lost": counter(merger, "live_lost"),
+            "before_the_first_window": counter(merger, "live_before_map"),
+            "missed": counter(merger, "live_frames_missed"),
+        },
         "rolling_shutter": readout_report,
         "focal_calibration": focal_report,
         "radial_calibration": radial_report,

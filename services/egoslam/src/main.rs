@@ -20,6 +20,7 @@ mod frontend_resume;
 mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
+mod latency;
 mod launcher;
 mod live_view;
 mod log_compaction;

@@ -329,6 +329,16 @@ impl Revisions {
         out
     }
 
+    /// Records the live tracker's pose of a frame as its revision 0; `false` (nothing
+    /// recorded) when the frame was already published, by a window that came first.
+    pub fn claim_live(&mut self, frame_id: u64, pose: &StampedPose) -> bool {
+        if self.published.contains_key(&frame_id) {
+            return false;
+        }
+        self.published.insert(frame_id, (*pose, 0));
+        true
+    }
+
     /// The last published revision of every frame (what a checkpoint keeps).
     pub fn numbers(&self) -> BTreeMap<u64, u32> {
         self.published.iter().map(|(f, (_, r))| (*f, *r)).collect()

@@ -10,12 +10,13 @@ use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
 use std::collections::HashMap;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Files, stats and (when enabled) zenoh, from one snapshot of the map.
 pub(super) struct Outputs {
-    pub(super) egress: Option<Egress>,
-    pub(super) revisions: Revisions,
+    /// Shared with the live tracker (`merger_live_tracking.rs`), which publishes revision 0.
+    pub(super) egress: Option<Arc<Egress>>,
+    pub(super) revisions: Arc<Mutex<Revisions>>,
     /// Which map points map.ply holds (zenoh carries all, with their confidence).
     pub(super) point_confidence: PointConfidenceOptions,
     /// The last scores of the map's points (recomputed when the files are written).
@@ -107,13 +108,11 @@ impl Outputs {
                 ),
                 run_id: self.run_id.clone(),
             };
-            map_state::publish(
-                egress,
-                &snapshot,
-                &mut self.revisions,
-                changed_points,
-                &status,
-            )?;
+            let mut revisions = self
+                .revisions
+                .lock()
+                .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
+            map_state::publish(egress, &snapshot, &mut revisions, changed_points, &status)?;
         }
         Ok(())
     }

@@ -19,6 +19,9 @@ use crate::stats::ServiceStats;
 mod journal_recovery;
 #[path = "merger_keyframe_culling.rs"]
 mod keyframe_culling;
+#[path = "merger_live_tracking.rs"]
+mod live_tracking;
+pub use live_tracking::LIVE_TRAJECTORY_FILE;
 #[path = "merger_outputs.rs"]
 mod outputs;
 #[path = "merger_relocalization.rs"]
@@ -60,6 +63,8 @@ struct Merger {
     /// The sightings of the loop this window closed, added to the map after the window's
     /// cross-window error is measured (`MapBuilder::add_loop_sightings`).
     loop_sightings: Vec<(u64, u64, nalgebra::Point2<f64>)>,
+    /// Poses every frame as it arrives (revision 0); handed the map after each window.
+    live: Option<live_tracking::LiveTracking>,
 }
 
 /// Shortest time between rewrites of the result files and the checkpoint. Rewriting both
@@ -172,6 +177,9 @@ impl Merger {
             frame_poses::localize_pending(frames, map, camera, oldest, stats);
             stats.add_time("localize_frames", start.elapsed().as_secs_f64() * 1e3);
         }
+        if let Some(live) = &self.live {
+            live.update(&self.state.map, self.camera.as_ref(), &w.keyframe_ids);
+        }
         self.state.last_sequence = Some(sequence);
         // Publish first, then checkpoint (with the revisions just published): a kill in
         // between re-applies this window from the journal, which publishes the same again.
@@ -187,7 +195,12 @@ impl Merger {
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
         if persist {
-            self.state.revisions = self.outputs.revisions.numbers();
+            self.state.revisions = self
+                .outputs
+                .revisions
+                .lock()
+                .map_err(|_| anyhow::anyhow!("revisions poisoned"))?
+                .numbers();
             let save_start = std::time::Instant::now();
             self.prune_culled_patches();
             let (map, patched) = (&self.state.map, &self.state.patched_tracks);
@@ -474,8 +487,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         },
     )?;
     let outputs = Outputs {
-        egress: open_egress(&args)?,
-        revisions: Revisions::default(),
+        egress: open_egress(&args)?.map(std::sync::Arc::new),
+        revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::default())),
         point_confidence: PointConfidenceOptions {
             max_relative_std: args.pipeline.max_point_std,
             ..PointConfidenceOptions::default()
@@ -509,7 +522,20 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         database: KeyframeDatabase::new(),
         loop_attempt_owed: false,
         loop_sightings: Vec::new(),
+        live: None,
     };
+    merger.live = Some(live_tracking::LiveTracking::start(
+        &merger.args.namespace,
+        &merger.args.out,
+        resumed.is_none(),
+        live_tracking::Publication {
+            egress: merger.outputs.egress.clone(),
+            revisions: merger.outputs.revisions.clone(),
+            // A saved map to extend puts the new stream in a later segment, known once it
+            // is loaded; a restarted merger's stream began long ago.
+            origin_segment: (resumed.is_none() && merger.args.map.map_in.is_none()).then_some(0),
+        },
+    ));
     let fault = if resumed.is_none() {
         injected_fault()
     } else {
@@ -538,7 +564,12 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             }
         }
         let resumed_poses = MapState::of(&state.map, &state.frames);
-        merger.outputs.revisions = Revisions::resume(&state.revisions, &resumed_poses);
+        *merger
+            .outputs
+            .revisions
+            .lock()
+            .map_err(|_| anyhow::anyhow!("revisions poisoned"))? =
+            Revisions::resume(&state.revisions, &resumed_poses);
         merger.state = state;
         merger.catch_up(None)?;
     }
@@ -586,6 +617,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         merger.apply(sequence, &w)?;
     }
     merger.stats.count("dropped_messages", windows.dropped());
+    if let Some(live) = merger.live.take() {
+        merger.stats.absorb(live.finish()?);
+    }
     merger.emit(&[], pb::ServiceState::Finished, true)?;
     if let Some(path) = &merger.args.map.map_out {
         let Some(camera) = &merger.camera else {

@@ -92,6 +92,8 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             timestamp: frame.timestamp,
             width: w,
             height: h,
+            // The replay's send stands in for the camera's capture.
+            captured_unix_ns: egoslam_bus::unix_now_ns(),
             ..FrameMeta::default()
         };
         match stats.time("publish", || publisher.send(meta, pixels)) {

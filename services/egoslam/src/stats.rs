@@ -26,6 +26,10 @@ pub struct ServiceStats {
     /// Peak resident memory of the process so far (Linux VmHWM), kibibytes; 0 if unknown.
     #[serde(default)]
     pub peak_rss_kib: u64,
+    /// Per hop, each frame's time from capture to this service's step (docs/benchmarks.md,
+    /// "Pose latency").
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub latency: BTreeMap<String, crate::latency::LatencyHistogram>,
 }
 
 /// This process's peak resident set size (VmHWM in /proc/self/status), KiB; 0 elsewhere.
@@ -74,6 +78,32 @@ impl ServiceStats {
             None => {
                 self.counters.insert(counter.into(), n);
             }
+        }
+    }
+
+    /// Adds the time since `captured_unix_ns` (a frame's capture) to `hop`'s latencies.
+    pub fn latency_since(&mut self, hop: &str, captured_unix_ns: u64) {
+        match self.latency.get_mut(hop) {
+            Some(h) => h.add_since(captured_unix_ns),
+            None => {
+                let mut h = crate::latency::LatencyHistogram::default();
+                h.add_since(captured_unix_ns);
+                self.latency.insert(hop.into(), h);
+            }
+        }
+    }
+
+    /// Adds the timings, counters and latencies of a part of this service that kept its
+    /// own (a thread).
+    pub fn absorb(&mut self, part: ServiceStats) {
+        for (stage, ms) in part.timings_ms {
+            self.add_time(&stage, ms);
+        }
+        for (counter, n) in part.counters {
+            self.count(&counter, n);
+        }
+        for (hop, histogram) in part.latency {
+            self.latency.entry(hop).or_default().merge(&histogram);
         }
     }
 

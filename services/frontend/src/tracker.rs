@@ -297,6 +297,15 @@ impl Tracker {
             .collect()
     }
 
+    /// Every live track that can be published (see `track_point`), undistorted: what the
+    /// live tracker localizes the frame with and triangulates new points from.
+    pub fn live_track_points(&self) -> Vec<TrackPoint> {
+        self.tracks
+            .iter()
+            .filter_map(|t| self.track_point(t))
+            .collect()
+    }
+
     /// Number of live tracks.
     pub fn live_tracks(&self) -> usize {
         self.tracks.len()

@@ -366,6 +366,22 @@ impl MapBuilder {
         self.keyframes.iter().map(|(id, (s, p))| (*id, *s, p))
     }
 
+    /// The points seen by keyframes `from_keyframe` and later of `segment`: what a camera
+    /// near those keyframes has in view (the live tracker's map).
+    pub fn points_seen_since(
+        &self,
+        from_keyframe: u64,
+        segment: u32,
+    ) -> std::collections::HashMap<u64, Vector3<f64>> {
+        self.observations
+            .range((from_keyframe, 0)..)
+            .filter_map(|((_, track), _)| match self.points.get(track) {
+                Some((s, x)) if *s == segment => Some((*track, *x)),
+                _ => None,
+            })
+            .collect()
+    }
+
     /// Map points with their segment.
     pub fn points(&self) -> impl Iterator<Item = (u64, u32, &Vector3<f64>)> {
         self.points.iter().map(|(id, (s, p))| (*id, *s, p))

@@ -10,6 +10,7 @@ pub mod interpolation;
 pub mod keyframe_budget;
 pub mod keyframe_coverage;
 pub mod keyframe_culling;
+pub mod live_tracking;
 pub mod loop_closure;
 pub mod point_confidence;
 pub mod provisional_scale;
@@ -35,6 +36,7 @@ pub use frame_localization::{localize_frame, LocalizationError, LocalizationOpti
 pub use interpolation::{interpolate_between, interpolate_frames};
 pub use keyframe_budget::KeyframeBudget;
 pub use keyframe_culling::{CulledKeyframe, CullingReport, KeyframeCullingOptions};
+pub use live_tracking::{LivePose, LiveTracker, LiveTrackerOptions, MapView, TrackingState};
 pub use loop_closure::{find_loop, LoopClosure, LoopNotApplied, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
 pub use provisional_scale::{ProvisionalScale, SettledScale};

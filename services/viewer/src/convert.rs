@@ -163,6 +163,7 @@ mod tests {
             segment_id: segment,
             revision: 0,
             interpolated: false,
+            ..Default::default()
         }
     }
 

@@ -8,6 +8,12 @@ DESCRIPTOR: _descriptor.FileDescriptor
 LENS_MODEL_DOUBLE_SPHERE: LensModel
 LENS_MODEL_EQUIDISTANT: LensModel
 LENS_MODEL_RADIAL_TANGENTIAL: LensModel
+TRACKING_STATE_LOST: TrackingState
+TRACKING_STATE_PREDICTED: TrackingState
+TRACKING_STATE_REFINED: TrackingState
+TRACKING_STATE_ROTATION: TrackingState
+TRACKING_STATE_TRACKING: TrackingState
+TRACKING_STATE_UNSPECIFIED: TrackingState
 
 class Intrinsics(_message.Message):
     __slots__ = ["cx", "cy", "distortion", "fx", "fy", "height", "lens", "width"]
@@ -30,22 +36,26 @@ class Intrinsics(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., distortion: _Optional[_Iterable[float]] = ..., lens: _Optional[_Union[LensModel, str]] = ...) -> None: ...
 
 class Pose(_message.Message):
-    __slots__ = ["frame_id", "interpolated", "orientation", "position", "revision", "segment_id", "timestamp_s"]
+    __slots__ = ["frame_id", "inliers", "interpolated", "orientation", "position", "revision", "segment_id", "timestamp_s", "tracking"]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    INLIERS_FIELD_NUMBER: _ClassVar[int]
     INTERPOLATED_FIELD_NUMBER: _ClassVar[int]
     ORIENTATION_FIELD_NUMBER: _ClassVar[int]
     POSITION_FIELD_NUMBER: _ClassVar[int]
     REVISION_FIELD_NUMBER: _ClassVar[int]
     SEGMENT_ID_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_S_FIELD_NUMBER: _ClassVar[int]
+    TRACKING_FIELD_NUMBER: _ClassVar[int]
     frame_id: int
+    inliers: int
     interpolated: bool
     orientation: Quaternion
     position: Vec3
     revision: int
     segment_id: int
     timestamp_s: float
-    def __init__(self, frame_id: _Optional[int] = ..., timestamp_s: _Optional[float] = ..., position: _Optional[_Union[Vec3, _Mapping]] = ..., orientation: _Optional[_Union[Quaternion, _Mapping]] = ..., segment_id: _Optional[int] = ..., revision: _Optional[int] = ..., interpolated: bool = ...) -> None: ...
+    tracking: TrackingState
+    def __init__(self, frame_id: _Optional[int] = ..., timestamp_s: _Optional[float] = ..., position: _Optional[_Union[Vec3, _Mapping]] = ..., orientation: _Optional[_Union[Quaternion, _Mapping]] = ..., segment_id: _Optional[int] = ..., revision: _Optional[int] = ..., interpolated: bool = ..., tracking: _Optional[_Union[TrackingState, str]] = ..., inliers: _Optional[int] = ...) -> None: ...
 
 class Quaternion(_message.Message):
     __slots__ = ["w", "x", "y", "z"]
@@ -68,6 +78,9 @@ class Vec3(_message.Message):
     y: float
     z: float
     def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
+
+class TrackingState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = []
 
 class LensModel(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = []

@@ -1,0 +1,496 @@
+//! The live pose of every frame as it arrives, before its window is solved (ORB-SLAM's
+//! tracking thread in spirit: PnP on the map points in view from a constant-velocity prior).
+//!
+//! The merged map lags the frames by a window (0.5-1.5 s of head motion), so many tracks of
+//! a new frame have no map point yet. The tracker therefore also triangulates such tracks
+//! itself, from their first tracked sighting and a later one with enough parallax, using
+//! its own tracked poses; these local points serve until the map brings its own (refined)
+//! point for the track, which then wins. The points are only ever those of the live tracks:
+//! the state is bounded by what is in view.
+
+use crate::frame_localization::{localize_frame, LocalizationOptions};
+use egoslam_geometry::{PinholeRadtan, StampedPose};
+use nalgebra::{Point2, UnitQuaternion, Vector3};
+use std::collections::{HashMap, VecDeque};
+
+/// Defaults commented with their reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LiveTrackerOptions {
+    /// PnP and its acceptance (frame localization's, with a looser rotation limit: the
+    /// prior is extrapolated, not interpolated between two posed keyframes).
+    pub localization: LocalizationOptions,
+    /// How long a pose predicted at constant velocity is offered as PREDICTED after the last
+    /// tracked one, seconds (default 0.5: a head keeps its turn for about that long;
+    /// beyond, the prediction is reported LOST).
+    pub max_prediction_s: f64,
+    /// Parallax between a track's first sighting and the current one before the tracker
+    /// triangulates it, degrees (default 3: at 1 px of noise on a 500 px focal, the depth
+    /// error is then ~4 % of the depth).
+    pub min_triangulation_angle_deg: f64,
+    /// Largest reprojection error of a triangulated point in the current frame, pixels
+    /// (default 2, the PnP threshold).
+    pub max_triangulation_error_px: f64,
+    /// Turning in place (no map point in view): the orientation is fitted to the rays of
+    /// the tracks shared with the previous posed frame. A ray agrees within this angle,
+    /// in pixels at the focal length (default 3: tracking noise plus the parallax of a
+    /// head's few centimetres of motion between frames on points a few metres away).
+    pub rotation_threshold_px: f64,
+    /// Least agreeing rays for an orientation from rays, and their least share of the
+    /// shared tracks (defaults 20 and 0.6: a rotation has 3 degrees of freedom, and a
+    /// walking camera's near points disagree, which must make it fail).
+    pub rotation_min_inliers: usize,
+    pub rotation_min_inlier_share: f64,
+    /// How far back the tracker keeps the frames' tracks, seconds (default 3: the map
+    /// arrives 0.5-2 s after its newest keyframe in a real-time run; the frames since that
+    /// keyframe are re-tracked on each new map).
+    pub history_s: f64,
+}
+
+impl Default for LiveTrackerOptions {
+    fn default() -> Self {
+        Self {
+            localization: LocalizationOptions {
+                max_rotation_from_prior_deg: 20.0,
+                ..LocalizationOptions::default()
+            },
+            max_prediction_s: 0.5,
+            min_triangulation_angle_deg: 1.0,
+            max_triangulation_error_px: 2.0,
+            history_s: 3.0,
+            rotation_threshold_px: 3.0,
+            rotation_min_inliers: 20,
+            rotation_min_inlier_share: 0.6,
+        }
+    }
+}
+
+/// How a live pose was obtained.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrackingState {
+    /// PnP on the map (and the tracker's own points).
+    Tracking,
+    /// No map point in view: the orientation from the tracks' rays (a turn in place), the
+    /// position held.
+    Rotation,
+    /// No PnP: the last tracked pose moved on at constant velocity.
+    Predicted,
+    /// No PnP for longer than a prediction is worth: the last tracked pose.
+    Lost,
+}
+
+/// One frame's live pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LivePose {
+    pub pose: StampedPose,
+    /// The map segment the pose is in.
+    pub segment: u32,
+    pub state: TrackingState,
+    /// PnP inliers (0 unless tracking).
+    pub inliers: usize,
+}
+
+/// What the merger hands the tracker after each window: the points of its newest keyframes
+/// in the current segment, and the newest keyframe's pose (the prior when nothing was
+/// tracked yet).
+#[derive(Debug, Clone, Default)]
+pub struct MapView {
+    pub camera: Option<PinholeRadtan>,
+    pub segment: u32,
+    pub points: HashMap<u64, Vector3<f64>>,
+    pub newest_keyframe: Option<StampedPose>,
+}
+
+/// A frame's tracks: `(track id, undistorted pixel)`.
+pub type FrameTracks = Vec<(u64, Point2<f64>)>;
+
+/// A track's first sighting from a tracked frame: the camera centre and the ray in the
+/// world frame.
+#[derive(Debug, Clone, Copy)]
+struct Sighting {
+    centre: Vector3<f64>,
+    ray: Vector3<f64>,
+}
+
+/// The live tracker's state: the map view, its own points, the last two tracked poses.
+#[derive(Debug, Default)]
+pub struct LiveTracker {
+    options: LiveTrackerOptions,
+    map: MapView,
+    local_points: HashMap<u64, Vector3<f64>>,
+    sightings: HashMap<u64, Sighting>,
+    /// The last tracked pose and the one before it (for the velocity).
+    last: Option<StampedPose>,
+    before_last: Option<StampedPose>,
+    /// The last `history_s` of frames: timestamp and tracks.
+    history: VecDeque<(f64, FrameTracks)>,
+    /// The last frame posed from its tracks (PnP or rotation): its pose and its tracks'
+    /// rays in the camera frame.
+    previous: Option<(StampedPose, HashMap<u64, Vector3<f64>>)>,
+}
+
+impl LiveTracker {
+    pub fn new(options: LiveTrackerOptions) -> Self {
+        Self {
+            options,
+            ..Self::default()
+        }
+    }
+
+    /// Takes the merger's newest view of the map and re-tracks the frames since its newest
+    /// keyframe on it. Tracks live a fraction of a second in head motion, so by the time a
+    /// window is merged most tracks of the current frame are younger than its points: the
+    /// frames in between carry the pose from the map's keyframe to now, and triangulate the
+    /// young tracks on the way. Everything the tracker built on the previous map goes (it
+    /// drifted with the tracker; the new map is refined).
+    pub fn set_map(&mut self, map: MapView) {
+        self.local_points.clear();
+        self.sightings.clear();
+        self.last = None;
+        self.before_last = None;
+        self.previous = None;
+        self.map = map;
+        let Some(keyframe) = self.map.newest_keyframe else {
+            return;
+        };
+        // The keyframe's own frame must be in the history: the re-tracking starts there.
+        let tolerance = 1e-6;
+        if self
+            .history
+            .front()
+            .is_none_or(|(t, _)| *t > keyframe.timestamp + tolerance)
+        {
+            return;
+        }
+        self.last = Some(keyframe);
+        self.previous = self
+            .history
+            .iter()
+            .find(|(t, _)| (t - keyframe.timestamp).abs() <= tolerance)
+            .and_then(|(_, tracks)| Some((keyframe, rays(&self.map.camera?, tracks))));
+        let history = std::mem::take(&mut self.history);
+        for (timestamp, tracks) in history
+            .iter()
+            .filter(|(t, _)| *t > keyframe.timestamp + tolerance)
+        {
+            self.locate(*timestamp, tracks);
+        }
+        self.history = history;
+    }
+
+    /// The first frame of a new map's stream, before any window: the map's frame is its
+    /// first keyframe's camera (this frame, identity at the origin), so the frames until
+    /// the first window can be posed by rotation from it (position held at the origin).
+    pub fn begin_at_origin(
+        &mut self,
+        camera: PinholeRadtan,
+        segment: u32,
+        timestamp: f64,
+        tracks: &[(u64, Point2<f64>)],
+    ) -> LivePose {
+        let origin = StampedPose {
+            timestamp,
+            position: Vector3::zeros(),
+            rotation: UnitQuaternion::identity(),
+        };
+        *self = Self {
+            options: self.options,
+            map: MapView {
+                camera: Some(camera),
+                segment,
+                ..MapView::default()
+            },
+            previous: Some((origin, rays(&camera, tracks))),
+            last: Some(origin),
+            ..Self::default()
+        };
+        self.history.push_back((timestamp, tracks.to_vec()));
+        LivePose {
+            pose: origin,
+            segment,
+            state: TrackingState::Rotation,
+            inliers: tracks.len(),
+        }
+    }
+
+    /// Whether a map (or the origin of a stream) has been given.
+    pub fn has_map(&self) -> bool {
+        self.map.camera.is_some()
+    }
+
+    /// Map points and the tracker's own points held now.
+    pub fn points(&self) -> (usize, usize) {
+        (self.map.points.len(), self.local_points.len())
+    }
+
+    /// The live pose of a frame from its tracks `(track id, undistorted pixel)`; `None`
+    /// until the merger has a map.
+    pub fn track(&mut self, timestamp: f64, tracks: &[(u64, Point2<f64>)]) -> Option<LivePose> {
+        while self
+            .history
+            .front()
+            .is_some_and(|(t, _)| *t < timestamp - self.options.history_s)
+        {
+            self.history.pop_front();
+        }
+        self.history.push_back((timestamp, tracks.to_vec()));
+        self.locate(timestamp, tracks)
+    }
+
+    /// [`Self::track`] without the history.
+    fn locate(&mut self, timestamp: f64, tracks: &[(u64, Point2<f64>)]) -> Option<LivePose> {
+        let camera = self.map.camera?;
+        let prior = self.prior(timestamp)?;
+        let correspondences: Vec<(Vector3<f64>, Point2<f64>)> = tracks
+            .iter()
+            .filter_map(|(t, px)| {
+                self.map
+                    .points
+                    .get(t)
+                    .or_else(|| self.local_points.get(t))
+                    .map(|x| (*x, *px))
+            })
+            .collect();
+        let located = localize_frame(
+            &camera,
+            &correspondences,
+            &prior,
+            &self.options.localization,
+        );
+        let rays_now = rays(&camera, tracks);
+        let turned = match located {
+            Ok(_) => None,
+            Err(_) => self.turned(&camera, timestamp, &rays_now),
+        };
+        let live = match located {
+            Ok(l) => {
+                let pose = StampedPose {
+                    timestamp,
+                    ..l.pose
+                };
+                self.before_last = self.last.replace(pose);
+                self.triangulate(&camera, &pose, tracks);
+                self.previous = Some((pose, rays_now));
+                LivePose {
+                    pose,
+                    segment: self.map.segment,
+                    state: TrackingState::Tracking,
+                    inliers: l.inliers,
+                }
+            }
+            Err(_) if turned.is_some() => {
+                let (pose, inliers) = turned?;
+                // The velocity restarts from this pose: a turn in place has none to extrapolate.
+                self.before_last = None;
+                self.last = Some(pose);
+                self.previous = Some((pose, rays_now));
+                LivePose {
+                    pose,
+                    segment: self.map.segment,
+                    state: TrackingState::Rotation,
+                    inliers,
+                }
+            }
+            Err(e) => {
+                tracing::debug!(
+                    min_track = tracks.iter().map(|t| t.0).min(),
+                    max_track = tracks.iter().map(|t| t.0).max(),
+                    min_map = self.map.points.keys().min(),
+                    max_map = self.map.points.keys().max(),
+                    error = %e,
+                    correspondences = correspondences.len(),
+                    map_points = self.map.points.len(),
+                    local_points = self.local_points.len(),
+                    "live frame not tracked"
+                );
+                let fresh = self
+                    .last
+                    .is_some_and(|l| timestamp - l.timestamp <= self.options.max_prediction_s);
+                let (pose, state) = match (fresh, self.last) {
+                    (false, Some(last)) => (StampedPose { timestamp, ..last }, TrackingState::Lost),
+                    _ => (prior, TrackingState::Predicted),
+                };
+                LivePose {
+                    pose,
+                    segment: self.map.segment,
+                    state,
+                    inliers: 0,
+                }
+            }
+        };
+        // Tracks end for good (ids are never reused): forget those not in this frame.
+        let alive: std::collections::HashSet<u64> = tracks.iter().map(|(t, _)| *t).collect();
+        self.local_points.retain(|t, _| alive.contains(t));
+        self.sightings.retain(|t, _| alive.contains(t));
+        Some(live)
+    }
+
+    /// The pose from the rays of the tracks shared with the previous posed frame, if a
+    /// rotation alone explains them (see [`LiveTrackerOptions::rotation_threshold_px`]).
+    fn turned(
+        &self,
+        camera: &PinholeRadtan,
+        timestamp: f64,
+        rays_now: &HashMap<u64, Vector3<f64>>,
+    ) -> Option<(StampedPose, usize)> {
+        let (previous, previous_rays) = self.previous.as_ref()?;
+        let threshold = self.options.rotation_threshold_px / camera.fx;
+        let (rotation, inliers) = rotation_between(previous_rays, rays_now, threshold)?;
+        let shared = rays_now
+            .keys()
+            .filter(|t| previous_rays.contains_key(t))
+            .count();
+        let supported = inliers >= self.options.rotation_min_inliers
+            && inliers as f64 >= self.options.rotation_min_inlier_share * shared as f64;
+        supported.then(|| {
+            let pose = StampedPose {
+                timestamp,
+                position: previous.position,
+                rotation: previous.rotation * rotation,
+            };
+            (pose, inliers)
+        })
+    }
+
+    /// Constant velocity from the last two tracked poses; the last tracked pose when there
+    /// is one; else the map's newest keyframe.
+    fn prior(&self, timestamp: f64) -> Option<StampedPose> {
+        match (self.before_last, self.last) {
+            (Some(a), Some(b)) if b.timestamp > a.timestamp => Some(extrapolate(&a, &b, timestamp)),
+            (_, Some(b)) => Some(StampedPose { timestamp, ..b }),
+            _ => self
+                .map
+                .newest_keyframe
+                .map(|k| StampedPose { timestamp, ..k }),
+        }
+    }
+
+    /// Triangulates the tracks without a point whose ray turned far enough since their
+    /// first tracked sighting; records the first sighting of the others.
+    fn triangulate(
+        &mut self,
+        camera: &PinholeRadtan,
+        pose: &StampedPose,
+        tracks: &[(u64, Point2<f64>)],
+    ) {
+        let min_cos = self.options.min_triangulation_angle_deg.to_radians().cos();
+        let r_cw = pose.rotation.inverse();
+        for (track, px) in tracks {
+            if self.map.points.contains_key(track) || self.local_points.contains_key(track) {
+                continue;
+            }
+            let ray = pose.rotation * camera.bearing_from_undistorted(*px);
+            let Some(first) = self.sightings.get(track).copied() else {
+                self.sightings.insert(
+                    *track,
+                    Sighting {
+                        centre: pose.position,
+                        ray,
+                    },
+                );
+                continue;
+            };
+            if first.ray.dot(&ray) > min_cos {
+                continue;
+            }
+            let Some(x) = closest_point(&first, pose.position, ray) else {
+                continue;
+            };
+            let in_camera = r_cw * (x - pose.position);
+            let reprojected = camera.project_undistorted(&in_camera);
+            if reprojected
+                .is_some_and(|p| (p - px).norm() <= self.options.max_triangulation_error_px)
+            {
+                self.local_points.insert(*track, x);
+                self.sightings.remove(track);
+            }
+        }
+    }
+}
+
+/// Unit rays in the camera frame of tracks `(id, undistorted pixel)`.
+fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> HashMap<u64, Vector3<f64>> {
+    tracks
+        .iter()
+        .map(|(t, px)| (*t, camera.bearing_from_undistorted(*px)))
+        .collect()
+}
+
+/// The rotation `R` (camera now -> camera before) that best takes the rays of now onto the
+/// rays of before for the tracks both have, and how many agree within `threshold_rad`:
+/// Kabsch on all, then again on those that agree (twice), so that a few wrong or near
+/// tracks do not pull it. `None` with fewer than 3 shared tracks.
+fn rotation_between(
+    before: &HashMap<u64, Vector3<f64>>,
+    now: &HashMap<u64, Vector3<f64>>,
+    threshold_rad: f64,
+) -> Option<(UnitQuaternion<f64>, usize)> {
+    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = now
+        .iter()
+        .filter_map(|(t, r)| before.get(t).map(|b| (*b, *r)))
+        .collect();
+    if pairs.len() < 3 {
+        return None;
+    }
+    let fit = |used: &[&(Vector3<f64>, Vector3<f64>)]| {
+        let h: nalgebra::Matrix3<f64> = used.iter().map(|(b, r)| r * b.transpose()).sum();
+        let svd = h.svd(true, true);
+        let (u, v_t) = (svd.u?, svd.v_t?);
+        let mut d = nalgebra::Matrix3::identity();
+        d[(2, 2)] = (v_t.transpose() * u.transpose()).determinant().signum();
+        let rotation =
+            nalgebra::Rotation3::from_matrix_unchecked(v_t.transpose() * d * u.transpose());
+        Some(UnitQuaternion::from_rotation_matrix(&rotation))
+    };
+    let min_cos = threshold_rad.cos();
+    let mut used: Vec<&(Vector3<f64>, Vector3<f64>)> = pairs.iter().collect();
+    let mut rotation = fit(&used)?;
+    for _ in 0..2 {
+        used = pairs
+            .iter()
+            .filter(|(b, r)| b.dot(&(rotation * r)) >= min_cos)
+            .collect();
+        if used.len() < 3 {
+            return None;
+        }
+        rotation = fit(&used)?;
+    }
+    let inliers = pairs
+        .iter()
+        .filter(|(b, r)| b.dot(&(rotation * r)) >= min_cos)
+        .count();
+    Some((rotation, inliers))
+}
+
+/// The midpoint of the shortest segment between two rays, if it lies in front of both.
+fn closest_point(
+    first: &Sighting,
+    centre: Vector3<f64>,
+    ray: Vector3<f64>,
+) -> Option<Vector3<f64>> {
+    let w = first.centre - centre;
+    let b = first.ray.dot(&ray);
+    let denominator = 1.0 - b * b;
+    if denominator < 1e-9 {
+        return None;
+    }
+    let (d, e) = (first.ray.dot(&w), ray.dot(&w));
+    let s = (b * e - d) / denominator; // along the first ray
+    let t = (e - b * d) / denominator; // along the second
+    (s > 0.0 && t > 0.0).then(|| 0.5 * ((first.centre + first.ray * s) + (centre + ray * t)))
+}
+
+/// Pose `b` moved on to `timestamp` at the velocity from `a` to `b` (at most three of
+/// their intervals ahead: a prediction further out is no better than standing still).
+fn extrapolate(a: &StampedPose, b: &StampedPose, timestamp: f64) -> StampedPose {
+    let ratio = ((timestamp - b.timestamp) / (b.timestamp - a.timestamp)).clamp(0.0, 3.0);
+    let turn = (b.rotation * a.rotation.inverse()).scaled_axis() * ratio;
+    StampedPose {
+        timestamp,
+        position: b.position + (b.position - a.position) * ratio,
+        rotation: UnitQuaternion::from_scaled_axis(turn) * b.rotation,
+    }
+}
+
+#[cfg(test)]
+#[path = "live_tracking_tests.rs"]
+mod tests;

@@ -1,0 +1,175 @@
+use super::*;
+
+fn camera() -> PinholeRadtan {
+    PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera")
+}
+
+/// 400 points on a wall 4-6 m ahead; track id = index.
+fn scene() -> Vec<Vector3<f64>> {
+    let mut state = 5u64;
+    let mut uniform = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    (0..400)
+        .map(|_| {
+            Vector3::new(
+                8.0 * uniform() - 4.0,
+                4.0 * uniform() - 2.0,
+                4.0 + 2.0 * uniform(),
+            )
+        })
+        .collect()
+}
+
+/// The camera walking sideways along x at 1 m/s, turning slowly, at 30 fps.
+fn pose_at(frame: u32) -> StampedPose {
+    let t = f64::from(frame) / 30.0;
+    StampedPose {
+        timestamp: t,
+        position: Vector3::new(t, 0.05 * t, 0.0),
+        rotation: UnitQuaternion::from_euler_angles(0.0, 0.1 * t, 0.0),
+    }
+}
+
+fn observe(points: &[Vector3<f64>], pose: &StampedPose) -> Vec<(u64, Point2<f64>)> {
+    let cam = camera();
+    let r_cw = pose.rotation.inverse();
+    points
+        .iter()
+        .enumerate()
+        .filter_map(|(i, x)| {
+            let px = cam.project_undistorted(&(r_cw * (x - pose.position)))?;
+            cam.contains(px).then_some((i as u64, px))
+        })
+        .collect()
+}
+
+fn error(a: &StampedPose, b: &StampedPose) -> (f64, f64) {
+    (
+        (a.position - b.position).norm(),
+        a.rotation.angle_to(&b.rotation).to_degrees(),
+    )
+}
+
+fn map_of(points: &[Vector3<f64>], ids: std::ops::Range<usize>, newest: StampedPose) -> MapView {
+    MapView {
+        camera: Some(camera()),
+        segment: 3,
+        points: ids.map(|i| (i as u64, points[i])).collect(),
+        newest_keyframe: Some(newest),
+    }
+}
+
+#[test]
+fn a_frame_is_tracked_on_the_map_from_the_newest_keyframe() {
+    let points = scene();
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    assert!(
+        tracker.track(0.0, &observe(&points, &pose_at(0))).is_none(),
+        "no map yet"
+    );
+    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
+    for frame in 1..10 {
+        let truth = pose_at(frame);
+        let live = tracker
+            .track(truth.timestamp, &observe(&points, &truth))
+            .expect("a map");
+        assert_eq!((live.state, live.segment), (TrackingState::Tracking, 3));
+        let (dx, da) = error(&live.pose, &truth);
+        assert!(dx < 1e-3 && da < 0.01, "frame {frame}: {dx} m, {da} deg");
+        assert!(live.inliers > 100);
+    }
+}
+
+#[test]
+fn a_late_map_is_carried_to_the_present_through_the_frames_since_its_keyframe() {
+    let points = scene();
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    // One second of frames before any map: nothing to pose them on.
+    for frame in 0..30 {
+        let truth = pose_at(frame);
+        assert!(tracker
+            .track(truth.timestamp, &observe(&points, &truth))
+            .is_none());
+    }
+    // The first map arrives: keyframe 10 and the first 100 points only.
+    tracker.set_map(map_of(&points, 0..100, pose_at(10)));
+    let (_, local) = tracker.points();
+    assert!(local > 150, "{local} points triangulated on the way");
+    // Those 100 tracks have ended: the frame is posed on the points triangulated since.
+    let in_view: Vec<(u64, Point2<f64>)> = observe(&points, &pose_at(30))
+        .into_iter()
+        .filter(|(t, _)| *t >= 100)
+        .collect();
+    let live = tracker.track(pose_at(30).timestamp, &in_view).expect("map");
+    assert_eq!(live.state, TrackingState::Tracking);
+    let (dx, da) = error(&live.pose, &pose_at(30));
+    assert!(dx < 0.01 && da < 0.1, "{dx} m, {da} deg");
+}
+
+#[test]
+fn without_points_in_view_the_pose_is_predicted_then_lost() {
+    let points = scene();
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
+    for frame in 0..3 {
+        let truth = pose_at(frame);
+        tracker.track(truth.timestamp, &observe(&points, &truth));
+    }
+    // Nothing tracked from frame 3 on: constant velocity for 0.5 s, then the last pose.
+    let predicted = tracker.track(pose_at(4).timestamp, &[]).expect("map");
+    assert_eq!(predicted.state, TrackingState::Predicted);
+    let (dx, da) = error(&predicted.pose, &pose_at(4));
+    assert!(
+        dx < 1e-6 && da < 1e-4,
+        "constant velocity is exact here: {dx} m, {da} deg"
+    );
+    let lost = tracker.track(pose_at(30).timestamp, &[]).expect("map");
+    assert_eq!(lost.state, TrackingState::Lost);
+    assert!(
+        error(&lost.pose, &pose_at(2)).0 < 1e-6,
+        "the last tracked pose"
+    );
+    // A new segment forgets the old one's motion.
+    tracker.set_map(MapView {
+        segment: 4,
+        ..map_of(&points, 0..400, pose_at(29))
+    });
+    let live = tracker
+        .track(pose_at(30).timestamp, &observe(&points, &pose_at(30)))
+        .expect("map");
+    assert_eq!((live.state, live.segment), (TrackingState::Tracking, 4));
+}
+
+#[test]
+fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
+    let points = scene();
+    let turning = |frame: u32| StampedPose {
+        timestamp: f64::from(frame) / 30.0,
+        position: Vector3::zeros(),
+        rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * f64::from(frame), 0.0),
+    };
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    let first = tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning(0)));
+    assert_eq!(first.state, TrackingState::Rotation);
+    for frame in 1..20 {
+        let truth = turning(frame);
+        let live = tracker
+            .track(truth.timestamp, &observe(&points, &truth))
+            .expect("the origin");
+        assert_eq!(live.state, TrackingState::Rotation);
+        let (dx, da) = error(&live.pose, &truth);
+        assert!(dx < 1e-12 && da < 0.01, "frame {frame}: {dx} m, {da} deg");
+    }
+    // A walk is not a turn: near points disagree with any rotation.
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    let near: Vec<Vector3<f64>> = points.iter().map(|x| x * 0.3).collect();
+    tracker.begin_at_origin(camera(), 0, 0.0, &observe(&near, &pose_at(0)));
+    let walked = tracker
+        .track(pose_at(6).timestamp, &observe(&near, &pose_at(6)))
+        .expect("the origin");
+    assert_ne!(walked.state, TrackingState::Rotation);
+}
