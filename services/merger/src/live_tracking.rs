@@ -10,6 +10,7 @@
 
 use crate::frame_localization::{localize_frame, LocalizationOptions};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_relocalization::absolute_pose::PnpOptions;
 use nalgebra::{Point2, UnitQuaternion, Vector3};
 use std::collections::{HashMap, VecDeque};
 
@@ -50,6 +51,11 @@ impl Default for LiveTrackerOptions {
     fn default() -> Self {
         Self {
             localization: LocalizationOptions {
+                pnp: PnpOptions {
+                    ransac_threshold_px: 4.0,
+                    min_inlier_ratio: 0.3,
+                    ..LocalizationOptions::default().pnp
+                },
                 max_rotation_from_prior_deg: 20.0,
                 ..LocalizationOptions::default()
             },
@@ -57,9 +63,9 @@ impl Default for LiveTrackerOptions {
             min_triangulation_angle_deg: 1.0,
             max_triangulation_error_px: 2.0,
             history_s: 3.0,
-            rotation_threshold_px: 3.0,
+            rotation_threshold_px: 5.0,
             rotation_min_inliers: 20,
-            rotation_min_inlier_share: 0.6,
+            rotation_min_inlier_share: 0.5,
         }
     }
 }
