@@ -27,6 +27,10 @@ pub enum Suite {
     /// the real processes, sampling each service's memory and the output's size every 2 s
     /// (docs/benchmarks.md, "Endurance"; endurance_bench.rs).
     Endurance,
+    /// Real-time replays with a zenoh client in the bench: each frame's time from capture
+    /// to its live pose, in report.json and at the client (docs/benchmarks.md, "Pose
+    /// latency"; latency_bench.rs).
+    Latency,
 }
 
 #[derive(Args, Debug)]
@@ -436,6 +440,9 @@ pub(crate) fn write_section(path: &Path, table: &str, section: &Section) -> anyh
 pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     if args.suite == Suite::Endurance {
         return crate::endurance_bench::run(&args, config);
+    }
+    if args.suite == Suite::Latency {
+        return crate::latency_bench::run(&args);
     }
     let entries = suite(&args);
     std::fs::create_dir_all(&args.out)?;

@@ -21,6 +21,7 @@ mod frontend_service;
 #[cfg(test)]
 mod fuzz_tests;
 mod latency;
+mod latency_bench;
 mod launcher;
 mod live_view;
 mod log_compaction;
