@@ -217,8 +217,14 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
         ));
         all.insert(sequence.name.into(), json!(runs));
     }
+    let profile = if cfg!(debug_assertions) {
+        "dev (debug) build"
+    } else {
+        "release build"
+    };
     table.push_str(&format!(
-        "\nMedians of {RUNS} runs each; build profile of the `egoslam` binary that ran the bench.\n"
+        "\nMedians of {RUNS} runs each, {profile}, 2 cores. Frames at the client: those \
+         whose first pose reached it (it connects while the calibration passes run).\n"
     ));
     print!("{table}");
     write_section(&args.markdown, &table, &SECTION)?;
