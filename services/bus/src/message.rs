@@ -53,16 +53,21 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         self
     }
 
-    /// Encodes and sends; blocks while the consumer is full, fails if it stays full past the
-    /// delivery timeout.
-    pub fn send(&mut self, message: &M) -> Result<(), SendError> {
+    /// Encodes `message` into the reused buffer.
+    fn encode(&mut self, message: &M) -> Result<(), SendError> {
         self.buffer.clear();
         message
             .encode(&mut self.buffer)
             .map_err(|e| SendError::Loan {
                 service: self.bus.service_name(&self.channel),
                 reason: e.to_string(),
-            })?;
+            })
+    }
+
+    /// Encodes and sends; blocks while the consumer is full, fails if it stays full past the
+    /// delivery timeout.
+    pub fn send(&mut self, message: &M) -> Result<(), SendError> {
+        self.encode(message)?;
         self.outbox
             .send(self.bus, &self.channel, self.sequence, &self.buffer)?;
         self.sequence += 1;
@@ -77,13 +82,7 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         message: &M,
         patience: std::time::Duration,
     ) -> Result<bool, SendError> {
-        self.buffer.clear();
-        message
-            .encode(&mut self.buffer)
-            .map_err(|e| SendError::Loan {
-                service: self.bus.service_name(&self.channel),
-                reason: e.to_string(),
-            })?;
+        self.encode(message)?;
         let start = std::time::Instant::now();
         loop {
             let delivered =
