@@ -423,21 +423,28 @@ fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> HashMap<u64, V
 
 /// The rotation `R` (camera now -> camera before) that best takes the rays of now onto the
 /// rays of before for the tracks both have, and how many agree within `threshold_rad`:
-/// Kabsch on all, then again on those that agree (twice), so that a few wrong or near
-/// tracks do not pull it. `None` with fewer than 3 shared tracks.
+/// RANSAC over pairs of tracks (two rays fix a rotation), then Kabsch on those that agree
+/// with the best pair, twice. A group of tracks moving together (a near surface, a
+/// moving object) would pull a least-squares fit over all of them off every track.
+/// `None` with fewer than 3 shared tracks.
 fn rotation_between(
     before: &HashMap<u64, Vector3<f64>>,
     now: &HashMap<u64, Vector3<f64>>,
     threshold_rad: f64,
 ) -> Option<(UnitQuaternion<f64>, usize)> {
-    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = now
+    /// Pairs drawn: with half the tracks agreeing, 64 draws all miss a good pair with
+    /// probability 0.75^64 < 1e-7.
+    const DRAWS: usize = 64;
+    let mut pairs: Vec<(u64, Vector3<f64>, Vector3<f64>)> = now
         .iter()
-        .filter_map(|(t, r)| before.get(t).map(|b| (*b, *r)))
+        .filter_map(|(t, r)| before.get(t).map(|b| (*t, *b, *r)))
         .collect();
     if pairs.len() < 3 {
         return None;
     }
-    let fit = |used: &[&(Vector3<f64>, Vector3<f64>)]| {
+    // Track order, so that the draws (and the result) do not depend on the hash order.
+    pairs.sort_by_key(|(t, ..)| *t);
+    let fit = |used: &[(Vector3<f64>, Vector3<f64>)]| {
         let h: nalgebra::Matrix3<f64> = used.iter().map(|(b, r)| r * b.transpose()).sum();
         let svd = h.svd(true, true);
         let (u, v_t) = (svd.u?, svd.v_t?);
@@ -448,23 +455,44 @@ fn rotation_between(
         Some(UnitQuaternion::from_rotation_matrix(&rotation))
     };
     let min_cos = threshold_rad.cos();
-    let mut used: Vec<&(Vector3<f64>, Vector3<f64>)> = pairs.iter().collect();
-    let mut rotation = fit(&used)?;
-    for _ in 0..2 {
-        used = pairs
+    let agreeing = |rotation: &UnitQuaternion<f64>| -> Vec<(Vector3<f64>, Vector3<f64>)> {
+        pairs
             .iter()
-            .filter(|(b, r)| b.dot(&(rotation * r)) >= min_cos)
-            .collect();
+            .filter(|(_, b, r)| b.dot(&(rotation * r)) >= min_cos)
+            .map(|(_, b, r)| (*b, *r))
+            .collect()
+    };
+    let mut state = pairs.len() as u64 ^ 0x9e37_79b9_7f4a_7c15;
+    let mut draw = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 33) as usize % pairs.len()
+    };
+    let mut best: Option<(UnitQuaternion<f64>, usize)> = None;
+    for _ in 0..DRAWS {
+        let (i, j) = (draw(), draw());
+        if i == j {
+            continue;
+        }
+        let sample = [(pairs[i].1, pairs[i].2), (pairs[j].1, pairs[j].2)];
+        let Some(rotation) = fit(&sample) else {
+            continue;
+        };
+        let support = agreeing(&rotation).len();
+        if best.is_none_or(|(_, n)| support > n) {
+            best = Some((rotation, support));
+        }
+    }
+    let (mut rotation, _) = best?;
+    for _ in 0..2 {
+        let used = agreeing(&rotation);
         if used.len() < 3 {
             return None;
         }
         rotation = fit(&used)?;
     }
-    let inliers = pairs
-        .iter()
-        .filter(|(b, r)| b.dot(&(rotation * r)) >= min_cos)
-        .count();
-    Some((rotation, inliers))
+    Some((rotation, agreeing(&rotation).len()))
 }
 
 /// The midpoint of the shortest segment between two rays, if it lies in front of both.

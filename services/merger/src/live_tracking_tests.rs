@@ -173,3 +173,30 @@ fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
         .expect("the origin");
     assert_ne!(walked.state, TrackingState::Rotation);
 }
+
+#[test]
+fn the_rotation_from_rays_ignores_tracks_that_moved_on_their_own() {
+    let points = scene();
+    let turn = UnitQuaternion::from_euler_angles(0.02, -0.05, 0.01);
+    let before: HashMap<u64, Vector3<f64>> = points
+        .iter()
+        .enumerate()
+        .map(|(i, x)| (i as u64, x.normalize()))
+        .collect();
+    // Camera now = camera before turned by `turn`; a third of the tracks slid elsewhere.
+    let now: HashMap<u64, Vector3<f64>> = before
+        .iter()
+        .map(|(t, b)| {
+            let r = turn.inverse() * b;
+            let r = if t % 3 == 0 {
+                (r + Vector3::new(0.05, -0.03, 0.0)).normalize()
+            } else {
+                r
+            };
+            (*t, r)
+        })
+        .collect();
+    let (rotation, inliers) = rotation_between(&before, &now, 3.0 / 500.0).expect("fit");
+    assert!(rotation.angle_to(&turn).to_degrees() < 1e-6);
+    assert_eq!(inliers, points.len() - points.len().div_ceil(3));
+}
