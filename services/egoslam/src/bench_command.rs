@@ -259,16 +259,28 @@ pub(crate) fn egoslam() -> anyhow::Result<Command> {
 /// The `egoslam run` of one entry: the bench's `config` first, so that the entry's own
 /// flags, given after it, win.
 fn run_command(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<Command> {
+    run_of(&entry.input, out, config, &entry.run)
+}
+
+/// `egoslam [--config C] run --input INPUT --out OUT EXTRA...`, output silenced: how every
+/// suite starts a run.
+pub(crate) fn run_of(
+    input: &Path,
+    out: &Path,
+    config: Option<&Path>,
+    extra: &[String],
+) -> anyhow::Result<Command> {
     let mut run = egoslam()?;
     if let Some(config) = config {
         run.arg("--config").arg(config);
     }
     run.arg("run")
         .arg("--input")
-        .arg(&entry.input)
+        .arg(input)
         .arg("--out")
         .arg(out)
-        .args(&entry.run);
+        .args(extra)
+        .stdout(std::process::Stdio::null());
     Ok(run)
 }
 
@@ -300,9 +312,7 @@ fn measure(entry: &Entry, out: &Path, config: Option<&Path>) -> anyhow::Result<s
         ensure_rendered(&entry.input, synth)?;
     }
     let start = Instant::now();
-    let status = run_command(entry, out, config)?
-        .stdout(std::process::Stdio::null())
-        .status()?;
+    let status = run_command(entry, out, config)?.status()?;
     let wall = start.elapsed().as_secs_f64();
     if !status.success() {
         return Ok(json!({"name": entry.name, "error": "egoslam run failed"}));

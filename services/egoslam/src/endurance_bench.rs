@@ -10,7 +10,7 @@
 //! against the peak in the last cycle, the size at both, and the ATE of the whole looped
 //! trajectory against one pass of the same walk.
 
-use crate::bench_command::{egoslam, ensure_rendered, write_section, BenchArgs, Section};
+use crate::bench_command::{ensure_rendered, run_of, write_section, BenchArgs, Section};
 use anyhow::{bail, Context};
 use serde_json::json;
 use std::collections::BTreeMap;
@@ -225,17 +225,7 @@ fn sampled_run(
     out: &Path,
     config: Option<&Path>,
 ) -> anyhow::Result<(Vec<Sample>, serde_json::Value)> {
-    let mut command = egoslam()?;
-    if let Some(config) = config {
-        command.arg("--config").arg(config);
-    }
-    let mut child = command
-        .arg("run")
-        .arg("--input")
-        .arg(input)
-        .arg("--out")
-        .arg(out)
-        .stdout(std::process::Stdio::null())
+    let mut child = run_of(input, out, config, &[])?
         .spawn()
         .context("starting egoslam run")?;
     let started = Instant::now();

@@ -259,7 +259,8 @@ fn continue_tracks(
 fn send_live_frame(
     publisher: &mut MessagePublisher<pb::LiveFrame>,
     meta: &egoslam_bus::FrameMeta,
-    (tracker, intrinsics): (&Tracker, &pb::Intrinsics),
+    tracker: &Tracker,
+    intrinsics: &pb::Intrinsics,
     first_of_stream: bool,
     stats: &mut ServiceStats,
 ) {
@@ -270,16 +271,10 @@ fn send_live_frame(
         frame_id: meta.frame_id,
         timestamp_s: meta.timestamp,
         captured_unix_ns: meta.captured_unix_ns,
-        tracked_unix_ns: egoslam_bus::unix_now_ns(),
         tracks: tracker
             .live_track_points()
             .iter()
-            .map(|t| pb::TrackObservation {
-                track_id: t.track_id,
-                x: t.undistorted.x,
-                y: t.undistorted.y,
-                ..Default::default()
-            })
+            .map(track_message)
             .collect(),
     };
     // The stream's first frame anchors the live poses until the first window: it is worth
@@ -400,8 +395,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         };
         // First, before anything else the frame causes: a live pose waits for this.
         let first_of_stream = !resuming && stats.frames == 0;
-        let camera = (&tracker, &intrinsics);
-        send_live_frame(&mut live_frames, &meta, camera, first_of_stream, &mut stats);
+        send_live_frame(
+            &mut live_frames,
+            &meta,
+            &tracker,
+            &intrinsics,
+            first_of_stream,
+            &mut stats,
+        );
         if let Some((mut k, mut msg)) = pending.take() {
             if tracker.centre_keyframe(&mut k) > 0 {
                 for (m, t) in msg.tracks.iter_mut().zip(&k.tracks) {

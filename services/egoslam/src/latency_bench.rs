@@ -10,7 +10,8 @@
 //! fastest frame's (the replay's start offset cancels). Three runs per sequence; the table
 //! gives the median of each figure over them.
 
-use crate::bench_command::{egoslam, ensure_rendered, write_section, BenchArgs, Section};
+use crate::bench_command::{ensure_rendered, run_of, write_section, BenchArgs, Section};
+use crate::latency::LatencyHistogram;
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;
 use prost::Message;
@@ -87,22 +88,12 @@ fn free_port() -> anyhow::Result<u16> {
         .port())
 }
 
-/// The `q` quantile of sorted `values` (nearest rank).
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
-}
-
 /// One real-time run of `input` with a client listening; the run's figures.
 fn measure(input: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
-    let mut run = egoslam()?
+    let realtime = ["--realtime", "--device", DEVICE].map(String::from);
+    let mut run = run_of(input, out, None, &realtime)?
         .env("EGOSLAM_ZENOH_LISTEN", &endpoint)
-        .args(["run", "--realtime", "--device", DEVICE, "--input"])
-        .arg(input)
-        .arg("--out")
-        .arg(out)
-        .stdout(std::process::Stdio::null())
         .spawn()
         .context("starting egoslam run")?;
     let config = egoslam_egress::zenoh_config(&[], std::slice::from_ref(&endpoint))?;
@@ -154,18 +145,20 @@ fn measure(input: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
             .or_insert(a.arrived_unix_s - a.timestamp_s);
     }
     let fastest = first.values().copied().fold(f64::INFINITY, f64::min);
-    let mut above: Vec<f64> = first.values().map(|d| 1e3 * (d - fastest)).collect();
-    above.sort_by(f64::total_cmp);
-    if above.is_empty() {
-        bail!("no pose reached the client");
+    let mut above = LatencyHistogram::default();
+    for d in first.values() {
+        above.add(1e3 * (d - fastest));
     }
+    let Some(client) = above.summary() else {
+        bail!("no pose reached the client");
+    };
     let live = &report["latency_ms"]["live_published"];
     Ok(json!({
         "frames": report["frames"],
-        "frames_at_client": above.len(),
-        "client_p50_ms": quantile(&above, 0.5),
-        "client_p95_ms": quantile(&above, 0.95),
-        "client_max_ms": above.last(),
+        "frames_at_client": client.frames,
+        "client_p50_ms": client.p50_ms,
+        "client_p95_ms": client.p95_ms,
+        "client_max_ms": client.max_ms,
         "capture_p50_ms": live["p50_ms"],
         "capture_p95_ms": live["p95_ms"],
         "capture_max_ms": live["max_ms"],

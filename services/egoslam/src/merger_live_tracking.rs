@@ -62,7 +62,8 @@ impl LiveTracking {
         Self { maps, stop, thread }
     }
 
-    /// Hands the tracker the map around the newest window (`from_keyframe` on).
+    /// Hands the tracker the map around the newest window (`window`: its keyframe ids):
+    /// the points its keyframes see, and its last keyframe's pose.
     pub(super) fn update(
         &self,
         map: &MapBuilder,
@@ -82,11 +83,8 @@ impl LiveTracking {
             newest_keyframe: Some(*newest),
         };
         tracing::debug!(
-            first = *first,
-            last = *last,
             segment,
             points = view.points.len(),
-            observed_by_last = map.observed_points(*last),
             "map for the live tracker"
         );
         // A tracker that ended (its error comes out at `finish`) no longer takes maps.

@@ -9,7 +9,7 @@
 //! the state is bounded by what is in view.
 
 use crate::frame_localization::{localize_frame, LocalizationOptions};
-use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_geometry::{rotation_aligning, BearingPair, PinholeRadtan, StampedPose};
 use egoslam_relocalization::absolute_pose::PnpOptions;
 use nalgebra::{Point2, UnitQuaternion, Vector3};
 use std::collections::{HashMap, VecDeque};
@@ -17,27 +17,31 @@ use std::collections::{HashMap, VecDeque};
 /// Defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LiveTrackerOptions {
-    /// PnP and its acceptance (frame localization's, with a looser rotation limit: the
-    /// prior is extrapolated, not interpolated between two posed keyframes).
+    /// PnP and its acceptance: frame localization's, looser (4 px, 30 % of the
+    /// correspondences, 20 deg from the prior): the prior is extrapolated, not interpolated
+    /// between two posed keyframes, the tracker's own points are less refined than the
+    /// map's, and a live client prefers a rougher pose to none.
     pub localization: LocalizationOptions,
     /// How long a pose predicted at constant velocity is offered as PREDICTED after the last
     /// tracked one, seconds (default 0.5: a head keeps its turn for about that long;
     /// beyond, the prediction is reported LOST).
     pub max_prediction_s: f64,
     /// Parallax between a track's first sighting and the current one before the tracker
-    /// triangulates it, degrees (default 3: at 1 px of noise on a 500 px focal, the depth
-    /// error is then ~4 % of the depth).
+    /// triangulates it, degrees (default 1: tracks live a fraction of a second in head
+    /// motion, and at 1 px of noise on a 500 px focal the depth is then known to ~12 %,
+    /// enough to carry a PnP until the map's refined point arrives).
     pub min_triangulation_angle_deg: f64,
     /// Largest reprojection error of a triangulated point in the current frame, pixels
     /// (default 2, the PnP threshold).
     pub max_triangulation_error_px: f64,
     /// Turning in place (no map point in view): the orientation is fitted to the rays of
     /// the tracks shared with the previous posed frame. A ray agrees within this angle,
-    /// in pixels at the focal length (default 3: tracking noise plus the parallax of a
-    /// head's few centimetres of motion between frames on points a few metres away).
+    /// in pixels at the focal length (default 5: tracking noise, an uncorrected rolling
+    /// shutter in a fast turn, and the parallax of a head's few centimetres of motion
+    /// between frames on points a few metres away).
     pub rotation_threshold_px: f64,
     /// Least agreeing rays for an orientation from rays, and their least share of the
-    /// shared tracks (defaults 20 and 0.6: a rotation has 3 degrees of freedom, and a
+    /// shared tracks (defaults 20 and 0.5: a rotation has 3 degrees of freedom, and a
     /// walking camera's near points disagree, which must make it fail).
     pub rotation_min_inliers: usize,
     pub rotation_min_inlier_share: f64,
@@ -91,7 +95,7 @@ pub struct LivePose {
     /// The map segment the pose is in.
     pub segment: u32,
     pub state: TrackingState,
-    /// PnP inliers (0 unless tracking).
+    /// PnP inliers (tracking) or tracks agreeing with the rotation (rotation); else 0.
     pub inliers: usize,
 }
 
@@ -263,10 +267,6 @@ impl LiveTracker {
             &self.options.localization,
         );
         let rays_now = rays(&camera, tracks);
-        let turned = match located {
-            Ok(_) => None,
-            Err(_) => self.turned(&camera, timestamp, &rays_now),
-        };
         let live = match located {
             Ok(l) => {
                 let pose = StampedPose {
@@ -283,51 +283,52 @@ impl LiveTracker {
                     inliers: l.inliers,
                 }
             }
-            Err(_) if turned.is_some() => {
-                let (pose, inliers) = turned?;
-                // The velocity restarts from this pose: a turn in place has none to extrapolate.
-                self.before_last = None;
-                self.last = Some(pose);
-                self.previous = Some((pose, rays_now));
-                LivePose {
-                    pose,
-                    segment: self.map.segment,
-                    state: TrackingState::Rotation,
-                    inliers,
+            Err(e) => match self.turned(&camera, timestamp, &rays_now) {
+                Some((pose, inliers)) => {
+                    // The velocity restarts here: a turn in place has none to extrapolate.
+                    self.before_last = None;
+                    self.last = Some(pose);
+                    self.previous = Some((pose, rays_now));
+                    LivePose {
+                        pose,
+                        segment: self.map.segment,
+                        state: TrackingState::Rotation,
+                        inliers,
+                    }
                 }
-            }
-            Err(e) => {
-                tracing::debug!(
-                    min_track = tracks.iter().map(|t| t.0).min(),
-                    max_track = tracks.iter().map(|t| t.0).max(),
-                    min_map = self.map.points.keys().min(),
-                    max_map = self.map.points.keys().max(),
-                    error = %e,
-                    correspondences = correspondences.len(),
-                    map_points = self.map.points.len(),
-                    local_points = self.local_points.len(),
-                    "live frame not tracked"
-                );
-                let fresh = self
-                    .last
-                    .is_some_and(|l| timestamp - l.timestamp <= self.options.max_prediction_s);
-                let (pose, state) = match (fresh, self.last) {
-                    (false, Some(last)) => (StampedPose { timestamp, ..last }, TrackingState::Lost),
-                    _ => (prior, TrackingState::Predicted),
-                };
-                LivePose {
-                    pose,
-                    segment: self.map.segment,
-                    state,
-                    inliers: 0,
+                None => {
+                    tracing::debug!(
+                        error = %e,
+                        correspondences = correspondences.len(),
+                        local_points = self.local_points.len(),
+                        "live frame not tracked"
+                    );
+                    self.unsupported(timestamp, prior)
                 }
-            }
+            },
         };
         // Tracks end for good (ids are never reused): forget those not in this frame.
         let alive: std::collections::HashSet<u64> = tracks.iter().map(|(t, _)| *t).collect();
         self.local_points.retain(|t, _| alive.contains(t));
         self.sightings.retain(|t, _| alive.contains(t));
         Some(live)
+    }
+
+    /// A frame neither PnP nor a rotation places: the prior while the last tracked pose is
+    /// recent (PREDICTED), else that pose (LOST).
+    fn unsupported(&self, timestamp: f64, prior: StampedPose) -> LivePose {
+        let (pose, state) = match self.last {
+            Some(last) if timestamp - last.timestamp > self.options.max_prediction_s => {
+                (StampedPose { timestamp, ..last }, TrackingState::Lost)
+            }
+            _ => (prior, TrackingState::Predicted),
+        };
+        LivePose {
+            pose,
+            segment: self.map.segment,
+            state,
+            inliers: 0,
+        }
     }
 
     /// The pose from the rays of the tracks shared with the previous posed frame, if a
@@ -435,31 +436,23 @@ fn rotation_between(
     /// Pairs drawn: with half the tracks agreeing, 64 draws all miss a good pair with
     /// probability 0.75^64 < 1e-7.
     const DRAWS: usize = 64;
-    let mut pairs: Vec<(u64, Vector3<f64>, Vector3<f64>)> = now
+    // `(now, before)`: the pairs `rotation_aligning` turns the first onto the second of.
+    let mut pairs: Vec<(u64, BearingPair)> = now
         .iter()
-        .filter_map(|(t, r)| before.get(t).map(|b| (*t, *b, *r)))
+        .filter_map(|(t, r)| before.get(t).map(|b| (*t, (*r, *b))))
         .collect();
     if pairs.len() < 3 {
         return None;
     }
     // Track order, so that the draws (and the result) do not depend on the hash order.
-    pairs.sort_by_key(|(t, ..)| *t);
-    let fit = |used: &[(Vector3<f64>, Vector3<f64>)]| {
-        let h: nalgebra::Matrix3<f64> = used.iter().map(|(b, r)| r * b.transpose()).sum();
-        let svd = h.svd(true, true);
-        let (u, v_t) = (svd.u?, svd.v_t?);
-        let mut d = nalgebra::Matrix3::identity();
-        d[(2, 2)] = (v_t.transpose() * u.transpose()).determinant().signum();
-        let rotation =
-            nalgebra::Rotation3::from_matrix_unchecked(v_t.transpose() * d * u.transpose());
-        Some(UnitQuaternion::from_rotation_matrix(&rotation))
-    };
+    pairs.sort_by_key(|(t, _)| *t);
+    let fit = |used: &[BearingPair]| UnitQuaternion::from_rotation_matrix(&rotation_aligning(used));
     let min_cos = threshold_rad.cos();
-    let agreeing = |rotation: &UnitQuaternion<f64>| -> Vec<(Vector3<f64>, Vector3<f64>)> {
+    let agreeing = |rotation: &UnitQuaternion<f64>| -> Vec<BearingPair> {
         pairs
             .iter()
-            .filter(|(_, b, r)| b.dot(&(rotation * r)) >= min_cos)
-            .map(|(_, b, r)| (*b, *r))
+            .filter(|(_, (r, b))| b.dot(&(rotation * r)) >= min_cos)
+            .map(|(_, pair)| *pair)
             .collect()
     };
     let mut state = pairs.len() as u64 ^ 0x9e37_79b9_7f4a_7c15;
@@ -475,10 +468,7 @@ fn rotation_between(
         if i == j {
             continue;
         }
-        let sample = [(pairs[i].1, pairs[i].2), (pairs[j].1, pairs[j].2)];
-        let Some(rotation) = fit(&sample) else {
-            continue;
-        };
+        let rotation = fit(&[pairs[i].1, pairs[j].1]);
         let support = agreeing(&rotation).len();
         if best.is_none_or(|(_, n)| support > n) {
             best = Some((rotation, support));
@@ -490,7 +480,7 @@ fn rotation_between(
         if used.len() < 3 {
             return None;
         }
-        rotation = fit(&used)?;
+        rotation = fit(&used);
     }
     Some((rotation, agreeing(&rotation).len()))
 }

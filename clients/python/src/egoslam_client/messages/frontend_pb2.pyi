@@ -62,22 +62,20 @@ class Keyframe(_message.Message):
     def __init__(self, keyframe_id: _Optional[int] = ..., frame_id: _Optional[int] = ..., timestamp_s: _Optional[float] = ..., intrinsics: _Optional[_Union[_geometry_pb2.Intrinsics, _Mapping]] = ..., tracks: _Optional[_Iterable[_Union[TrackObservation, _Mapping]]] = ..., frames_since_previous: _Optional[_Iterable[_Union[FrameStamp, _Mapping]]] = ..., mean_flow_px: _Optional[float] = ..., reason: _Optional[_Union[KeyframeReason, str]] = ..., end_of_stream: bool = ..., trailing_frames: _Optional[_Iterable[_Union[FrameStamp, _Mapping]]] = ...) -> None: ...
 
 class LiveFrame(_message.Message):
-    __slots__ = ["captured_unix_ns", "first_of_stream", "frame_id", "intrinsics", "timestamp_s", "tracked_unix_ns", "tracks"]
+    __slots__ = ["captured_unix_ns", "first_of_stream", "frame_id", "intrinsics", "timestamp_s", "tracks"]
     CAPTURED_UNIX_NS_FIELD_NUMBER: _ClassVar[int]
     FIRST_OF_STREAM_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_S_FIELD_NUMBER: _ClassVar[int]
-    TRACKED_UNIX_NS_FIELD_NUMBER: _ClassVar[int]
     TRACKS_FIELD_NUMBER: _ClassVar[int]
     captured_unix_ns: int
     first_of_stream: bool
     frame_id: int
     intrinsics: _geometry_pb2.Intrinsics
     timestamp_s: float
-    tracked_unix_ns: int
     tracks: _containers.RepeatedCompositeFieldContainer[TrackObservation]
-    def __init__(self, frame_id: _Optional[int] = ..., timestamp_s: _Optional[float] = ..., captured_unix_ns: _Optional[int] = ..., tracked_unix_ns: _Optional[int] = ..., tracks: _Optional[_Iterable[_Union[TrackObservation, _Mapping]]] = ..., intrinsics: _Optional[_Union[_geometry_pb2.Intrinsics, _Mapping]] = ..., first_of_stream: bool = ...) -> None: ...
+    def __init__(self, frame_id: _Optional[int] = ..., timestamp_s: _Optional[float] = ..., captured_unix_ns: _Optional[int] = ..., tracks: _Optional[_Iterable[_Union[TrackObservation, _Mapping]]] = ..., intrinsics: _Optional[_Union[_geometry_pb2.Intrinsics, _Mapping]] = ..., first_of_stream: bool = ...) -> None: ...
 
 class TrackObservation(_message.Message):
     __slots__ = ["descriptor", "patch", "raw_x", "raw_y", "track_id", "x", "y"]
