@@ -174,6 +174,42 @@ fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
         pose_messages.len()
     );
     assert!(pose_messages.iter().all(|p| p.timestamp_s > 0.0));
+    // After this run, not beside it: two real-time runs at once on two cores drop frames
+    // and starve both of CPU.
+    every_frame_is_published_first_as_its_live_pose();
+}
+
+fn every_frame_is_published_first_as_its_live_pose() {
+    // The client listens and the merger connects to it as it starts, so the client's
+    // subscription is in place before the first frame (connecting to the merger's
+    // listener instead races the replay's first frames).
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let config =
+        egoslam_egress::zenoh_config(std::slice::from_ref(&endpoint), &[]).expect("config");
+    let session = zenoh::open(config).wait().expect("listen");
+    let received = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let sink = received.clone();
+    let _poses = session
+        .declare_subscriber("egoslam/live/pose")
+        .callback(move |s| {
+            let pose = pb::Pose::decode(&*s.payload().to_bytes()).expect("pose");
+            sink.lock().expect("sink").push(pose);
+        })
+        .wait()
+        .expect("sub");
+    let out = tempfile::tempdir().expect("tempdir");
+    let status = egoslam()
+        .args(["run", "--realtime", "--device", "live", "--zenoh-connect"])
+        .arg(&endpoint)
+        .arg("--input")
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path())
+        .env("EGOSLAM_ZENOH_LISTEN", "tcp/127.0.0.1:0")
+        .status()
+        .expect("run");
+    assert!(status.success());
+    let pose_messages = received.lock().expect("poses").clone();
     live_poses_come_first(&pose_messages, &report(out.path()));
 }
 
@@ -191,12 +227,17 @@ fn live_poses_come_first(pose_messages: &[pb::Pose], report: &serde_json::Value)
     for p in pose_messages {
         first.entry(p.frame_id).or_insert(p);
     }
-    let frames = report["frames"].as_u64().expect("frames");
-    // The client connects while the calibration passes run, before the first frame.
-    assert!(
-        first.len() as u64 * 10 >= frames * 9,
-        "{} of {frames} frames",
-        first.len()
+    // The frames the pipeline took (a real-time replay drops those the frontend could not
+    // take, on a loaded machine): every one reaches the client.
+    let frames = report["posed_frames"].as_u64().expect("posed frames");
+    let missing: Vec<u64> = (0..report["frames"].as_u64().expect("frames"))
+        .filter(|f| !first.contains_key(f))
+        .collect();
+    assert_eq!(
+        first.len() as u64,
+        frames,
+        "frames with a pose at the client (missing {missing:?}, dropped by the replay: {})",
+        report["dropped_frames"]
     );
     for p in first.values() {
         assert!(
@@ -212,7 +253,7 @@ fn live_poses_come_first(pose_messages: &[pb::Pose], report: &serde_json::Value)
         .filter(|p| p.revision > 0)
         .all(|p| p.tracking == pb::TrackingState::Refined as i32));
     // On this clip (fast rotation, tracks living a fraction of a second) the live tracker
-    // localizes about half the frames on the map (66 of 120) and follows most others by
+    // localizes about half the frames on the map (64-68 of 120) and follows most others by
     // rotation; fewer than a quarter would mean the map no longer reaches it.
     let tracked = first
         .values()
