@@ -168,8 +168,6 @@ pub fn find_loop(
     let older = OlderKeyframes {
         query_point: &|track| sources.segment_point(segment, track),
         accept: &accept,
-        // The recent past of the same segment scores best and is refused: draw deeper.
-        pool: 20,
     };
     let agreement = relocalize_consistently(sources, &newest, &older, &options.link)?;
     if agreement.shared_points < options.min_shared_points {

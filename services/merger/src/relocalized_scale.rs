@@ -115,8 +115,6 @@ pub fn relocalized_window_scale(
     let older = OlderKeyframes {
         query_point: &|track| points.get(&track).copied(),
         accept: &accept,
-        // The window's own keyframes are indexed too and score best: draw deeper.
-        pool: 20,
     };
     let agreement = relocalize_consistently(sources, &queries, &older, &options.link)?;
     tracing::debug!(

@@ -174,7 +174,6 @@ pub fn find_link(
     let older = OlderKeyframes {
         query_point: &|track| sources.segment_point(segment, track),
         accept: &|_, s| s != segment,
-        pool: 4,
     };
     let agreement = relocalize_consistently(sources, &queries, &older, options)?;
     Some(SegmentLink {
@@ -191,12 +190,10 @@ pub fn find_link(
 pub(crate) struct OlderKeyframes<'a> {
     /// A query keyframe's track -> its point in the queries' frame, if triangulated.
     pub query_point: &'a dyn Fn(u64) -> Option<Vector3<f64>>,
-    /// `(keyframe id, its segment)` -> whether it may be a match.
+    /// `(keyframe id, its segment)` -> whether it may be a match. The index is asked for
+    /// its best among these alone: where the best-scoring keyframes are refused (a loop's
+    /// recent past), drawing a fixed number first and filtering after left none.
     pub accept: &'a dyn Fn(u64, u32) -> bool,
-    /// Candidates drawn from the index per wanted candidate, before `accept` filters them
-    /// (the index holds every keyframe; where `accept` rejects most of the best-scoring
-    /// ones, e.g. the recent past of a loop, more must be drawn).
-    pub pool: usize,
 }
 
 /// What the queries agreed on.
@@ -248,13 +245,11 @@ pub(crate) fn relocalize_consistently(
         };
         let descriptors: Vec<_> = query.iter().map(|f| f.descriptor).collect();
         let bow = vocabulary.bag_of_words(&descriptors);
-        let candidates = database
-            .query(&bow, older.pool * options.relocalizer.candidates)
-            .into_iter()
-            .filter(|c| {
-                matches!(map.keyframe(c.keyframe_id), Some((s, _)) if (older.accept)(c.keyframe_id, s))
-            })
-            .take(options.relocalizer.candidates);
+        let candidates = database.query_where(
+            &bow,
+            options.relocalizer.candidates,
+            |id| matches!(map.keyframe(id), Some((s, _)) if (older.accept)(id, s)),
+        );
         for c in candidates {
             let at = older_ids.partition_point(|k| *k < c.keyframe_id);
             let lo = at.saturating_sub(options.relocalizer.neighbours);

@@ -74,6 +74,18 @@ impl KeyframeDatabase {
     /// `1 - |q - d|_1 / 2 = sum over shared words of (|q_i| + |d_i| - |q_i - d_i|) / 2`,
     /// which needs only the shared words.
     pub fn query(&self, bow: &BowVector, max_results: usize) -> Vec<Candidate> {
+        self.query_where(bow, max_results, |_| true)
+    }
+
+    /// [`Self::query`] among the keyframes `accept` takes: they are chosen before the
+    /// best are kept, so a query whose best matches are all refused (a loop's recent past,
+    /// which always scores best) still gets its `max_results`.
+    pub fn query_where(
+        &self,
+        bow: &BowVector,
+        max_results: usize,
+        accept: impl Fn(u64) -> bool,
+    ) -> Vec<Candidate> {
         let mut scores: HashMap<u32, f32> = HashMap::new();
         for &(word, q) in bow {
             let Some(list) = self.inverted.get(&word) else {
@@ -89,6 +101,7 @@ impl KeyframeDatabase {
                 keyframe_id: self.keyframes[entry as usize],
                 score: 0.5 * s,
             })
+            .filter(|c| accept(c.keyframe_id))
             .collect();
         out.sort_by(|a, b| {
             b.score
@@ -125,5 +138,22 @@ mod tests {
         assert_eq!(db.len(), 2);
         assert!(!db.contains(7) && db.contains(8));
         assert!(!db.inverted.contains_key(&4), "an emptied word's list goes");
+    }
+
+    #[test]
+    fn a_filtered_query_returns_the_best_accepted_even_below_refused_ones() {
+        let mut db = KeyframeDatabase::new();
+        // Keyframes 10..20 match the query best and are refused; 1 and 2 match less.
+        for k in 10..20 {
+            db.add(k, &vec![(1, 0.5), (4, 0.5)]);
+        }
+        db.add(1, &vec![(1, 0.5), (9, 0.5)]);
+        db.add(2, &vec![(1, 0.2), (9, 0.8)]);
+        let query = vec![(1, 0.5), (4, 0.5)];
+        assert!(db.query(&query, 2).iter().all(|c| c.keyframe_id >= 10));
+        let got = db.query_where(&query, 2, |k| k < 10);
+        let ids: Vec<u64> = got.iter().map(|c| c.keyframe_id).collect();
+        assert_eq!(ids, vec![1, 2]);
+        assert!((got[0].score - 0.5).abs() < 1e-6 && (got[1].score - 0.2).abs() < 1e-6);
     }
 }
