@@ -279,9 +279,6 @@ pub fn run(args: SynthArgs) -> anyhow::Result<()> {
             1000.0 / args.fps
         );
     }
-    if rolling && camera.lens.is_fisheye() {
-        bail!("--rolling-shutter-ms with --lens {:?}: a rolling shutter is rendered through a pinhole only", args.lens);
-    }
     // With both, each row's exposure (half the frame interval, as the global shutter's)
     // is blurred: the poses then span the readout and one exposure.
     let readout_s = args.rolling_shutter_ms / 1000.0;

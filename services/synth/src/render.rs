@@ -280,7 +280,7 @@ pub fn readout_poses(
 
 /// The pose of `path` (sorted by time) at time `t`, interpolated between the samples
 /// either side (clamped at its ends); `None` for an empty path.
-fn pose_at_time(path: &[StampedPose], t: f64) -> Option<StampedPose> {
+pub(crate) fn pose_at_time(path: &[StampedPose], t: f64) -> Option<StampedPose> {
     let after = path.partition_point(|p| p.timestamp <= t);
     let (a, b) = match (after.checked_sub(1), path.get(after)) {
         (Some(i), Some(b)) => (&path[i], b),
