@@ -83,17 +83,20 @@ pub fn render_fisheye_frame(
             .collect()
     };
     let rolling = options.rolling_shutter && poses.len() > 1;
-    // One cube map for a global shutter; for a rolling one, one per moment of the readout,
-    // each from the poses a row exposed then saw.
+    // One cube map for a global shutter; for a rolling one, one per moment of the poses'
+    // span, each from the single pose of that moment.
+    let readout = Readout::of(options);
     let cubes: Vec<Vec<Frame>> = if rolling {
-        (0..ROLLING_SLICES)
-            .map(|k| {
-                cube(&row_poses(
-                    poses,
-                    k as f64 / (ROLLING_SLICES - 1) as f64,
-                    options,
-                ))
+        let (Some(first), Some(last)) = (poses.first(), poses.last()) else {
+            return Err(FisheyeRenderError::NotFisheye("no pose"));
+        };
+        let span = last.timestamp - first.timestamp;
+        (0..readout.slices)
+            .filter_map(|k| {
+                let t = first.timestamp + span * k as f64 / (readout.slices - 1) as f64;
+                pose_at_time(poses, t)
             })
+            .map(|pose| cube(&[pose]))
             .collect()
     } else {
         vec![cube(poses)]
@@ -101,7 +104,17 @@ pub fn render_fisheye_frame(
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut grey = vec![0f64; w * h];
     let mut depth = vec![0f32; w * h];
+    let slice_of = |moment: f64| moment * (cubes.len() - 1) as f64;
     for row in 0..h {
+        let row_fraction = if h > 1 {
+            row as f64 / (h - 1) as f64
+        } else {
+            0.0
+        };
+        // The row's exposure: its moments, each between two of the cube maps (one map, one
+        // moment for a global shutter); its depth from the map nearest its middle.
+        let moments = readout.moments(row_fraction);
+        let middle = (slice_of(readout.middle(row_fraction)).round() as usize).min(cubes.len() - 1);
         for col in 0..w {
             // As the pinhole renderer: pixel (col, row) shows the ray through its centre.
             let centre = Point2::new(col as f64 + 0.5, row as f64 + 0.5);
@@ -120,19 +133,20 @@ pub fn render_fisheye_frame(
             }
             let u = half * d.x / d.z + half - 0.5;
             let v = half * d.y / d.z + half - 0.5;
-            // The row's place in the readout, between two of the cube maps.
-            let at = if h > 1 {
-                row as f64 / (h - 1) as f64 * (cubes.len() - 1) as f64
-            } else {
-                0.0
-            };
-            let before = (at.floor() as usize).min(cubes.len() - 1);
-            let after = (before + 1).min(cubes.len() - 1);
-            let share = at - before as f64;
             let i = row * w + col;
-            grey[i] = (1.0 - share) * bilinear(&cubes[before][k], u, v)
-                + share * bilinear(&cubes[after][k], u, v);
-            let face = &cubes[if share < 0.5 { before } else { after }][k];
+            grey[i] = moments
+                .iter()
+                .map(|m| {
+                    let at = slice_of(*m);
+                    let before = (at.floor() as usize).min(cubes.len() - 1);
+                    let after = (before + 1).min(cubes.len() - 1);
+                    let share = at - before as f64;
+                    (1.0 - share) * bilinear(&cubes[before][k], u, v)
+                        + share * bilinear(&cubes[after][k], u, v)
+                })
+                .sum::<f64>()
+                / moments.len() as f64;
+            let face = &cubes[middle][k];
             let last = f64::from(side - 1);
             let (nu, nv) = (u.round().clamp(0.0, last), v.round().clamp(0.0, last));
             let face_depth = f64::from(face.depth[nv as usize * side as usize + nu as usize]);
@@ -148,32 +162,60 @@ pub fn render_fisheye_frame(
     })
 }
 
-/// The poses the row at `fraction` of a rolling-shutter frame (0: first row, 1: last)
-/// was exposed from, for a global-shutter render of that moment: its one pose, or with
-/// [`RenderOptions::rolling_exposure`] `blur_samples` poses over its own exposure (the
-/// poses span the first row's exposure start to the last row's end, as for the pinhole).
-fn row_poses(poses: &[StampedPose], fraction: f64, options: &RenderOptions) -> Vec<StampedPose> {
-    let (Some(first), Some(last)) = (poses.first(), poses.last()) else {
-        return Vec::new();
-    };
-    let span = last.timestamp - first.timestamp;
-    let exposure = options.rolling_exposure.clamp(0.0, 1.0);
-    let start = first.timestamp + span * fraction * (1.0 - exposure);
-    let samples = if exposure > 0.0 {
-        options.blur_samples.max(1)
-    } else {
-        1
-    };
-    (0..samples)
-        .filter_map(|j| {
-            let within = if samples > 1 {
-                j as f64 / (samples - 1) as f64
-            } else {
-                0.0
-            };
-            pose_at_time(poses, start + span * exposure * within)
-        })
-        .collect()
+/// When a rolling-shutter frame's rows are exposed, as fractions of the span of the poses
+/// it is given (0: the first row's exposure starts, 1: the last row's ends), and how many
+/// cube maps over that span render it.
+struct Readout {
+    /// [`RenderOptions::rolling_exposure`]: the share of the span one row's exposure takes.
+    exposure: f64,
+    /// Moments averaged over a row's exposure (1 without blur).
+    samples: usize,
+    slices: usize,
+}
+
+impl Readout {
+    fn of(options: &RenderOptions) -> Self {
+        let exposure = options.rolling_exposure.clamp(0.0, 1.0);
+        let samples = if exposure > 0.0 {
+            options.blur_samples.max(1)
+        } else {
+            1
+        };
+        // With blur, enough maps that a row's exposure spans one per moment it averages
+        // (`samples` over `exposure` of the span), so blurring costs maps, not renders per
+        // moment (a 20 ms readout and 9 blur moments: 19 maps, not 9 x 9).
+        let for_blur = if samples > 1 {
+            ((samples - 1) as f64 / exposure).ceil() as usize + 1
+        } else {
+            0
+        };
+        Self {
+            exposure,
+            samples,
+            slices: ROLLING_SLICES.max(for_blur.min(4 * ROLLING_SLICES)),
+        }
+    }
+
+    /// The moments the row at `fraction` (0: first row, 1: last) averages over its
+    /// exposure.
+    fn moments(&self, fraction: f64) -> Vec<f64> {
+        let start = fraction * (1.0 - self.exposure);
+        (0..self.samples)
+            .map(|j| {
+                let within = if self.samples > 1 {
+                    j as f64 / (self.samples - 1) as f64
+                } else {
+                    0.0
+                };
+                start + self.exposure * within
+            })
+            .collect()
+    }
+
+    /// The middle of that row's exposure (its depth is drawn from there).
+    fn middle(&self, fraction: f64) -> f64 {
+        fraction * (1.0 - self.exposure) + 0.5 * self.exposure
+    }
 }
 
 /// The face's grey level at `(u, v)`, bilinear, clamped at its border.
@@ -296,7 +338,27 @@ mod tests {
         assert!(difference(&rolling, &first, top.clone()) < 1.5);
         assert!(difference(&rolling, &last, bottom.clone()) < 1.5);
         // And the turn is visible there: each pose alone differs in the other's rows.
-        assert!(difference(&rolling, &last, top) > 3.0);
-        assert!(difference(&rolling, &first, bottom) > 3.0);
+        assert!(difference(&rolling, &last, top.clone()) > 3.0);
+        assert!(difference(&rolling, &first, bottom.clone()) > 3.0);
+        // With blur, each row exposed over half the span: the first rows average the first
+        // half's poses, the last rows the second half's.
+        let blurred = RenderOptions {
+            rolling_exposure: 0.5,
+            blur_samples: 5,
+            ..options
+        };
+        let rolling = render_fisheye_frame(&scene, &camera, &readout, 0, &blurred).expect("rs");
+        let over = |degrees: [f64; 5]| {
+            let poses: Vec<StampedPose> = degrees.iter().map(|d| turn(*d)).collect();
+            render_fisheye_frame(&scene, &camera, &poses, 0, &global).expect("blurred")
+        };
+        let (early, late) = (
+            over([0.0, 1.0, 2.0, 3.0, 4.0]),
+            over([4.0, 5.0, 6.0, 7.0, 8.0]),
+        );
+        assert!(difference(&rolling, &early, top.clone()) < 1.0);
+        assert!(difference(&rolling, &late, bottom.clone()) < 1.0);
+        assert!(difference(&rolling, &late, top) > 3.0);
+        assert!(difference(&rolling, &early, bottom) > 3.0);
     }
 }
