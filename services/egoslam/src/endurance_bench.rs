@@ -357,6 +357,21 @@ fn written_mib(samples: &[Sample]) -> f64 {
     samples.iter().map(Sample::written_mib).fold(0.0, f64::max)
 }
 
+/// MiB written by each service while it ran: the largest of its samples (a service's count
+/// moves to the launcher's when it exits, so this misses what it wrote after the last
+/// sample, at most 2 s of writing).
+fn written_mib_by_service(samples: &[Sample]) -> BTreeMap<&'static str, f64> {
+    let mut by_service: BTreeMap<&'static str, f64> = BTreeMap::new();
+    for sample in samples {
+        for (service, bytes) in &sample.written_bytes {
+            let mib = *bytes as f64 / (1024.0 * 1024.0);
+            let most = by_service.entry(service).or_default();
+            *most = most.max(mib);
+        }
+    }
+    by_service
+}
+
 /// Least-squares slope of the total RSS over the samples from `from_s` of run time on,
 /// MiB per second of run time.
 fn rss_slope(samples: &[Sample], from_s: f64) -> Option<f64> {
@@ -438,6 +453,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         // The largest count of each service, summed: what the run wrote to storage.
         "written_mib": written_mib(&samples),
         "written_mib_per_video_hour": written_mib(&samples) / (frames as f64 / FPS / 3600.0),
+        "written_mib_by_service": written_mib_by_service(&samples),
         "ate_m": ate(&report),
         "ate_single_pass_m": ate(&single),
         "ate_ratio_to_single_pass": ate(&report).zip(ate(&single)).map(|(a, b)| a / b),
@@ -474,7 +490,8 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
          | output + state on disk (MiB) | {disk_c2} | {disk_end} |\n\n\
          | keyframes made / in the map | map points | segments | ATE, whole loop | ATE, one pass | ratio | written to storage per hour of video (MiB) |\n\
          |---|---|---|---|---|---|---|\n| {kf} / {map_kf} | {pts} | {seg} | {ate} m | {ate1} m | {ratio} | {per_hour} |\n\n\
-         Total RSS over the last quarter of the run: {slope} MiB per minute of video (least-squares slope).\n\n",
+         Total RSS over the last quarter of the run: {slope} MiB per minute of video (least-squares slope). \
+         Written to storage over the run, by service (MiB): {written_by_service}.\n\n",
         cycles = args.cycles,
         walk_frames = args.walk_frames,
         minutes = f("video_minutes", 1),
@@ -492,6 +509,15 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         ratio = f("ate_ratio_to_single_pass", 2),
         per_hour = f("written_mib_per_video_hour", 0),
         slope = f("rss_slope_last_quarter_mib_per_video_min", 2),
+        written_by_service = summary["written_mib_by_service"]
+            .as_object()
+            .map(|m| {
+                m.iter()
+                    .map(|(service, mib)| format!("{service} {:.0}", mib.as_f64().unwrap_or(0.0)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            })
+            .unwrap_or_default(),
         plot = plot_note,
     );
     print!("{table}");
@@ -566,5 +592,30 @@ mod tests {
         assert!(slope(0.0) > 0.0 && slope(0.0) < 2.0);
         assert!(slope(10.0).abs() > 0.0 && rss_slope(&samples[..20], 0.0) == Some(0.0));
         assert!(rss_slope(&samples, 39.5).is_none(), "too few samples");
+    }
+
+    #[test]
+    fn each_service_is_charged_its_largest_count() {
+        let mib = 1024 * 1024;
+        let sample = |solver: u64, merger: Option<u64>| Sample {
+            wall_s: 0.0,
+            merged_video_s: 0.0,
+            rss_mib: BTreeMap::new(),
+            written_bytes: merger
+                .map(|m| ("merger", m * mib))
+                .into_iter()
+                .chain([("solver", solver * mib)])
+                .collect(),
+            disk_mib: 0.0,
+            keyframes: 0,
+            map_points: 0,
+        };
+        // The merger wrote 30 MiB, then exited (its count gone from the last sample).
+        let samples = [sample(1, Some(10)), sample(4, Some(30)), sample(5, None)];
+        let by_service = written_mib_by_service(&samples);
+        assert_eq!(
+            by_service,
+            BTreeMap::from([("merger", 30.0), ("solver", 5.0)])
+        );
     }
 }
