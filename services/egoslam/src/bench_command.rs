@@ -31,9 +31,10 @@ pub enum Suite {
     /// to its live pose, in report.json and at the client (docs/benchmarks.md, "Pose
     /// latency"; latency_bench.rs).
     Latency,
-    /// The quick suite's rendered sequences (walks, rolling shutter, blur, the robustness
-    /// cases, the Aria replay) seen through an equidistant fisheye of 260 px/rad (141 deg
-    /// across the image), the lens head-mounted cameras wear (docs/synth.md, "Fisheye").
+    /// The quick suite's rendered sequences (profiles, walks, scenes, the robustness cases,
+    /// the Aria replay; not its rolling-shutter renders) seen through an equidistant fisheye
+    /// of 260 px/rad (141 deg across the image), the lens head-mounted cameras wear
+    /// (docs/synth.md, "Fisheye").
     Fisheye,
 }
 
@@ -402,9 +403,9 @@ fn markdown(rows: &[serde_json::Value]) -> String {
 
 /// The rendered `entries` seen through [`FISHEYE_LENS`], named with a `_fisheye` suffix
 /// and cached apart; real sequences are left out (their lenses are what they are), and so
-/// are the rolling-shutter renders: through a fisheye the renderer draws 9 cube maps per
-/// frame for them (docs/synth.md, "Fisheye"), ~3 s a frame on 2 cores, 15 minutes for one
-/// 300-frame walk.
+/// are the rolling-shutter renders: through a fisheye the renderer draws 9-19 cube maps
+/// per frame for them (docs/synth.md, "Fisheye"), ~3 s a frame on 2 cores, 15 minutes for
+/// one 300-frame walk.
 fn through_fisheye(args: &BenchArgs, entries: Vec<Entry>) -> Vec<Entry> {
     entries
         .into_iter()

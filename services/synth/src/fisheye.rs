@@ -82,24 +82,21 @@ pub fn render_fisheye_frame(
             })
             .collect()
     };
-    let rolling = options.rolling_shutter && poses.len() > 1;
     // One cube map for a global shutter; for a rolling one, one per moment of the poses'
     // span, each from the single pose of that moment.
     let readout = Readout::of(options);
-    let cubes: Vec<Vec<Frame>> = if rolling {
-        let (Some(first), Some(last)) = (poses.first(), poses.last()) else {
-            return Err(FisheyeRenderError::NotFisheye("no pose"));
-        };
-        let span = last.timestamp - first.timestamp;
-        (0..readout.slices)
-            .filter_map(|k| {
-                let t = first.timestamp + span * k as f64 / (readout.slices - 1) as f64;
-                pose_at_time(poses, t)
-            })
-            .map(|pose| cube(&[pose]))
-            .collect()
-    } else {
-        vec![cube(poses)]
+    let cubes: Vec<Vec<Frame>> = match (poses.first(), poses.last()) {
+        (Some(first), Some(last)) if options.rolling_shutter && poses.len() > 1 => {
+            let span = last.timestamp - first.timestamp;
+            (0..readout.slices)
+                .filter_map(|k| {
+                    let t = first.timestamp + span * k as f64 / (readout.slices - 1) as f64;
+                    pose_at_time(poses, t)
+                })
+                .map(|pose| cube(&[pose]))
+                .collect()
+        }
+        _ => vec![cube(poses)],
     };
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut grey = vec![0f64; w * h];
