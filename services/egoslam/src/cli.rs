@@ -28,18 +28,18 @@ pub enum Command {
     Eval(EvalArgs),
     /// Follow a running egoslam (a deployed merger) in Foxglove and/or record it into MCAP
     /// (docs/viewer.md).
-    View(crate::live_view::ViewCommandArgs),
+    View(crate::supervision::live_view::ViewCommandArgs),
     /// Write a finished run's map for COLMAP or nerfstudio (docs/export.md).
-    Export(crate::export_command::ExportArgs),
+    Export(crate::commands::export::ExportArgs),
     /// Run the benchmark suite (real and rendered sequences) and write the table.
-    Bench(crate::bench_command::BenchArgs),
+    Bench(crate::commands::bench::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).
-    Synth(crate::synth_command::SynthArgs),
+    Synth(crate::commands::synth::SynthArgs),
     /// Estimate a camera's rolling-shutter readout from a recording (for
     /// `--rolling-shutter-ms` / `frontend.rolling_shutter_ms` when it is used live).
-    CalibrateReadout(crate::readout::CalibrateReadoutArgs),
+    CalibrateReadout(crate::calibration::readout::CalibrateReadoutArgs),
     /// Localize every frame of a sequence in a saved map (`run --map-out`).
-    Localize(crate::relocalization_commands::LocalizeArgs),
+    Localize(crate::commands::relocalization::LocalizeArgs),
     /// Vocabulary tree for relocalization.
     #[command(subcommand)]
     Vocab(VocabCommand),
@@ -56,7 +56,7 @@ pub enum Command {
 #[derive(Subcommand, Debug)]
 pub enum VocabCommand {
     /// Train a vocabulary tree on the ORB descriptors of images.
-    Train(crate::relocalization_commands::VocabTrainArgs),
+    Train(crate::commands::relocalization::VocabTrainArgs),
 }
 
 /// Options of the tracking and solving stages, shared by `run` and the services.
@@ -84,11 +84,11 @@ pub struct PipelineArgs {
     /// run` in a recorded input; on a live stream by the frontend, which corrects from then
     /// on); observations are moved to the middle row's time (docs/config.md).
     #[arg(long, default_value = "auto", env = "EGOSLAM_ROLLING_SHUTTER_MS")]
-    pub rolling_shutter_ms: crate::readout::Readout,
+    pub rolling_shutter_ms: crate::calibration::readout::Readout,
     /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
     /// frames of a recorded input, read before the run, or of a live stream, which is
     /// corrected from then on.
-    #[arg(long, default_value_t = crate::readout::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
+    #[arg(long, default_value_t = crate::calibration::readout::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
     /// Self-calibrate the focal length: `egoslam run` solves the first windows of a
     /// recorded input with the intrinsics free and scales the calibration's fx and fy when
@@ -103,8 +103,8 @@ pub struct PipelineArgs {
     /// live camera runs with the calibration as given). `auto` (the default): only for a
     /// calibration without distortion terms (rectified images, a datasheet's pinhole);
     /// kitti_odometry_00 0.479 -> 0.246 m.
-    #[arg(long, default_value_t = crate::self_calibration::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
-    pub calibrate_radial: crate::self_calibration::RadialSetting,
+    #[arg(long, default_value_t = crate::calibration::self_calibration::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
+    pub calibrate_radial: crate::calibration::self_calibration::RadialSetting,
     /// K: keyframes per window (10-30, the paper's range).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,
@@ -339,8 +339,8 @@ pub struct EvalArgs {
     pub max_dt: f64,
     /// How the estimate is aligned to the ground truth: sim3 (rotation, translation and
     /// scale: monocular) or se3 (scale kept: judges the scale too).
-    #[arg(long, value_enum, default_value_t = crate::eval_plots::Alignment::Sim3)]
-    pub alignment: crate::eval_plots::Alignment,
+    #[arg(long, value_enum, default_value_t = crate::commands::eval_plots::Alignment::Sim3)]
+    pub alignment: crate::commands::eval_plots::Alignment,
     /// Write eval.json (errors per pose), trajectory.svg (top view, estimate coloured by
     /// error) and error.svg (error over time) into this folder.
     #[arg(long)]

@@ -55,10 +55,10 @@ pub struct FrontendSection {
     pub tracks: Option<usize>,
     pub lk_window: Option<i32>,
     pub predict_motion: Option<bool>,
-    pub rolling_shutter_ms: Option<crate::readout::Readout>,
+    pub rolling_shutter_ms: Option<crate::calibration::readout::Readout>,
     pub readout_frames: Option<u32>,
     pub calibrate_focal: Option<bool>,
-    pub calibrate_radial: Option<crate::self_calibration::RadialSetting>,
+    pub calibrate_radial: Option<crate::calibration::self_calibration::RadialSetting>,
 }
 
 /// `[solver]`: temporal windows and the view graph.

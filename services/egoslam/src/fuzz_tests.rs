@@ -5,9 +5,9 @@
 //! byte overwrites, truncation, insertion, duplication) by a seeded generator, so a failure
 //! is reproducible from the printed iteration. Errors are expected; a panic fails the test.
 
-use crate::checkpoint::MergerState;
 use crate::config::Config;
-use crate::window_journal::{self, JournalWriter};
+use crate::durability::checkpoint::MergerState;
+use crate::durability::window_journal::{self, JournalWriter};
 use egoslam_messages::v1 as pb;
 use prost::Message;
 use std::path::Path;
@@ -126,7 +126,7 @@ fn wire_messages_and_their_conversions() {
         let Ok(w) = pb::WindowSolution::decode(b) else {
             return false;
         };
-        let input = crate::merger_service::window_input(&w);
+        let input = crate::merger::window_input(&w);
         if input.is_finite() {
             let mut map = egoslam_merger::MapBuilder::new();
             map.add_window(&input);
@@ -162,7 +162,7 @@ fn wire_messages_and_their_conversions() {
             return false;
         };
         let mut stats = crate::stats::ServiceStats::new("solver");
-        let _ = crate::solver_service::observations(&k, &mut stats);
+        let _ = crate::solver::observations(&k, &mut stats);
         true
     });
 }
@@ -186,7 +186,7 @@ fn files_the_services_read_back() {
     let mut state = MergerState::for_stream(5);
     state
         .map
-        .add_window(&crate::merger_service::window_input(&window_sample()));
+        .add_window(&crate::merger::window_input(&window_sample()));
     let checkpoint_path = dir.path().join("checkpoint");
     state.save(&checkpoint_path).expect("save");
     let checkpoint = std::fs::read(&checkpoint_path).expect("bytes");

@@ -3,46 +3,24 @@
 //! One multi-call binary keeps deployment simple (one file on the wearable box, one build)
 //! while every service still runs as its own process, linked to the others by iceoryx2.
 
-mod background_refinement;
-mod bench_command;
-mod checkpoint;
+mod calibration;
 mod cli;
+mod commands;
 mod config;
 mod convert;
-mod endurance_bench;
-mod eval;
-mod eval_plots;
-mod export_command;
-mod features_log;
-mod focal;
-mod frame_poses;
-mod frontend_resume;
-mod frontend_service;
+mod durability;
+mod frontend;
 #[cfg(test)]
 mod fuzz_tests;
 mod latency;
-mod latency_bench;
-mod launcher;
-mod live_view;
-mod log_compaction;
 mod map_file;
-mod map_state;
-mod merger_service;
+mod merger;
 mod option_checks;
 mod output;
-mod progress;
-mod readout;
-mod record_log;
-mod relocalization_commands;
 mod replay;
-mod self_calibration;
-mod solver_resume;
-mod solver_service;
+mod solver;
 mod stats;
-mod supervisor;
-mod synth_command;
-mod systemd;
-mod window_journal;
+mod supervision;
 
 use clap::{CommandFactory, FromArgMatches};
 
@@ -76,26 +54,26 @@ fn main() -> std::process::ExitCode {
         return std::process::ExitCode::from(2);
     }
     let result = match cli.command {
-        cli::Command::Run(args) => launcher::run(args),
-        cli::Command::Eval(args) => eval::run(args),
-        cli::Command::Export(args) => export_command::run(args),
-        cli::Command::View(args) => live_view::view(args),
-        cli::Command::Synth(args) => synth_command::run(args),
-        cli::Command::CalibrateReadout(args) => readout::calibrate(args),
-        cli::Command::Bench(args) => bench_command::run(args, cli.config.as_deref()),
-        cli::Command::Localize(args) => relocalization_commands::localize(args),
+        cli::Command::Run(args) => supervision::launcher::run(args),
+        cli::Command::Eval(args) => commands::eval::run(args),
+        cli::Command::Export(args) => commands::export::run(args),
+        cli::Command::View(args) => supervision::live_view::view(args),
+        cli::Command::Synth(args) => commands::synth::run(args),
+        cli::Command::CalibrateReadout(args) => calibration::readout::calibrate(args),
+        cli::Command::Bench(args) => commands::bench::run(args, cli.config.as_deref()),
+        cli::Command::Localize(args) => commands::relocalization::localize(args),
         cli::Command::Vocab(cli::VocabCommand::Train(args)) => {
-            relocalization_commands::vocab_train(args)
+            commands::relocalization::vocab_train(args)
         }
         cli::Command::Replay(args) => replay::run(args),
-        cli::Command::Frontend(args) => frontend_service::run(args),
-        cli::Command::Solver(args) => solver_service::run(args),
-        cli::Command::Merger(args) => merger_service::run(args),
+        cli::Command::Frontend(args) => frontend::run(args),
+        cli::Command::Solver(args) => solver::run(args),
+        cli::Command::Merger(args) => merger::run(args),
     };
-    systemd::notify("STOPPING=1");
+    supervision::systemd::notify("STOPPING=1");
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => match e.downcast_ref::<launcher::Interrupted>() {
+        Err(e) => match e.downcast_ref::<supervision::launcher::Interrupted>() {
             Some(stop) => {
                 eprintln!("{stop}");
                 std::process::ExitCode::from(u8::try_from(128 + stop.signal).unwrap_or(1))
@@ -129,7 +107,7 @@ fn init_tracing(verbose: u8) {
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(|| progress::LogWriter)
+        .with_writer(|| supervision::progress::LogWriter)
         .with_ansi(colour)
         .with_target(false);
     if std::env::var("EGOSLAM_LOG_FORMAT").is_ok_and(|f| f == "json") {

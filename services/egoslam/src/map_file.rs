@@ -1,7 +1,7 @@
 //! Reading and writing saved maps and vocabularies (the file side of
 //! egoslam_relocalization::saved_map; format in docs/relocalization.md).
 
-use crate::checkpoint::MergerState;
+use crate::durability::checkpoint::MergerState;
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_geometry::PinholeRadtan;
@@ -60,9 +60,9 @@ pub fn relocalization_map(
         .points()
         .map(|(track, segment, x)| (track, (segment, *x)))
         .collect();
-    // Culled keyframes keep the patches of their points (merger_keyframe_culling.rs), at
+    // Culled keyframes keep the patches of their points (merger/keyframe_culling.rs), at
     // the pose their frame keeps, with those tracks' features.
-    let frame_poses = crate::map_state::frame_poses(&state.map, &state.frames, ..);
+    let frame_poses = crate::merger::map_state::frame_poses(&state.map, &state.frames, ..);
     let culled = state
         .patched_tracks
         .iter()
@@ -156,7 +156,7 @@ pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) -> Vec<MapK
     state.culling_checked_before = egoslam_merger::next_free_id(&map);
     for k in &map.keyframes {
         if !k.patches.is_empty() {
-            let tracks = crate::features_log::patched_tracks(&k.patches);
+            let tracks = crate::durability::features_log::patched_tracks(&k.patches);
             state.patched_tracks.insert(k.keyframe_id, tracks);
         }
     }

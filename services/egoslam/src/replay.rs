@@ -69,7 +69,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             .with_context(|| format!("{}: pixel access", frame.source))?;
         if publisher.is_none() {
             publisher = Some(FramePublisher::create(&bus, pixels.len(), delivery)?);
-            crate::systemd::ready("camera");
+            crate::supervision::systemd::ready("camera");
         }
         let Some(publisher) = publisher.as_mut() else {
             bail!("frame publisher missing")

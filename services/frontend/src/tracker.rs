@@ -599,11 +599,9 @@ impl Tracker {
     }
 }
 
-#[path = "keyframe_centring.rs"]
 mod keyframe_centring;
 mod resume;
 pub use resume::ResumePoint;
 
 #[cfg(test)]
-#[path = "tracker_tests.rs"]
 mod tests;

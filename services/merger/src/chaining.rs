@@ -389,5 +389,4 @@ impl MapBuilder {
 }
 
 #[cfg(test)]
-#[path = "chaining_tests.rs"]
 mod tests;

@@ -516,5 +516,4 @@ fn extrapolate(a: &StampedPose, b: &StampedPose, timestamp: f64) -> StampedPose 
 }
 
 #[cfg(test)]
-#[path = "live_tracking_tests.rs"]
 mod tests;

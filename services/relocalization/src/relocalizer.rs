@@ -5,7 +5,7 @@
 //! of the candidates and their neighbours, trusted only where it stayed near its start.
 //! A frame no group places this way gets a second chance: placement by rotation, then
 //! weak appearance poses that the matching by projection must confirm
-//! (`relocalizer_confirmation.rs`).
+//! (`relocalizer/confirmation.rs`).
 
 use crate::absolute_pose::{solve_pnp, PnpError, PnpOptions};
 use crate::descriptors::{hamming, hamming_all, pack, Descriptor};
@@ -537,10 +537,8 @@ impl Relocalizer {
     }
 }
 
-#[path = "relocalizer_patches.rs"]
 mod patches;
 
-#[path = "relocalizer_confirmation.rs"]
 mod confirmation;
 use confirmation::Hypothesis;
 pub use confirmation::TentativePoseOptions;

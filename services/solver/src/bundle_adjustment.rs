@@ -523,5 +523,4 @@ pub fn bundle_adjust(
 }
 
 #[cfg(test)]
-#[path = "bundle_adjustment_tests.rs"]
 mod tests;

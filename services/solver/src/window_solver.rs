@@ -563,5 +563,4 @@ fn solve_connected(
 }
 
 #[cfg(test)]
-#[path = "window_solver_tests.rs"]
 mod tests;

@@ -547,5 +547,4 @@ pub(crate) fn add_noise(levels: &[f64], index: u64, sigma: f64) -> Vec<u8> {
 }
 
 #[cfg(test)]
-#[path = "render_tests.rs"]
 mod tests;

@@ -3,7 +3,7 @@
 //! A frontend that crashes and comes back would start new tracks with new ids, and the
 //! keyframes after the restart would share no track with those before: the solver's window
 //! then falls apart in two and the map splits. Instead the frontend keeps the last frame it
-//! tracked (image and live track positions, frontend_resume.rs) and a restarted tracker
+//! tracked (image and live track positions, services/egoslam/src/frontend/resume.rs) and a restarted tracker
 //! starts from it: the first new frame is tracked from that image by the usual
 //! bidirectional LK, so the tracks that survive keep their ids and link the map across the
 //! restart. Tracks LK loses there end as at any frame, and new ones are detected.

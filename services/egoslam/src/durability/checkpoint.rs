@@ -3,7 +3,7 @@
 //! window so that a killed merger resumes with nothing lost (docs/durability.md).
 
 use crate::convert::{pose_from_pb, pose_to_pb, vec3_from_pb, vec3_to_pb};
-use crate::map_state::{FrameIndex, LocalizedFrame, PendingFrame};
+use crate::merger::map_state::{FrameIndex, LocalizedFrame, PendingFrame};
 use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use egoslam_merger::{MapBuilder, MapParts, ProvisionalScale};
@@ -31,7 +31,7 @@ pub struct MergerState {
     pub finished: bool,
     pub windows: u64,
     pub unsolved_windows: u64,
-    /// Keyframes with smaller ids were looked at for culling (merger_keyframe_culling.rs).
+    /// Keyframes with smaller ids were looked at for culling (merger/keyframe_culling.rs).
     pub culling_checked_before: u64,
     /// frame id -> last revision published over zenoh.
     pub revisions: std::collections::BTreeMap<u64, u32>,

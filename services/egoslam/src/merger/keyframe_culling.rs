@@ -5,7 +5,7 @@
 //! it (a `LocalizedFrame`), as do the frames that were posed against it.
 
 use super::Merger;
-use crate::map_state::{relative, LocalizedFrame};
+use crate::merger::map_state::{relative, LocalizedFrame};
 use egoslam_geometry::StampedPose;
 use egoslam_merger::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions};
 use std::collections::BTreeMap;
@@ -86,7 +86,7 @@ impl Merger {
         let (Some(from), Some(to)) = (from, to) else {
             return;
         };
-        let before = crate::map_state::frame_poses(map, frames, from..=to);
+        let before = crate::merger::map_state::frame_poses(map, frames, from..=to);
         let map = &mut self.state.map;
         let report = self.stats.time("cull_keyframes", || remove(map));
         if report.culled.is_empty() {

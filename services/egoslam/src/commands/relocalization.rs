@@ -72,10 +72,10 @@ pub struct LocalizeArgs {
     pub rolling_shutter_ms: Option<f64>,
 }
 
-/// A readout in milliseconds, 0 to [`crate::readout::MAX_READOUT_MS`] (`auto` has no
+/// A readout in milliseconds, 0 to [`crate::calibration::readout::MAX_READOUT_MS`] (`auto` has no
 /// meaning for single query frames).
 fn parse_readout_ms(text: &str) -> Result<f64, String> {
-    use crate::readout::MAX_READOUT_MS;
+    use crate::calibration::readout::MAX_READOUT_MS;
     let ms: f64 = text
         .parse()
         .map_err(|_| format!("{text}: not a number of milliseconds"))?;
@@ -264,7 +264,7 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
         let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
         let camera = match camera {
             Some(c) => c,
-            None => *camera.insert(crate::focal::with_the_maps_focal(
+            None => *camera.insert(crate::calibration::focal::with_the_maps_focal(
                 &calibration.camera_for(w, h)?,
                 &map_camera,
             )),

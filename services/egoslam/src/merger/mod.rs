@@ -5,26 +5,23 @@
 //! from the solver's journal, so nothing is lost (docs/durability.md). The same state goes
 //! out over zenoh (docs/egress.md).
 
-use crate::background_refinement::BackgroundRefiner;
-use crate::checkpoint::{self, MergerState};
+mod background_refinement;
+mod frame_poses;
+pub(crate) mod map_state;
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_from_pb, vec3_from_pb};
-use crate::features_log::{FeaturesLog, Keep};
-use crate::frame_poses;
-use crate::log_compaction;
-use crate::map_state::{MapState, Revisions};
+use crate::durability::checkpoint::{self, MergerState};
+use crate::durability::features_log::{FeaturesLog, Keep};
+use crate::durability::log_compaction;
 use crate::stats::ServiceStats;
+use background_refinement::BackgroundRefiner;
+use map_state::{MapState, Revisions};
 
-#[path = "merger_journal_recovery.rs"]
 mod journal_recovery;
-#[path = "merger_keyframe_culling.rs"]
 mod keyframe_culling;
-#[path = "merger_live_tracking.rs"]
 mod live_tracking;
 pub use live_tracking::LIVE_TRAJECTORY_FILE;
-#[path = "merger_outputs.rs"]
 mod outputs;
-#[path = "merger_relocalization.rs"]
 mod relocalization;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
@@ -134,7 +131,7 @@ impl Merger {
                         self.index_keyframe(f.keyframe_id, &features);
                     }
                     self.features_log.append(f)?;
-                    let patched = crate::features_log::patched_tracks(&patches);
+                    let patched = crate::durability::features_log::patched_tracks(&patches);
                     self.state.patched_tracks.insert(f.keyframe_id, patched);
                 }
                 None => {
@@ -500,7 +497,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
-    crate::systemd::ready("merger");
+    crate::supervision::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
     let (features_log, descriptions) = FeaturesLog::open(&state_dir)?;
     let (global_ba_px, refine_keyframes, refinement_lag) = (
@@ -628,8 +625,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         // `egoslam run` hands the services the readout it estimated; a frontend left to
         // estimate it online (`auto` under systemd) saves it in the shared output folder
         // (0 until it has, or if it gave up).
-        let readout_ms = crate::readout::known_readout_ms(&merger.args.pipeline, &merger.args.out)
-            .unwrap_or(0.0);
+        let readout_ms =
+            crate::calibration::readout::known_readout_ms(&merger.args.pipeline, &merger.args.out)
+                .unwrap_or(0.0);
         let readout_s = readout_ms / 1000.0;
         let patches = merger
             .features_log

@@ -143,11 +143,11 @@ const ROLLING_SHUTTER_SUBSAMPLES: usize = 32;
 const PHOTOS: [(&str, &[u8]); 2] = [
     (
         "tum_fr1_rpy_frame000.jpg",
-        include_bytes!("../../synth/photos/tum_fr1_rpy_frame000.jpg"),
+        include_bytes!("../../../synth/photos/tum_fr1_rpy_frame000.jpg"),
     ),
     (
         "tum_fr1_rpy_frame059.jpg",
-        include_bytes!("../../synth/photos/tum_fr1_rpy_frame059.jpg"),
+        include_bytes!("../../../synth/photos/tum_fr1_rpy_frame059.jpg"),
     ),
 ];
 

@@ -3,7 +3,7 @@
 use crate::cli::{PipelineArgs, RunArgs};
 use crate::output::{camera_yaml, write_atomically};
 use crate::stats::ServiceStats;
-use crate::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
+use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
 use anyhow::Context;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::ground_truth::GroundTruth;
@@ -61,7 +61,7 @@ fn resolve_readout(
     source: &mut dyn FrameSource,
     camera: PinholeRadtan,
 ) -> serde_json::Value {
-    use crate::readout::{estimate_from_source, Readout};
+    use crate::calibration::readout::{estimate_from_source, Readout};
     let given = args.pipeline.rolling_shutter_ms;
     if let Readout::Millis(ms) = given {
         return json!({ "setting": given.to_string(), "readout_ms": ms });
@@ -73,10 +73,13 @@ fn resolve_readout(
     }
     let started = Instant::now();
     let frames = args.pipeline.readout_frames as usize;
-    let estimate =
-        crate::progress::reading_frames("rolling-shutter readout", source, frames, 1, |source| {
-            estimate_from_source(first, source, camera, &args.pipeline)
-        });
+    let estimate = crate::supervision::progress::reading_frames(
+        "rolling-shutter readout",
+        source,
+        frames,
+        1,
+        |source| estimate_from_source(first, source, camera, &args.pipeline),
+    );
     let (readout_ms, details) = match estimate {
         Ok(e) => (
             e.readout_s * 1e3,
@@ -206,7 +209,7 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
 
 pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    let live_view = crate::live_view::LiveView::start(&args.view, &args.egress)?;
+    let live_view = crate::supervision::live_view::LiveView::start(&args.view, &args.egress)?;
     let input = args.input.clone().unwrap_or_else(default_input);
     let layout = detect_layout(&input)?;
     // Open the sequence and decode the first frame now: a bad path, an empty sequence, an
@@ -226,9 +229,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let readout_report = resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
     drop(source);
     let (camera, focal_report) =
-        crate::self_calibration::resolve_focal(&args, &input, &layout, camera);
+        crate::calibration::self_calibration::resolve_focal(&args, &input, &layout, camera);
     let (camera, radial_report) =
-        crate::self_calibration::resolve_radial(&args, &input, &layout, camera);
+        crate::calibration::self_calibration::resolve_radial(&args, &input, &layout, camera);
     let mut origin = calibration.origin.display().to_string();
     if let Some(scale) = focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
         origin += &format!(", focal lengths x{scale:.4} (self-calibrated, report.json)");
@@ -284,7 +287,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     std::env::set_var("EGOSLAM_RUN_ID", &run_id);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
     catch_stop_signals()?;
-    if crate::progress::on_terminal() && std::env::var_os("EGOSLAM_LOG").is_none() {
+    if crate::supervision::progress::on_terminal() && std::env::var_os("EGOSLAM_LOG").is_none() {
         // The bar shows the progress; the services only say what needs attention.
         std::env::set_var("EGOSLAM_LOG", format!("warn,{}", crate::QUIET_TARGETS));
     }
@@ -332,7 +335,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     }
     if let Some(view) = &live_view {
         let total = total_frames.map(|n| n as u64);
-        view.follow_with(crate::progress::frames_bar(
+        view.follow_with(crate::supervision::progress::frames_bar(
             "pipeline (frames posed)",
             total,
         ));
@@ -379,7 +382,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     };
     let mut accuracy = serde_json::Value::Null;
     if let Some(gt) = &ground_truth {
-        accuracy = match crate::eval::accuracy(out, layout.root(), &camera, gt) {
+        accuracy = match crate::commands::eval::accuracy(out, layout.root(), &camera, gt) {
             Ok(a) => a,
             Err(e) if interrupted => json!({ "error": format!("{e:#}") }),
             Err(e) => return Err(e),

@@ -1,8 +1,8 @@
 //! What the merger writes and publishes after a window: result files, stats and (when
 //! enabled) zenoh, all from one snapshot of the map.
 
-use crate::checkpoint::MergerState;
-use crate::map_state::{self, MapState, Revisions};
+use crate::durability::checkpoint::MergerState;
+use crate::merger::map_state::{self, MapState, Revisions};
 use crate::stats::ServiceStats;
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 
 /// Files, stats and (when enabled) zenoh, from one snapshot of the map.
 pub(super) struct Outputs {
-    /// Shared with the live tracker (`merger_live_tracking.rs`), which publishes revision 0.
+    /// Shared with the live tracker (`live_tracking.rs`), which publishes revision 0.
     pub(super) egress: Option<Arc<Egress>>,
     pub(super) revisions: Arc<Mutex<Revisions>>,
     /// Which map points map.ply holds (zenoh carries all, with their confidence).

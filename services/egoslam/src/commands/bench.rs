@@ -488,10 +488,10 @@ pub(crate) fn write_section(path: &Path, table: &str, section: &Section) -> anyh
 /// suite's own flags for an entry winning over it.
 pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     if args.suite == Suite::Endurance {
-        return crate::endurance_bench::run(&args, config);
+        return crate::commands::endurance_bench::run(&args, config);
     }
     if args.suite == Suite::Latency {
-        return crate::latency_bench::run(&args);
+        return crate::commands::latency_bench::run(&args);
     }
     let entries = suite(&args);
     std::fs::create_dir_all(&args.out)?;

@@ -11,7 +11,7 @@
 //! windows after the checkpoint are re-applied from the solver's journal, which re-appends
 //! their features.
 
-use crate::record_log::{for_each_record, LogReader, RecordLog};
+use crate::durability::record_log::{for_each_record, LogReader, RecordLog};
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::patch_alignment::Patch;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
@@ -184,7 +184,7 @@ impl FeaturesLog {
             .map(|(k, (at, _))| (*k, *at, keep(*k)))
             .filter(|(_, _, keep)| *keep != Keep::Nothing)
             .collect();
-        let live: u64 = crate::record_log::HEADER_LEN
+        let live: u64 = crate::durability::record_log::HEADER_LEN
             + decisions
                 .iter()
                 .map(|(k, _, keep)| match keep {

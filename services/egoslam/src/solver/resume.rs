@@ -8,9 +8,9 @@
 //! replays the logged keyframes after that window, then goes on with the live channel,
 //! skipping the keyframes it has already replayed.
 
-use crate::frontend_service::KEYFRAME_LOG;
-use crate::record_log::read_records;
-use crate::window_journal::{self, Journal};
+use crate::durability::record_log::read_records;
+use crate::durability::window_journal::{self, Journal};
+use crate::frontend::KEYFRAME_LOG;
 use egoslam_messages::v1 as pb;
 use std::path::Path;
 

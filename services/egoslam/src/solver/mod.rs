@@ -1,11 +1,12 @@
 //! The window solver service: keyframes from the bus -> windows -> solutions on the bus.
 //! The geometry is `egoslam_solver::window_solver`; this file only converts and publishes.
 
+mod resume;
 use crate::cli::ServiceArgs;
 use crate::convert::{pose_to_pb, vec3_to_pb};
-use crate::log_compaction;
+use crate::durability::log_compaction;
+use crate::durability::window_journal::{self, JournalWriter};
 use crate::stats::ServiceStats;
-use crate::window_journal::{self, JournalWriter};
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -336,7 +337,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let state_dir = crate::output::create_state_dir(&args.out)?;
     let journal_path = state_dir.join(window_journal::FILE_NAME);
     // A restarted solver continues its predecessor's stream (docs/durability.md).
-    let resume = crate::solver_resume::find(&args.out, args.pipeline.overlap)?;
+    let resume = resume::find(&args.out, args.pipeline.overlap)?;
     let (stream_id, mut journal, mut builder, next_sequence, replay, skip_up_to) = match resume {
         Some(r) => {
             tracing::warn!(
@@ -372,7 +373,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut keyframes = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut windows =
         MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?.continue_at(next_sequence);
-    crate::systemd::ready("solver");
+    crate::supervision::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
     let (merger_mark, solver_mark) = (

@@ -200,7 +200,7 @@ pub fn accuracy(
     for (key, file) in [
         ("trajectory", "trajectory.tum"),
         ("keyframes", "keyframes.tum"),
-        ("live", crate::merger_service::LIVE_TRAJECTORY_FILE),
+        ("live", crate::merger::LIVE_TRAJECTORY_FILE),
     ] {
         let path = out.join(file);
         if key == "live" && !path.exists() {
@@ -278,7 +278,7 @@ pub fn accuracy(
 }
 
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
-    use crate::eval_plots::{aligned, Alignment};
+    use crate::commands::eval_plots::{aligned, Alignment};
     let estimate = read_tum_file(&args.estimate)?;
     let gt = load_ground_truth(&args.ground_truth)?;
     if let Some(o) = orientation_error(&estimate, &gt.poses, args.max_dt) {
@@ -292,7 +292,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if args.alignment == Alignment::Se3 {
         println!(
             "ATE RMSE {:.4} m over {} poses, SE(3)-aligned (the estimate's scale kept; Sim(3) would give {:.4} m at scale {:.4})",
-            crate::eval_plots::rmse(&poses),
+            crate::commands::eval_plots::rmse(&poses),
             poses.len(),
             report.rmse,
             report.alignment.scale
@@ -303,7 +303,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     println!("ground truth: {}", gt.description);
     if let Some(dir) = &args.plot {
-        crate::eval_plots::write(dir, args.alignment, &similarity, &poses)?;
+        crate::commands::eval_plots::write(dir, args.alignment, &similarity, &poses)?;
         println!("plots and errors per pose in {}", dir.display());
     }
     Ok(())

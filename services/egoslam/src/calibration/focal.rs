@@ -8,8 +8,8 @@
 //! use the same camera. A live camera cannot be read ahead: it runs with the calibration
 //! as given.
 
+use crate::calibration::readout::tracker_options;
 use crate::cli::PipelineArgs;
-use crate::readout::tracker_options;
 use anyhow::Context;
 use egoslam_frontend::{KeyframeTracks, Tracker};
 use egoslam_geometry::PinholeRadtan;

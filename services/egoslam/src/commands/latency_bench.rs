@@ -10,7 +10,7 @@
 //! fastest frame's (the replay's start offset cancels). Three runs per sequence; the table
 //! gives the median of each figure over them.
 
-use crate::bench_command::{ensure_rendered, run_of, write_section, BenchArgs, Section};
+use crate::commands::bench::{ensure_rendered, run_of, write_section, BenchArgs, Section};
 use crate::latency::LatencyHistogram;
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;

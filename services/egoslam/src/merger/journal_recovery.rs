@@ -2,7 +2,7 @@
 //! (docs/durability.md, "What a restarted merger does").
 
 use super::Merger;
-use crate::window_journal;
+use crate::durability::window_journal;
 use anyhow::{bail, Context};
 
 impl Merger {

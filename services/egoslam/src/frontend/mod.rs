@@ -1,9 +1,9 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
 use crate::cli::ServiceArgs;
-use crate::frontend_resume;
-use crate::log_compaction;
-use crate::record_log::RecordLog;
+mod resume;
+use crate::durability::log_compaction;
+use crate::durability::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
@@ -68,7 +68,7 @@ impl CompactingLog {
     ) -> anyhow::Result<Self> {
         let mut log = RecordLog::open(path)?;
         let index = if resuming {
-            crate::record_log::read_records_at::<pb::Keyframe>(path)?
+            crate::durability::record_log::read_records_at::<pb::Keyframe>(path)?
                 .into_iter()
                 .map(|(offset, k)| (offset, k.keyframe_id, k.end_of_stream))
                 .collect()
@@ -219,7 +219,7 @@ fn keyframe_message(
     }
 }
 
-/// A restarted frontend continues from its predecessor's last frame (frontend_resume.rs);
+/// A restarted frontend continues from its predecessor's last frame (resume.rs);
 /// a fresh one removes what an earlier stream of its namespace left.
 fn continue_tracks(
     tracker: &mut Tracker,
@@ -232,7 +232,7 @@ fn continue_tracks(
         let _ = std::fs::remove_file(path);
         return;
     }
-    let resumed = frontend_resume::load(path).and_then(|saved| {
+    let resumed = resume::load(path).and_then(|saved| {
         tracker.resume_from(&ResumePoint {
             frame_id: saved.frame_id,
             timestamp_s: saved.timestamp_s,
@@ -310,8 +310,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // The readout is in range: checked where it is parsed (readout.rs). `auto` reaches this
     // service only for a live stream: it is estimated from the first frames (readout.rs).
     let (readout_s, mut online_readout) =
-        crate::readout::service_readout(&args.pipeline, &args.out);
-    let options = crate::readout::tracker_options(&args.pipeline, readout_s);
+        crate::calibration::readout::service_readout(&args.pipeline, &args.out);
+    let options = crate::calibration::readout::tracker_options(&args.pipeline, readout_s);
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.
@@ -348,7 +348,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         tracing::info!(first_id = first, map = %path.display(), "extending a saved map");
         tracker.resume_ids(first, first);
     }
-    let mut resume_path = frontend_resume::path(&args.namespace);
+    let mut resume_path = resume::path(&args.namespace);
     continue_tracks(&mut tracker, resume_path.as_deref(), resuming, &mut stats);
     let bus = Bus::open(
         "frontend",
@@ -360,7 +360,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let frames = FrameSubscriber::create(&bus)?;
     let mut keyframes = MessagePublisher::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut live_frames = MessagePublisher::<pb::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
-    crate::systemd::ready("frontend");
+    crate::supervision::systemd::ready("frontend");
     let mut skipped: Vec<pb::FrameStamp> = Vec::new();
     let mut last_stamp: Option<pb::FrameStamp> = None;
     // With a rolling shutter a keyframe waits for the next frame, which centres its
@@ -414,9 +414,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         }
         if let Some(path) = &resume_path {
             let tracks = tracker.resumable_tracks();
-            if let Err(e) =
-                frontend_resume::save(path, meta.frame_id, meta.timestamp, &image, tracks)
-            {
+            if let Err(e) = resume::save(path, meta.frame_id, meta.timestamp, &image, tracks) {
                 tracing::warn!("{e:#}: a restarted frontend will start new tracks");
                 resume_path = None;
             }
@@ -435,7 +433,12 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         drop(frame);
         stats.frames += 1;
         if let Some(online) = &mut online_readout {
-            if crate::readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)? {
+            if crate::calibration::readout::observe_online(
+                online,
+                &mut tracker,
+                meta.timestamp,
+                &args.out,
+            )? {
                 online_readout = None;
             }
         }
@@ -590,7 +593,7 @@ mod tests {
             ..keyframe(&[1, 2, 3])
         };
         let ids = |path: &std::path::Path| -> Vec<u64> {
-            crate::record_log::read_records::<pb::Keyframe>(path)
+            crate::durability::record_log::read_records::<pb::Keyframe>(path)
                 .expect("read")
                 .iter()
                 .map(|k| k.keyframe_id)

@@ -2,9 +2,9 @@
 //! (`--calibrate-focal`, `--calibrate-radial`; focal.rs estimates): each reads the input
 //! again from its start, and reports what it did for report.json.
 
+use crate::calibration::focal::FOCAL_FRAMES;
+use crate::calibration::readout::Readout;
 use crate::cli::RunArgs;
-use crate::focal::FOCAL_FRAMES;
-use crate::readout::Readout;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::{open_source, FrameSource, Layout};
 use serde_json::json;
@@ -37,9 +37,13 @@ fn read_ahead<T>(
         .map_err(anyhow::Error::from)
         .and_then(|source| {
             let step = format!("{what} calibration");
-            crate::progress::reading_frames(&step, &mut source.quiet(), FOCAL_FRAMES, 0, |s| {
-                estimate(s, readout_s)
-            })
+            crate::supervision::progress::reading_frames(
+                &step,
+                &mut source.quiet(),
+                FOCAL_FRAMES,
+                0,
+                |s| estimate(s, readout_s),
+            )
         });
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     result.map(|e| (e, elapsed_ms)).map_err(|e| {
@@ -59,12 +63,12 @@ pub fn resolve_focal(
 ) -> (PinholeRadtan, serde_json::Value) {
     let setting = (args.pipeline.calibrate_focal, "focal");
     match read_ahead(args, input, layout, setting, |source, readout_s| {
-        crate::focal::estimate_from_source(source, camera, &args.pipeline, readout_s)
+        crate::calibration::focal::estimate_from_source(source, camera, &args.pipeline, readout_s)
     }) {
         Ok((e, elapsed_ms)) => {
             let applied = e.applied();
             (
-                crate::focal::scaled(&camera, applied),
+                crate::calibration::focal::scaled(&camera, applied),
                 json!({
                     "setting": true,
                     "scale": e.scale,
@@ -98,12 +102,12 @@ pub fn resolve_radial(
     }
     let setting = (setting.applies_to(&camera), "radial");
     match read_ahead(args, input, layout, setting, |source, readout_s| {
-        crate::focal::radial_from_source(source, camera, &args.pipeline, readout_s)
+        crate::calibration::focal::radial_from_source(source, camera, &args.pipeline, readout_s)
     }) {
         Ok((e, elapsed_ms)) => {
             let applied = e.applied();
             (
-                crate::focal::with_radial(&camera, applied),
+                crate::calibration::focal::with_radial(&camera, applied),
                 json!({
                     "setting": true,
                     "k": e.k,

@@ -67,7 +67,7 @@ impl LiveView {
                 "--foxglove and --record show what the merger publishes over zenoh: drop --zenoh-listen none"
             );
         }
-        if no_zenoh || !(view.wanted() || crate::progress::on_terminal()) {
+        if no_zenoh || !(view.wanted() || crate::supervision::progress::on_terminal()) {
             return Ok(None);
         }
         let viewer = if view.wanted() {

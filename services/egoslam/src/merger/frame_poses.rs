@@ -2,7 +2,7 @@
 //! them are in it (`egoslam_merger::frame_localization`); those that cannot be stay
 //! interpolated and are marked so on the wire.
 
-use crate::map_state::{relative, FrameIndex, LocalizedFrame};
+use crate::merger::map_state::{relative, FrameIndex, LocalizedFrame};
 use crate::stats::ServiceStats;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::{interpolate_between, localize_frame, LocalizationOptions, MapBuilder};

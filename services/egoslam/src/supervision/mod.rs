@@ -1,0 +1,8 @@
+//! Process supervision: the launcher of `egoslam run`, restarts, signals, systemd
+//! notifications, and what the terminal shows.
+
+pub mod launcher;
+pub mod live_view;
+pub mod progress;
+pub mod supervisor;
+pub mod systemd;
