@@ -22,7 +22,7 @@
 mod common;
 
 use common::*;
-use egoslam_messages::v1 as pb;
+use egoslam_messages::internal::v1 as internal;
 use prost::Message;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -65,7 +65,7 @@ fn logged_keyframes(out: &Path) -> BTreeMap<u64, i64> {
         .map_or(&bytes[..], |b| &b[4..]);
     let mut stamps = BTreeMap::new();
     while !rest.is_empty() {
-        let Ok(k) = pb::Keyframe::decode_length_delimited(&mut rest) else {
+        let Ok(k) = internal::Keyframe::decode_length_delimited(&mut rest) else {
             break; // a torn last record
         };
         if !k.end_of_stream {
@@ -81,7 +81,7 @@ fn windowed_keyframes(out: &Path) -> BTreeSet<u64> {
     let mut rest = &bytes[20..]; // magic, version, stream id (docs/durability.md)
     let mut ids = BTreeSet::new();
     while !rest.is_empty() {
-        let Ok(w) = pb::WindowSolution::decode_length_delimited(&mut rest) else {
+        let Ok(w) = internal::WindowSolution::decode_length_delimited(&mut rest) else {
             break;
         };
         ids.extend(w.keyframe_ids);

@@ -4,13 +4,13 @@ mod common;
 
 use common::*;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, KEYFRAMES};
-use egoslam_messages::v1 as pb;
+use egoslam_messages::internal::v1 as internal;
 use std::collections::BTreeSet;
 use std::path::Path;
 use std::time::Duration;
 
 /// Runs replay + frontend as processes and collects the keyframe stream in this process.
-fn keyframe_stream(input: &Path, test: &str) -> (Vec<pb::Keyframe>, usize) {
+fn keyframe_stream(input: &Path, test: &str) -> (Vec<internal::Keyframe>, usize) {
     let (keyframes, frames, _) = keyframe_stream_with(input, test, &[]);
     (keyframes, frames)
 }
@@ -22,7 +22,7 @@ fn keyframe_stream_with(
     test: &str,
     frontend_args: &[&str],
 ) -> (
-    Vec<pb::Keyframe>,
+    Vec<internal::Keyframe>,
     usize,
     (egoslam_geometry::PinholeRadtan, Option<f64>),
 ) {
@@ -59,7 +59,8 @@ fn keyframe_stream_with(
         },
     )
     .expect("bus");
-    let mut sub = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
+    let mut sub =
+        MessageSubscriber::<internal::Keyframe>::create(&bus, KEYFRAMES).expect("subscriber");
     let common_args = [
         format!("--namespace={ns}"),
         format!("--out={}", out.path().display()),
@@ -100,7 +101,7 @@ fn keyframe_stream_with(
 /// Checks a keyframe stream: ids strictly increasing without gaps, tracks inside the image,
 /// every frame accounted for exactly once, enough tracks for SfM.
 fn check_stream(
-    keyframes: &[pb::Keyframe],
+    keyframes: &[internal::Keyframe],
     frames: usize,
     min_keyframes: usize,
     max_keyframes: usize,
@@ -152,7 +153,7 @@ fn check_stream(
         (0..frames as u64).collect::<BTreeSet<_>>(),
         "every frame once"
     );
-    assert_eq!(kfs[0].reason, pb::KeyframeReason::First as i32);
+    assert_eq!(kfs[0].reason, internal::KeyframeReason::First as i32);
     // Consecutive keyframes share tracks (needed for the five-point relative pose).
     for w in kfs.windows(2) {
         let a: BTreeSet<u64> = w[0].tracks.iter().map(|t| t.track_id).collect();
@@ -192,7 +193,7 @@ fn a_frontend_on_its_own_estimates_the_readout_online() {
     let readout = readout.expect("frontend.readout written");
     assert!((12.0..=30.0).contains(&readout), "{readout} ms");
     // Observations are the undistorted raw positions until the estimate, then moved.
-    let shift = |k: &pb::Keyframe| {
+    let shift = |k: &internal::Keyframe| {
         let total: f64 = k
             .tracks
             .iter()

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Generates egoslam_client.messages from proto/egoslam/v1 (the public client contract:
-geometry, frontend and map; not the checkpoint or saved-map formats) with protoc, and
+geometry and map; not the internal package egoslam.internal.v1) with protoc, and
 rewrites the generated imports to the package's own path so that no top-level `egoslam`
 package is needed. The output is committed, so installing the client needs no protoc.
 
@@ -16,7 +16,7 @@ import tempfile
 
 HERE = pathlib.Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-PROTOS = ["geometry.proto", "frontend.proto", "map.proto"]
+PROTOS = ["geometry.proto", "map.proto"]
 TARGET = HERE / "src" / "egoslam_client" / "messages"
 IMPORT = re.compile(r"^from egoslam\.v1 import (\w+) as (\w+)$", re.M)
 

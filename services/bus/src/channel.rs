@@ -51,7 +51,7 @@ pub const WINDOWS: Channel = Channel {
 };
 
 /// Every tracked frame's live tracks, frontend -> the merger's live tracker
-/// (`egoslam.v1.LiveFrame`, ~1000 tracks x ~24 bytes). Lossy: the producer never waits (a
+/// (`egoslam.internal.v1.LiveFrame`, ~1000 tracks x ~24 bytes). Lossy: the producer never waits (a
 /// pose is worth something only while the frame is new), and a consumer that is not there
 /// (not started yet, restarting) misses frames rather than holding the frontend back.
 pub const LIVE_FRAMES: Channel = Channel {

@@ -3,8 +3,8 @@
 //! | channel     | payload                          | producer  | consumer | delivery |
 //! |-------------|----------------------------------|-----------|----------|----------|
 //! | `frames`    | `[u8]` grey pixels + [`FrameMeta`] header | replay    | frontend | zero-copy; lossless (blocks) or real-time (drops new frames, counted) |
-//! | `keyframes` | `[u8]` = protobuf `egoslam.v1.Keyframe` | frontend  | solver   | lossless: producer blocks |
-//! | `windows`   | `[u8]` = protobuf `egoslam.v1.WindowSolution` | solver | merger | lossless: producer blocks |
+//! | `keyframes` | `[u8]` = protobuf `egoslam.internal.v1.Keyframe` | frontend  | solver   | lossless: producer blocks |
+//! | `windows`   | `[u8]` = protobuf `egoslam.internal.v1.WindowSolution` | solver | merger | lossless: producer blocks |
 //!
 //! Lossless channels have safe overflow off and the `RetryUntilDelivered` backpressure
 //! strategy: a slow consumer slows its producer down, nothing is overwritten. A consumer that

@@ -1,7 +1,7 @@
 //! The bus between threads of one process (the pipeline tests cover separate processes).
 
 use egoslam_bus::*;
-use egoslam_messages::v1::Keyframe;
+use egoslam_messages::internal::v1::Keyframe;
 use std::time::Duration;
 
 fn options(test: &str) -> BusOptions {
@@ -93,10 +93,11 @@ fn lossless_messages_survive_a_slow_consumer() {
     let mut publisher = MessagePublisher::<Keyframe>::create(&bus, KEYFRAMES).expect("publisher");
     for id in 0..300u64 {
         // Messages bigger than the initial slice make the publisher reallocate.
-        let tracks = (0..(id as usize * 20)).map(|t| egoslam_messages::v1::TrackObservation {
-            track_id: t as u64,
-            ..Default::default()
-        });
+        let tracks =
+            (0..(id as usize * 20)).map(|t| egoslam_messages::internal::v1::TrackObservation {
+                track_id: t as u64,
+                ..Default::default()
+            });
         let kf = Keyframe {
             keyframe_id: id,
             tracks: tracks.collect(),

@@ -21,7 +21,7 @@
 //! the window and of its last five keyframes: a scale that changes along the window).
 
 use egoslam_geometry::{absolute_trajectory_error, PinholeRadtan, StampedPose};
-use egoslam_messages::v1 as pb;
+use egoslam_messages::internal::v1 as internal;
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions};
 use nalgebra::{Point2, UnitQuaternion};
@@ -82,7 +82,7 @@ fn main() -> anyhow::Result<()> {
         let mut buf = bytes.as_slice();
         let mut kfs = Vec::new();
         while !buf.is_empty() {
-            kfs.push(pb::Keyframe::decode_length_delimited(&mut buf)?);
+            kfs.push(internal::Keyframe::decode_length_delimited(&mut buf)?);
         }
         if std::env::var_os("SKIP_FIRST").is_some() {
             kfs.remove(0);

@@ -6,8 +6,10 @@
 //! is reproducible from the printed iteration. Errors are expected; a panic fails the test.
 
 use crate::config::Config;
-use crate::durability::checkpoint::MergerState;
-use crate::durability::window_journal::{self, JournalWriter};
+use egoslam_durability::checkpoint::Checkpoint;
+use egoslam_durability::window_journal::{self, JournalWriter};
+use egoslam_merger::MergerState;
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use prost::Message;
 use std::path::Path;
@@ -74,10 +76,10 @@ fn fixture() -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/tum_fr1_rpy_120")
 }
 
-fn window_sample() -> pb::WindowSolution {
-    let pose = |i: u64| pb::KeyframePose {
+fn window_sample() -> internal::WindowSolution {
+    let pose = |i: u64| internal::KeyframePose {
         keyframe_id: i,
-        pose: Some(crate::convert::pose_to_pb(
+        pose: Some(egoslam_relocalization::wire::pose_to_pb(
             i,
             0,
             &egoslam_geometry::StampedPose {
@@ -87,7 +89,7 @@ fn window_sample() -> pb::WindowSolution {
             },
         )),
     };
-    pb::WindowSolution {
+    internal::WindowSolution {
         window_id: 1,
         stream_id: 5,
         keyframe_ids: vec![0, 1, 2],
@@ -104,15 +106,15 @@ fn window_sample() -> pb::WindowSolution {
             largest_reprojection_sigmas: None,
         }],
         observations: (0..3)
-            .map(|k| pb::Observation {
+            .map(|k| internal::Observation {
                 keyframe_id: k,
                 track_id: 9,
                 x: 100.0,
                 y: 120.0,
             })
             .collect(),
-        quality: Some(pb::SolutionQuality {
-            status: pb::SolveStatus::Solved as i32,
+        quality: Some(internal::SolutionQuality {
+            status: internal::SolveStatus::Solved as i32,
             ..Default::default()
         }),
         ..Default::default()
@@ -123,10 +125,10 @@ fn window_sample() -> pb::WindowSolution {
 fn wire_messages_and_their_conversions() {
     let window = window_sample().encode_to_vec();
     fuzz("WindowSolution", 1, 3000, &window, |b| {
-        let Ok(w) = pb::WindowSolution::decode(b) else {
+        let Ok(w) = internal::WindowSolution::decode(b) else {
             return false;
         };
-        let input = crate::merger::window_input(&w);
+        let input = egoslam_merger::session::window_input(&w);
         if input.is_finite() {
             let mut map = egoslam_merger::MapBuilder::new();
             map.add_window(&input);
@@ -134,7 +136,7 @@ fn wire_messages_and_their_conversions() {
         }
         true
     });
-    let keyframe = pb::Keyframe {
+    let keyframe = internal::Keyframe {
         keyframe_id: 4,
         intrinsics: Some(pb::Intrinsics {
             width: 640,
@@ -147,7 +149,7 @@ fn wire_messages_and_their_conversions() {
             ..Default::default()
         }),
         tracks: (0..20)
-            .map(|t| pb::TrackObservation {
+            .map(|t| internal::TrackObservation {
                 track_id: t,
                 x: 10.0 * t as f32,
                 y: 5.0 * t as f32,
@@ -158,7 +160,7 @@ fn wire_messages_and_their_conversions() {
     }
     .encode_to_vec();
     fuzz("Keyframe", 2, 2000, &keyframe, |b| {
-        let Ok(k) = pb::Keyframe::decode(b) else {
+        let Ok(k) = internal::Keyframe::decode(b) else {
             return false;
         };
         let mut stats = crate::stats::ServiceStats::new("solver");
@@ -186,7 +188,7 @@ fn files_the_services_read_back() {
     let mut state = MergerState::for_stream(5);
     state
         .map
-        .add_window(&crate::merger::window_input(&window_sample()));
+        .add_window(&egoslam_merger::session::window_input(&window_sample()));
     let checkpoint_path = dir.path().join("checkpoint");
     state.save(&checkpoint_path).expect("save");
     let checkpoint = std::fs::read(&checkpoint_path).expect("bytes");

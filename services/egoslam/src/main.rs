@@ -7,8 +7,6 @@ mod calibration;
 mod cli;
 mod commands;
 mod config;
-mod convert;
-mod durability;
 mod frontend;
 #[cfg(test)]
 mod fuzz_tests;

@@ -1,11 +1,11 @@
 //! Reading and writing saved maps and vocabularies (the file side of
 //! egoslam_relocalization::saved_map; format in docs/relocalization.md).
 
-use crate::durability::checkpoint::MergerState;
-use crate::output::write_atomically;
 use anyhow::{bail, Context};
+use egoslam_durability::write_atomically;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::KeyframeFeatureSource;
+use egoslam_merger::MergerState;
 use egoslam_relocalization::patch_alignment::Patch;
 use egoslam_relocalization::MapFeature;
 use egoslam_relocalization::{
@@ -62,7 +62,7 @@ pub fn relocalization_map(
         .collect();
     // Culled keyframes keep the patches of their points (merger/keyframe_culling.rs), at
     // the pose their frame keeps, with those tracks' features.
-    let frame_poses = crate::merger::map_state::frame_poses(&state.map, &state.frames, ..);
+    let frame_poses = egoslam_merger::session::frames::frame_poses(&state.map, &state.frames, ..);
     let culled = state
         .patched_tracks
         .iter()
@@ -156,7 +156,7 @@ pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) -> Vec<MapK
     state.culling_checked_before = egoslam_merger::next_free_id(&map);
     for k in &map.keyframes {
         if !k.patches.is_empty() {
-            let tracks = crate::durability::features_log::patched_tracks(&k.patches);
+            let tracks = egoslam_durability::features_log::patched_tracks(&k.patches);
             state.patched_tracks.insert(k.keyframe_id, tracks);
         }
     }

@@ -115,7 +115,8 @@ impl ServiceStats {
     pub fn write(&mut self, out: &Path) -> anyhow::Result<()> {
         self.peak_rss_kib = peak_rss_kib();
         let path = Self::path(out, &self.service);
-        crate::output::write_atomically(&path, serde_json::to_string_pretty(self)?.as_bytes())
+        egoslam_durability::write_atomically(&path, serde_json::to_string_pretty(self)?.as_bytes())
+            .map_err(Into::into)
     }
 
     pub fn read(out: &Path, service: &str) -> anyhow::Result<Self> {

@@ -20,11 +20,13 @@ pub mod retriangulation;
 pub mod scale_break;
 pub mod scene_depth;
 pub mod segment_linking;
+pub mod session;
 pub mod speed_continuity;
 pub mod window_alignment;
 
 pub use base_map::next_free_id;
 pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
+pub use session::{MergerSession, MergerState, SessionOptions, StreamStart};
 
 /// The median of `values` (the upper one of an even count); `None` when empty. Scales,
 /// depths and errors in the merger are all taken this way, robust to the tail of points

@@ -15,6 +15,7 @@ pub mod rolling_shutter_pose;
 pub mod rotation_relocalization;
 pub mod saved_map;
 pub mod vocabulary;
+pub mod wire;
 
 pub use descriptors::{hamming, Descriptor, OrbDescriber};
 pub use keyframe_database::{Candidate, KeyframeDatabase};

@@ -1,5 +1,5 @@
 //! The saved-map file: a versioned, checksummed envelope around a protobuf `SavedMap`
-//! (proto/egoslam/v1/saved_map.proto, docs/relocalization.md).
+//! (proto/egoslam/internal/v1/saved_map.proto, docs/relocalization.md).
 //!
 //! Protobuf alone would decode many corrupt files into a wrong map without complaint, so the
 //! envelope states the format version, the payload length and its checksum, and every value
@@ -11,6 +11,7 @@ use crate::patch_alignment::{Patch, PATCH_SIDE};
 use crate::relocalizer::{MapFeature, MapKeyframe, RelocalizationMap};
 use crate::vocabulary::fnv1a;
 use egoslam_geometry::{LensModel, PinholeRadtan, StampedPose};
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use nalgebra::{Point2, Quaternion, UnitQuaternion, Vector3};
 use prost::Message;
@@ -50,8 +51,8 @@ pub fn features_to_pb(
     keyframe_id: u64,
     features: &[MapFeature],
     patches: &[(u64, Patch)],
-) -> pb::KeyframeFeatures {
-    pb::KeyframeFeatures {
+) -> internal::KeyframeFeatures {
+    internal::KeyframeFeatures {
         keyframe_id,
         track_ids: features.iter().map(|f| f.track_id).collect(),
         descriptors: features.iter().flat_map(|f| f.descriptor).collect(),
@@ -66,7 +67,7 @@ pub fn features_to_pb(
 }
 
 /// The patches of the wire message; `None` when their bytes do not match their tracks.
-pub fn patches_from_pb(m: &pb::KeyframeFeatures) -> Option<Vec<(u64, Patch)>> {
+pub fn patches_from_pb(m: &internal::KeyframeFeatures) -> Option<Vec<(u64, Patch)>> {
     let side = PATCH_SIDE * PATCH_SIDE;
     if m.patches.len() != side * m.patch_track_ids.len() {
         return None;
@@ -80,7 +81,7 @@ pub fn patches_from_pb(m: &pb::KeyframeFeatures) -> Option<Vec<(u64, Patch)>> {
 
 /// The wire message back to features; `None` when its lists disagree in length or a pixel
 /// is not finite (a corrupt message).
-pub fn features_from_pb(m: &pb::KeyframeFeatures) -> Option<Vec<MapFeature>> {
+pub fn features_from_pb(m: &internal::KeyframeFeatures) -> Option<Vec<MapFeature>> {
     let n = m.track_ids.len();
     if m.descriptors.len() != 32 * n || m.x.len() != n || m.y.len() != n {
         return None;
@@ -145,7 +146,7 @@ pub fn lens_from_pb(value: i32) -> Option<LensModel> {
 /// its descriptors are meant for; `source`: the input it was built from).
 pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> Vec<u8> {
     let c = &map.camera;
-    let message = pb::SavedMap {
+    let message = internal::SavedMap {
         // The lens model the map's keyframes were undistorted with: what a query from the
         // same camera needs, including a radial term `egoslam run` self-calibrated.
         camera: Some(intrinsics_to_pb(c)),
@@ -155,7 +156,7 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
         keyframes: map
             .keyframes
             .iter()
-            .map(|k| pb::SavedKeyframe {
+            .map(|k| internal::SavedKeyframe {
                 keyframe_id: k.keyframe_id,
                 segment_id: k.segment,
                 pose: Some(pb::Pose {
@@ -178,7 +179,7 @@ pub fn encode_map(map: &RelocalizationMap, vocabulary_id: u64, source: &str) -> 
             points.sort_by_key(|(t, _)| **t);
             points
                 .into_iter()
-                .map(|(t, (segment, x))| pb::CheckpointPoint {
+                .map(|(t, (segment, x))| internal::CheckpointPoint {
                     track_id: *t,
                     segment_id: *segment,
                     position: Some(vec3(x)),
@@ -240,7 +241,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<(RelocalizationMap, u64), SavedMapErro
         return Err(SavedMapError::ChecksumMismatch);
     }
     let message =
-        pb::SavedMap::decode(payload).map_err(|e| SavedMapError::Decode(e.to_string()))?;
+        internal::SavedMap::decode(payload).map_err(|e| SavedMapError::Decode(e.to_string()))?;
     let c = message
         .camera
         .ok_or_else(|| SavedMapError::Invalid("no camera".into()))?;

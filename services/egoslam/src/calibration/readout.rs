@@ -36,7 +36,7 @@ const ONLINE_ATTEMPTS: u32 = 4;
 /// The readout (ms) a frontend service of this run estimated online and saved in `out`,
 /// if any.
 fn saved_readout_ms(out: &Path) -> Option<f64> {
-    std::fs::read_to_string(crate::output::state_dir(out).join(READOUT_STATE_FILE))
+    std::fs::read_to_string(egoslam_durability::state_dir(out).join(READOUT_STATE_FILE))
         .ok()
         .and_then(|t| t.trim().parse::<f64>().ok())
         .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms))
@@ -109,8 +109,8 @@ pub fn observe_online(
         }
     };
     tracker.set_rolling_shutter_s(readout_s);
-    crate::output::write_atomically(
-        &crate::output::state_dir(out).join(READOUT_STATE_FILE),
+    egoslam_durability::write_atomically(
+        &egoslam_durability::state_dir(out).join(READOUT_STATE_FILE),
         format!("{:.3}\n", readout_s * 1e3).as_bytes(),
     )?;
     Ok(true)
@@ -312,7 +312,7 @@ mod tests {
     fn a_saved_readout_is_read_back_and_a_bad_one_ignored() {
         let dir = tempfile::tempdir().expect("tempdir");
         assert_eq!(saved_readout_ms(dir.path()), None);
-        let file = crate::output::create_state_dir(dir.path())
+        let file = egoslam_durability::create_state_dir(dir.path())
             .expect("state folder")
             .join(READOUT_STATE_FILE);
         std::fs::write(&file, "21.000\n").expect("write");

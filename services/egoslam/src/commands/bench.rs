@@ -480,7 +480,7 @@ pub(crate) fn write_section(path: &Path, table: &str, section: &Section) -> anyh
         (Some(a), Some(b)) if b > a => format!("{}{body}{}", &old[..a], &old[b + end.len()..]),
         _ => format!("{old}\n{heading}\n\n{body}\n"),
     };
-    crate::output::write_atomically(path, new.as_bytes())
+    egoslam_durability::write_atomically(path, new.as_bytes()).map_err(Into::into)
 }
 
 /// Runs the suite; every `egoslam run` of it reads `config` when given (the command line's
@@ -522,7 +522,7 @@ pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     };
     print!("{table}");
     write_section(&args.markdown, &table, section)?;
-    crate::output::write_atomically(
+    egoslam_durability::write_atomically(
         &args.out.join("results.json"),
         serde_json::to_string_pretty(&rows)?.as_bytes(),
     )?;

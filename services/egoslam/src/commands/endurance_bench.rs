@@ -272,7 +272,7 @@ fn write_csv(path: &Path, samples: &[Sample]) -> anyhow::Result<()> {
             s.map_points
         );
     }
-    crate::output::write_atomically(path, csv.as_bytes())
+    egoslam_durability::write_atomically(path, csv.as_bytes()).map_err(Into::into)
 }
 
 /// Memory per service and output size against the run time (cycles marked).
@@ -460,7 +460,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         "path_m": report["accuracy"]["trajectory"]["gt_path_m"],
         "wall_s": samples.last().map(|s| s.wall_s),
     });
-    crate::output::write_atomically(
+    egoslam_durability::write_atomically(
         &work.join("summary.json"),
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;

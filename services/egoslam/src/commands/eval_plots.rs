@@ -192,7 +192,7 @@ pub fn write(
             "error_m": p.error,
         })).collect::<Vec<_>>(),
     });
-    crate::output::write_atomically(
+    egoslam_durability::write_atomically(
         &dir.join("eval.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;

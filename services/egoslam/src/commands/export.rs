@@ -102,14 +102,16 @@ fn colour_points(model: &mut ExportModel, files: &[PathBuf]) -> anyhow::Result<(
 
 pub fn run(args: ExportArgs) -> anyhow::Result<()> {
     let checkpoint =
-        crate::output::state_dir(&args.run).join(crate::durability::checkpoint::FILE_NAME);
-    let state =
-        crate::durability::checkpoint::MergerState::load(&checkpoint)?.with_context(|| {
-            format!(
-                "{}: no map (is it a run's output folder?)",
-                checkpoint.display()
-            )
-        })?;
+        egoslam_durability::state_dir(&args.run).join(egoslam_durability::checkpoint::FILE_NAME);
+    let state = <egoslam_merger::MergerState as egoslam_durability::checkpoint::Checkpoint>::load(
+        &checkpoint,
+    )?
+    .with_context(|| {
+        format!(
+            "{}: no map (is it a run's output folder?)",
+            checkpoint.display()
+        )
+    })?;
     let camera_file = args.run.join("camera.yaml");
     let calibration = egoslam_sources::calibration::read_calibration_file(&camera_file)?;
     let (Some(width), Some(height)) = (calibration.width, calibration.height) else {

@@ -221,8 +221,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     ));
     print!("{table}");
     write_section(&args.markdown, &table, &SECTION)?;
-    crate::output::write_atomically(
+    egoslam_durability::write_atomically(
         &args.out.join("latency").join("results.json"),
         serde_json::to_string_pretty(&all)?.as_bytes(),
     )
+    .map_err(Into::into)
 }

@@ -1,9 +1,9 @@
 //! `egoslam vocab train` and `egoslam localize` (docs/relocalization.md).
 
 use crate::map_file::{load_vocabulary, read_map};
-use crate::output::write_atomically;
 use anyhow::{bail, Context};
 use clap::Args;
+use egoslam_durability::write_atomically;
 use egoslam_geometry::{
     absolute_trajectory_error, alignment_from_poses, associate, PinholeRadtan, StampedPose,
 };

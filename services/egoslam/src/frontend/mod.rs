@@ -2,13 +2,14 @@
 
 use crate::cli::ServiceArgs;
 mod resume;
-use crate::durability::log_compaction;
-use crate::durability::record_log::RecordLog;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
+use egoslam_durability::log_compaction;
+use egoslam_durability::record_log::RecordLog;
 use egoslam_frontend::tracker::ResumePoint;
 use egoslam_frontend::{KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError};
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_relocalization::patch_alignment::extract_patch;
@@ -18,13 +19,13 @@ use opencv::prelude::*;
 use std::collections::HashSet;
 use std::time::Instant;
 
-fn reason(r: KeyframeReason) -> pb::KeyframeReason {
+fn reason(r: KeyframeReason) -> internal::KeyframeReason {
     match r {
-        KeyframeReason::First => pb::KeyframeReason::First,
-        KeyframeReason::FrameCount => pb::KeyframeReason::FrameCount,
-        KeyframeReason::Flow => pb::KeyframeReason::Flow,
-        KeyframeReason::TrackLoss => pb::KeyframeReason::TrackLoss,
-        KeyframeReason::Last => pb::KeyframeReason::Last,
+        KeyframeReason::First => internal::KeyframeReason::First,
+        KeyframeReason::FrameCount => internal::KeyframeReason::FrameCount,
+        KeyframeReason::Flow => internal::KeyframeReason::Flow,
+        KeyframeReason::TrackLoss => internal::KeyframeReason::TrackLoss,
+        KeyframeReason::Last => internal::KeyframeReason::Last,
     }
 }
 
@@ -37,8 +38,8 @@ pub const KEYFRAME_LOG: &str = "keyframes.log";
 /// cache survives it.
 fn log_and_send(
     log: &mut CompactingLog,
-    publisher: &mut MessagePublisher<pb::Keyframe>,
-    message: &pb::Keyframe,
+    publisher: &mut MessagePublisher<internal::Keyframe>,
+    message: &internal::Keyframe,
 ) -> anyhow::Result<()> {
     log.append(message)?;
     publisher.send(message)?;
@@ -68,7 +69,7 @@ impl CompactingLog {
     ) -> anyhow::Result<Self> {
         let mut log = RecordLog::open(path)?;
         let index = if resuming {
-            crate::durability::record_log::read_records_at::<pb::Keyframe>(path)?
+            egoslam_durability::record_log::read_records_at::<internal::Keyframe>(path)?
                 .into_iter()
                 .map(|(offset, k)| (offset, k.keyframe_id, k.end_of_stream))
                 .collect()
@@ -85,7 +86,7 @@ impl CompactingLog {
     }
 
     /// Appends a keyframe message and hands it to the kernel.
-    fn append(&mut self, message: &pb::Keyframe) -> anyhow::Result<()> {
+    fn append(&mut self, message: &internal::Keyframe) -> anyhow::Result<()> {
         let offset = self.log.len_bytes()?;
         self.log.append(message)?;
         self.log.flush()?;
@@ -131,8 +132,8 @@ pub const ID_STATE_FILE: &str = "frontend.ids";
 /// fraction of a keyframe's message.
 const TRACKS_PER_FRAME: usize = 300;
 
-fn track_message(t: &TrackPoint) -> pb::TrackObservation {
-    pb::TrackObservation {
+fn track_message(t: &TrackPoint) -> internal::TrackObservation {
+    internal::TrackObservation {
         track_id: t.track_id,
         raw_x: t.raw.x,
         raw_y: t.raw.y,
@@ -149,7 +150,7 @@ fn track_message(t: &TrackPoint) -> pb::TrackObservation {
 fn describe_tracks(
     describer: &mut OrbDescriber,
     image: &(impl MatTraitConst + ToInputArray),
-    message: &mut pb::Keyframe,
+    message: &mut internal::Keyframe,
     patched: &mut HashSet<u64>,
 ) {
     let corners: Vec<_> = message
@@ -183,8 +184,11 @@ fn describe_tracks(
 /// restarted frontend continues from.
 fn publish(
     stats: &mut ServiceStats,
-    (log, publisher): (&mut CompactingLog, &mut MessagePublisher<pb::Keyframe>),
-    msg: &pb::Keyframe,
+    (log, publisher): (
+        &mut CompactingLog,
+        &mut MessagePublisher<internal::Keyframe>,
+    ),
+    msg: &internal::Keyframe,
     tracker: &Tracker,
     state_path: &std::path::Path,
     k: &KeyframeTracks,
@@ -193,7 +197,7 @@ fn publish(
     stats.keyframes += 1;
     let (kf, track) = tracker.next_ids();
     let ids = serde_json::json!({"next_keyframe_id": kf, "next_track_id": track});
-    crate::output::write_atomically(state_path, ids.to_string().as_bytes())?;
+    egoslam_durability::write_atomically(state_path, ids.to_string().as_bytes())?;
     tracing::debug!(keyframe = k.keyframe_id, frame = k.frame_id, tracks = k.tracks.len(), reason = ?k.reason, "keyframe");
     Ok(())
 }
@@ -203,9 +207,9 @@ fn keyframe_message(
     k: &KeyframeTracks,
     timestamp_s: f64,
     intrinsics: &pb::Intrinsics,
-    skipped: Vec<pb::FrameStamp>,
-) -> pb::Keyframe {
-    pb::Keyframe {
+    skipped: Vec<internal::FrameStamp>,
+) -> internal::Keyframe {
+    internal::Keyframe {
         keyframe_id: k.keyframe_id,
         frame_id: k.frame_id,
         timestamp_s,
@@ -257,7 +261,7 @@ fn continue_tracks(
 /// Sends the frame's live tracks to the merger's live tracker. A failed send costs that
 /// frame's live pose only (its refined pose comes with its keyframe): counted, not fatal.
 fn send_live_frame(
-    publisher: &mut MessagePublisher<pb::LiveFrame>,
+    publisher: &mut MessagePublisher<internal::LiveFrame>,
     meta: &egoslam_bus::FrameMeta,
     tracker: &Tracker,
     intrinsics: &pb::Intrinsics,
@@ -265,7 +269,7 @@ fn send_live_frame(
     stats: &mut ServiceStats,
 ) {
     let started = Instant::now();
-    let message = pb::LiveFrame {
+    let message = internal::LiveFrame {
         intrinsics: Some(intrinsics.clone()),
         first_of_stream,
         frame_id: meta.frame_id,
@@ -317,7 +321,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Live tracks whose patch went out with an earlier keyframe.
     let mut patched: HashSet<u64> = HashSet::new();
     // A restarted frontend continues the ids of its predecessor (docs/durability.md).
-    let state = crate::output::create_state_dir(&args.out)?;
+    let state = egoslam_durability::create_state_dir(&args.out)?;
     let state_path = state.join(ID_STATE_FILE);
     let resuming = state_path.exists();
     let solver_mark = state.join(log_compaction::SOLVER_MARK);
@@ -358,14 +362,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         },
     )?;
     let frames = FrameSubscriber::create(&bus)?;
-    let mut keyframes = MessagePublisher::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
-    let mut live_frames = MessagePublisher::<pb::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
+    let mut keyframes = MessagePublisher::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
+    let mut live_frames = MessagePublisher::<internal::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
     crate::supervision::systemd::ready("frontend");
-    let mut skipped: Vec<pb::FrameStamp> = Vec::new();
-    let mut last_stamp: Option<pb::FrameStamp> = None;
+    let mut skipped: Vec<internal::FrameStamp> = Vec::new();
+    let mut last_stamp: Option<internal::FrameStamp> = None;
     // With a rolling shutter a keyframe waits for the next frame, which centres its
     // correction (`Tracker::centre_keyframe`); described, with its skipped frames taken.
-    let mut pending: Option<(KeyframeTracks, pb::Keyframe)> = None;
+    let mut pending: Option<(KeyframeTracks, internal::Keyframe)> = None;
     // The last frame, for the descriptors of the final keyframe (made after the stream).
     let mut last_image = Mat::default();
     let started = Instant::now();
@@ -449,7 +453,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             "rejected_forward_backward",
             outcome.rejected_forward_backward as u64,
         );
-        let stamp = pb::FrameStamp {
+        let stamp = internal::FrameStamp {
             frame_id: meta.frame_id,
             timestamp_s: meta.timestamp,
             tracks: Vec::new(),
@@ -464,7 +468,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
                     publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
                 }
             }
-            _ => skipped.push(pb::FrameStamp {
+            _ => skipped.push(internal::FrameStamp {
                 tracks: tracker
                     .sample_tracks(TRACKS_PER_FRAME)
                     .iter()
@@ -495,7 +499,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         log_and_send(&mut keyframe_log, &mut keyframes, &msg)?;
         stats.keyframes += 1;
     }
-    let end = pb::Keyframe {
+    let end = internal::Keyframe {
         end_of_stream: true,
         trailing_frames: skipped,
         ..Default::default()
@@ -545,11 +549,11 @@ mod tests {
         img
     }
 
-    fn keyframe(ids: &[u64]) -> pb::Keyframe {
-        pb::Keyframe {
+    fn keyframe(ids: &[u64]) -> internal::Keyframe {
+        internal::Keyframe {
             tracks: ids
                 .iter()
-                .map(|&id| pb::TrackObservation {
+                .map(|&id| internal::TrackObservation {
                     track_id: id,
                     raw_x: 60.0 + 20.0 * id as f32,
                     raw_y: 120.0,
@@ -588,12 +592,12 @@ mod tests {
             CompactingLog::open(&path, dir.path().join(log_compaction::SOLVER_MARK), false)
                 .expect("log");
         log.schedule = log_compaction::CompactionSchedule::new(1);
-        let numbered = |id: u64| pb::Keyframe {
+        let numbered = |id: u64| internal::Keyframe {
             keyframe_id: id,
             ..keyframe(&[1, 2, 3])
         };
         let ids = |path: &std::path::Path| -> Vec<u64> {
-            crate::durability::record_log::read_records::<pb::Keyframe>(path)
+            egoslam_durability::record_log::read_records::<internal::Keyframe>(path)
                 .expect("read")
                 .iter()
                 .map(|k| k.keyframe_id)

@@ -11,6 +11,7 @@ use egoslam_egress::Egress;
 use egoslam_merger::{
     LivePose, LiveTracker, LiveTrackerOptions, MapBuilder, MapView, TrackingState,
 };
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use nalgebra::Point2;
 use std::io::Write;
@@ -116,7 +117,7 @@ fn run(
             ..BusOptions::default()
         },
     )?;
-    let mut frames = MessageSubscriber::<pb::LiveFrame>::create(&bus, LIVE_FRAMES)?;
+    let mut frames = MessageSubscriber::<internal::LiveFrame>::create(&bus, LIVE_FRAMES)?;
     let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
     let mut file = LiveTrajectory::open(&out.join(LIVE_TRAJECTORY_FILE), fresh)?;
     loop {
@@ -140,7 +141,7 @@ fn run(
         let camera = frame
             .intrinsics
             .as_ref()
-            .and_then(crate::convert::camera_from_pb);
+            .and_then(egoslam_relocalization::wire::camera_from_pb);
         let origin = match (frame.first_of_stream, publication.origin_segment, camera) {
             (true, Some(segment), Some(camera)) if !tracker.has_map() => Some((segment, camera)),
             _ => None,
@@ -195,7 +196,7 @@ fn publish(publication: &Publication, frame_id: u64, live: &LivePose) -> anyhow:
         let pose = pb::Pose {
             tracking: tracking_to_pb(live.state) as i32,
             inliers: live.inliers as u32,
-            ..crate::convert::pose_to_pb(frame_id, live.segment, &live.pose)
+            ..egoslam_relocalization::wire::pose_to_pb(frame_id, live.segment, &live.pose)
         };
         egress.publish_poses(&[pose])?;
     }

@@ -5,61 +5,45 @@
 //! from the solver's journal, so nothing is lost (docs/durability.md). The same state goes
 //! out over zenoh (docs/egress.md).
 
-mod background_refinement;
-mod frame_poses;
-pub(crate) mod map_state;
-use crate::cli::ServiceArgs;
-use crate::convert::{pose_from_pb, vec3_from_pb};
-use crate::durability::checkpoint::{self, MergerState};
-use crate::durability::features_log::{FeaturesLog, Keep};
-use crate::durability::log_compaction;
-use crate::stats::ServiceStats;
-use background_refinement::BackgroundRefiner;
-use map_state::{MapState, Revisions};
-
 mod journal_recovery;
-mod keyframe_culling;
 mod live_tracking;
-pub use live_tracking::LIVE_TRAJECTORY_FILE;
+pub(crate) mod map_state;
 mod outputs;
-mod relocalization;
+mod saved_map;
+use crate::cli::ServiceArgs;
+use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
+use egoslam_durability::checkpoint::{self, Checkpoint};
+use egoslam_durability::features_log::{patched_tracks, FeaturesLog, Keep};
+use egoslam_durability::log_compaction;
 use egoslam_egress::{Egress, EgressOptions};
-use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{PointConfidenceOptions, WindowInput, WindowOutcome};
+use egoslam_merger::session::Tally;
+use egoslam_merger::{
+    MergerSession, MergerState, PointConfidenceOptions, SessionOptions, StreamStart,
+};
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
-use egoslam_relocalization::{KeyframeDatabase, MapFeature, Vocabulary};
-use egoslam_solver::triangulation::TriangulationOptions;
-use nalgebra::Point2;
+use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
+pub use live_tracking::LIVE_TRAJECTORY_FILE;
+use map_state::{MapState, Revisions};
 use outputs::Outputs;
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::VecDeque;
 
 /// The merger at work: its durable state, where it writes, what it publishes.
 struct Merger {
     args: ServiceArgs,
-    state: MergerState,
+    /// The map and everything about it (egoslam_merger::session).
+    session: MergerSession,
     outputs: Outputs,
     stats: ServiceStats,
-    refiner: BackgroundRefiner,
-    /// Camera of the observations (from the windows), for PnP.
-    camera: Option<PinholeRadtan>,
     /// When the files and checkpoint were last written.
     last_persist: Option<std::time::Instant>,
     /// Time the next rewrite waits for (`persist_due`).
     persist_spacing: std::time::Duration,
-    /// For relocalization: linking segments after a break, and the saved map.
-    vocabulary: Vocabulary,
-    /// Where keyframe descriptors are persisted (not in the checkpoint).
+    /// Where keyframe descriptors are persisted (not in the checkpoint); the session reads
+    /// them back for loop closure, linking and culling.
     features_log: FeaturesLog,
-    /// Bag-of-words index of every keyframe, for segment linking (rebuilt on restart).
-    database: KeyframeDatabase,
-    /// A loop attempt fell due while a background refinement ran: it is made at the first
-    /// window after the refinement is folded in (not checkpointed: a restart skips it).
-    loop_attempt_owed: bool,
-    /// The sightings of the loop this window closed, added to the map after the window's
-    /// cross-window error is measured (`MapBuilder::add_loop_sightings`).
-    loop_sightings: Vec<(u64, u64, nalgebra::Point2<f64>)>,
     /// Poses every frame as it arrives (revision 0); handed the map after each window.
     live: Option<live_tracking::LiveTracking>,
 }
@@ -87,28 +71,13 @@ fn persist_budget() -> f64 {
 
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
-        crate::output::state_dir(&self.args.out).join(checkpoint::FILE_NAME)
+        egoslam_durability::state_dir(&self.args.out).join(checkpoint::FILE_NAME)
     }
 
-    /// Makes `stream_id` the current solver stream. A new stream while the previous one
-    /// is unfinished means the solver was restarted mid-stream: the map goes on in a new
-    /// segment (keyframe ids stay unique: the frontend continues them). After a finished
-    /// stream, a new one starts a new map.
+    /// Makes `stream_id` the current solver stream (`MergerSession::begin_stream`); a new
+    /// map empties the features log and starts from the saved map to extend, if any.
     fn begin_stream(&mut self, stream_id: u64) -> anyhow::Result<()> {
-        if self.state.stream_id == Some(stream_id) {
-            return Ok(());
-        }
-        if self.state.stream_id.is_some() && !self.state.finished {
-            tracing::warn!(
-                stream = stream_id,
-                "a new solver stream: the map continues in a new segment"
-            );
-            self.state.stream_id = Some(stream_id);
-            self.state.last_sequence = None;
-            self.state.map.break_segment();
-            self.stats.count("solver_restarts", 1);
-        } else {
-            self.state = MergerState::for_stream(stream_id);
+        if self.session.begin_stream(stream_id) == StreamStart::NewMap {
             self.features_log.truncate()?;
             if let Some(path) = self.args.map.map_in.clone() {
                 self.extend_saved_map(&path)?;
@@ -117,22 +86,29 @@ impl Merger {
         Ok(())
     }
 
-    /// Applies message `sequence`, checkpoints, and writes/publishes the results.
-    fn apply(&mut self, sequence: u64, w: &pb::WindowSolution) -> anyhow::Result<()> {
-        self.begin_stream(w.stream_id)?;
-        for k in &w.keyframes {
-            self.state.frames.add_stamp(k);
+    /// Adds the session's timings and counters to the service's statistics.
+    fn take_tally(&mut self) {
+        let Tally {
+            timings_ms,
+            counters,
+        } = self.session.tally.take();
+        for (stage, ms) in timings_ms {
+            self.stats.add_time(&stage, ms);
         }
+        for (counter, n) in counters {
+            self.stats.count(&counter, n);
+        }
+    }
+
+    /// Applies message `sequence`, checkpoints, and writes/publishes the results.
+    fn apply(&mut self, sequence: u64, w: &internal::WindowSolution) -> anyhow::Result<()> {
+        self.begin_stream(w.stream_id)?;
         for f in &w.keyframe_features {
-            use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
             match features_from_pb(f).zip(patches_from_pb(f)) {
                 Some((features, patches)) => {
-                    if !self.database.contains(f.keyframe_id) {
-                        self.index_keyframe(f.keyframe_id, &features);
-                    }
+                    let patched = patched_tracks(&patches);
+                    self.session.add_keyframe(f.keyframe_id, &features, patched);
                     self.features_log.append(f)?;
-                    let patched = crate::durability::features_log::patched_tracks(&patches);
-                    self.state.patched_tracks.insert(f.keyframe_id, patched);
                 }
                 None => {
                     tracing::warn!(
@@ -145,44 +121,20 @@ impl Merger {
         }
         // Loop closure and linking read descriptors back from the log.
         self.features_log.flush()?;
-        for f in &w.trailing_frames {
-            self.state.frames.frames.insert(f.frame_id, f.timestamp_s);
-        }
-        // A refinement started earlier is folded in before this window when due (see
-        // `BackgroundRefiner::fold`; at the end of the stream a running one is waited for).
-        self.refiner
-            .fold(&mut self.state.map, w.end_of_stream, &mut self.stats);
-        // Culling waits while a refinement runs, and a window may start the next one: here,
-        // right after a fold, it gets its turn. Keyframes older than this window's first
-        // are in no later window.
-        if let (false, Some(first)) = (w.end_of_stream, w.keyframe_ids.first()) {
-            self.cull_keyframes(*first);
-        }
-        if w.end_of_stream {
-            self.state.finished = true;
-        } else {
-            self.add_window(w);
-        }
-        if let Some(camera) = window_camera(w) {
-            self.camera = Some(camera);
-        }
-        if let Some(camera) = &self.camera {
-            let (frames, map) = (&mut self.state.frames, &self.state.map);
-            let stats = &mut self.stats;
-            let start = std::time::Instant::now();
-            let oldest = w.keyframe_ids.first().copied().unwrap_or(0);
-            frame_poses::localize_pending(frames, map, camera, oldest, stats);
-            stats.add_time("localize_frames", start.elapsed().as_secs_f64() * 1e3);
-        }
+        self.session.apply_window(sequence, w, &self.features_log);
+        self.take_tally();
         if let Some(live) = &self.live {
-            live.update(&self.state.map, self.camera.as_ref(), &w.keyframe_ids);
+            live.update(
+                &self.session.state.map,
+                self.session.camera(),
+                &w.keyframe_ids,
+            );
         }
-        self.state.last_sequence = Some(sequence);
         // Publish first, then checkpoint (with the revisions just published): a kill in
         // between re-applies this window from the journal, which publishes the same again.
         let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
         let write_start = std::time::Instant::now();
-        let state = if self.state.finished {
+        let state = if self.session.state.finished {
             pb::ServiceState::Finished
         } else {
             pb::ServiceState::Running
@@ -192,47 +144,54 @@ impl Merger {
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
         if persist {
-            self.state.revisions = self
-                .outputs
-                .revisions
-                .lock()
-                .map_err(|_| anyhow::anyhow!("revisions poisoned"))?
-                .numbers();
-            let save_start = std::time::Instant::now();
-            self.prune_culled_patches();
-            let (map, patched) = (&self.state.map, &self.state.patched_tracks);
-            let keep = |keyframe: u64| {
-                if map.keyframe(keyframe).is_some() {
-                    Keep::Whole
-                } else if let Some(tracks) = patched.get(&keyframe) {
-                    Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
-                } else {
-                    Keep::Nothing
-                }
-            };
-            if self.features_log.compact_if_due(keep)? > 0 {
-                self.stats.count("features_log_compactions", 1);
-            }
-            self.features_log.sync()?;
-            self.state.save(&self.checkpoint_path())?;
-            // The solver may now drop the journal's records before the next one.
-            if let Some(stream) = self.state.stream_id {
-                log_compaction::write_mark(
-                    &crate::output::state_dir(&self.args.out).join(log_compaction::MERGER_MARK),
-                    stream,
-                    self.state.next_sequence(),
-                )?;
-            }
-            self.stats
-                .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
-            self.last_persist = Some(std::time::Instant::now());
-            let bytes = std::fs::metadata(self.checkpoint_path()).map_or(0, |m| m.len());
-            self.persist_spacing = PERSIST_INTERVAL.max(
-                std::time::Duration::try_from_secs_f64(bytes as f64 / persist_budget())
-                    .unwrap_or(PERSIST_INTERVAL),
-            );
-            self.stats.count("checkpoints", 1);
+            self.persist()?;
         }
+        Ok(())
+    }
+
+    /// Checkpoints the session's state (with the revisions published), compacting the
+    /// features log when due, and tells the solver what its journal may drop.
+    fn persist(&mut self) -> anyhow::Result<()> {
+        self.session.state.revisions = self
+            .outputs
+            .revisions
+            .lock()
+            .map_err(|_| anyhow::anyhow!("revisions poisoned"))?
+            .numbers();
+        let save_start = std::time::Instant::now();
+        self.session.prune_culled_patches();
+        let (map, patched) = (&self.session.state.map, &self.session.state.patched_tracks);
+        let keep = |keyframe: u64| {
+            if map.keyframe(keyframe).is_some() {
+                Keep::Whole
+            } else if let Some(tracks) = patched.get(&keyframe) {
+                Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
+            } else {
+                Keep::Nothing
+            }
+        };
+        if self.features_log.compact_if_due(keep)? > 0 {
+            self.stats.count("features_log_compactions", 1);
+        }
+        self.features_log.sync()?;
+        self.session.state.save(&self.checkpoint_path())?;
+        // The solver may now drop the journal's records before the next one.
+        if let Some(stream) = self.session.state.stream_id {
+            log_compaction::write_mark(
+                &egoslam_durability::state_dir(&self.args.out).join(log_compaction::MERGER_MARK),
+                stream,
+                self.session.state.next_sequence(),
+            )?;
+        }
+        self.stats
+            .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
+        self.last_persist = Some(std::time::Instant::now());
+        let bytes = std::fs::metadata(self.checkpoint_path()).map_or(0, |m| m.len());
+        self.persist_spacing = PERSIST_INTERVAL.max(
+            std::time::Duration::try_from_secs_f64(bytes as f64 / persist_budget())
+                .unwrap_or(PERSIST_INTERVAL),
+        );
+        self.stats.count("checkpoints", 1);
         Ok(())
     }
 
@@ -243,14 +202,15 @@ impl Merger {
         state: pb::ServiceState,
         persist: bool,
     ) -> anyhow::Result<()> {
-        self.stats.windows = self.state.windows;
-        self.stats
-            .counters
-            .insert("unsolved_windows".into(), self.state.unsolved_windows);
+        self.stats.windows = self.session.state.windows;
+        self.stats.counters.insert(
+            "unsolved_windows".into(),
+            self.session.state.unsolved_windows,
+        );
         self.outputs.emit(
             &self.args.out,
-            &self.state,
-            self.camera.as_ref(),
+            &self.session.state,
+            self.session.camera(),
             changed,
             state,
             &mut self.stats,
@@ -263,176 +223,11 @@ impl Merger {
     /// and always at the end of the stream. Windows in between are safe in the solver's
     /// journal, from which a restarted merger replays them.
     fn persist_due(&self) -> bool {
-        self.state.finished
+        self.session.state.finished
             || self
                 .last_persist
                 .is_none_or(|t| t.elapsed() >= self.persist_spacing)
     }
-
-    fn add_window(&mut self, w: &pb::WindowSolution) {
-        self.state.windows += 1;
-        let status = w
-            .quality
-            .as_ref()
-            .map_or(pb::SolveStatus::Unspecified, |q| q.status());
-        if status != pb::SolveStatus::Solved || w.poses.is_empty() {
-            let reason = w
-                .quality
-                .as_ref()
-                .map(|q| q.reason.clone())
-                .unwrap_or_default();
-            tracing::warn!(window = w.window_id, ?status, %reason, "window not solved: map breaks here");
-            self.state.unsolved_windows += 1;
-            self.state.map.break_segment();
-            return;
-        }
-        let input = window_input(w);
-        if !input.is_finite() {
-            tracing::warn!(
-                window = w.window_id,
-                "window with non-finite poses or points refused: map breaks here"
-            );
-            self.state.unsolved_windows += 1;
-            self.stats.count("invalid_windows", 1);
-            self.state.map.break_segment();
-            return;
-        }
-        // The points this window brings (and re-triangulation adds): the cross-window error
-        // compares only the others. Collected from the window, not the whole map (O(map)
-        // per window was most of the merger's time on long runs).
-        let mut new_tracks: BTreeSet<u64> = input
-            .points
-            .iter()
-            .map(|(t, _)| *t)
-            .filter(|t| self.state.map.point(*t).is_none())
-            .collect();
-        let relocalized_scale = self.relocalized_scale(&input);
-        let map = &mut self.state.map;
-        let outcome = self.stats.time("align", || {
-            map.add_window_with_scale(&input, relocalized_scale)
-        });
-        // A stretch chained with an unmeasured scale is rescaled once it walks; not while
-        // a background refinement holds a copy of its keyframes (the fold would undo it).
-        let held = self
-            .state
-            .map
-            .provisional_scale()
-            .is_some_and(|p| self.refiner.holds_keyframes_from(p.first_keyframe));
-        if !held {
-            if let Some(settled) = self.state.map.settle_provisional_scale() {
-                tracing::info!(
-                    first_keyframe = settled.first_keyframe,
-                    scale = settled.scale,
-                    keyframes = settled.keyframes,
-                    points = settled.points,
-                    "provisional scale settled by the walking pace"
-                );
-                if settled.keyframes > 0 {
-                    self.stats.count("rescaled_stretches", 1);
-                }
-            }
-        }
-        if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
-            let map = &mut self.state.map;
-            let options = TriangulationOptions::default();
-            let r = self.stats.time("retriangulate", || {
-                map.retriangulate(&camera, &options, *first)
-            });
-            self.stats
-                .count("retriangulated_points", r.added.len() as u64);
-            tracing::debug!(
-                window = w.window_id,
-                tried = r.tried,
-                added = r.added.len(),
-                dropped = r.dropped,
-                "weak tracks re-triangulated"
-            );
-            new_tracks.extend(r.added);
-        }
-        let segment = match &outcome {
-            WindowOutcome::NewSegment { segment } | WindowOutcome::Aligned { segment, .. } => {
-                *segment
-            }
-        };
-        // Before the cross-window error may start a background refinement below: an
-        // attempt is not made while one runs, and when each window started one (the error
-        // staying high), every attempt fell into a run and no loop was ever closed.
-        self.try_close_loop(w.window_id, segment);
-        match outcome {
-            WindowOutcome::NewSegment { segment } => {
-                tracing::info!(window = w.window_id, segment, "new map segment")
-            }
-            WindowOutcome::Aligned {
-                residual,
-                transform,
-                ..
-            } => {
-                tracing::debug!(
-                    window = w.window_id,
-                    residual,
-                    scale = transform.scale,
-                    "window aligned"
-                );
-                if let Some(camera) = window_camera(w) {
-                    let ids: Vec<u64> = input.poses.iter().map(|(id, _)| *id).collect();
-                    let error = self.refiner.after_window(
-                        &self.state.map,
-                        &camera,
-                        &ids,
-                        &new_tracks,
-                        &mut self.stats,
-                    );
-                    tracing::info!(window = w.window_id, cross_window_px = ?error, "window aligned");
-                }
-            }
-        }
-        let sightings = std::mem::take(&mut self.loop_sightings);
-        if !sightings.is_empty() {
-            let added = self.state.map.add_loop_sightings(segment, &sightings);
-            self.stats.count("loop_sightings", added as u64);
-        }
-        self.try_link(w.window_id, segment);
-    }
-}
-
-impl Merger {
-    /// Adds a keyframe's bag of words to the linking index.
-    fn index_keyframe(&mut self, keyframe: u64, features: &[MapFeature]) {
-        let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
-        self.database
-            .add(keyframe, &self.vocabulary.bag_of_words(&descriptors));
-    }
-}
-
-/// The ideal pinhole camera of a window's (undistorted) observations.
-fn window_camera(w: &pb::WindowSolution) -> Option<PinholeRadtan> {
-    // The map's geometry uses the ideal pinhole only (the observations are undistorted);
-    // the lens model rides along for the saved map and relocalization's raw pixels.
-    crate::convert::camera_from_pb(w.intrinsics.as_ref()?)
-}
-
-/// The geometry of a window message, as the map builder takes it.
-pub(crate) fn window_input(w: &pb::WindowSolution) -> WindowInput {
-    WindowInput {
-        poses: w
-            .poses
-            .iter()
-            .filter_map(|kp| kp.pose.as_ref().map(|p| (kp.keyframe_id, pose_from_pb(p))))
-            .collect(),
-        points: w
-            .points
-            .iter()
-            .map(|p| (p.track_id, vec3_from_pb(&p.position)))
-            .collect(),
-        observations: w.observations.iter().map(observation).collect(),
-        weak_observations: w.weak_observations.iter().map(observation).collect(),
-    }
-}
-
-/// A wire observation as `(keyframe id, track id, undistorted pixel)`.
-fn observation(o: &pb::Observation) -> (u64, u64, Point2<f64>) {
-    let px = Point2::new(f64::from(o.x), f64::from(o.y));
-    (o.keyframe_id, o.track_id, px)
 }
 
 fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {
@@ -473,7 +268,7 @@ fn run_id(namespace: &str) -> String {
 
 pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)?;
-    let state_dir = crate::output::create_state_dir(&args.out)?;
+    let state_dir = egoslam_durability::create_state_dir(&args.out)?;
     let checkpoint_path = state_dir.join(checkpoint::FILE_NAME);
     let resumed = MergerState::load(&checkpoint_path)?;
     let bus = Bus::open(
@@ -496,29 +291,26 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
-    let mut windows = MessageSubscriber::<pb::WindowSolution>::create(&bus, WINDOWS)?;
+    let mut windows = MessageSubscriber::<internal::WindowSolution>::create(&bus, WINDOWS)?;
     crate::supervision::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
     let (features_log, descriptions) = FeaturesLog::open(&state_dir)?;
-    let (global_ba_px, refine_keyframes, refinement_lag) = (
-        args.pipeline.global_ba_px,
-        args.pipeline.refine_keyframes,
-        args.pipeline.refinement_lag,
-    );
+    let options = SessionOptions {
+        global_ba_px: args.pipeline.global_ba_px,
+        refine_keyframes: args.pipeline.refine_keyframes,
+        refinement_lag: args.pipeline.refinement_lag,
+        loop_closure: args.pipeline.loop_closure,
+        cull_keyframes: args.pipeline.cull_keyframes,
+        max_map_keyframes: args.pipeline.max_map_keyframes,
+    };
     let mut merger = Merger {
         args,
-        state: MergerState::default(),
+        session: MergerSession::new(options, vocabulary),
         outputs,
         stats: ServiceStats::new("merger"),
-        refiner: BackgroundRefiner::new(global_ba_px, refine_keyframes, refinement_lag),
-        camera: None,
         last_persist: None,
         persist_spacing: PERSIST_INTERVAL,
-        vocabulary,
         features_log,
-        database: KeyframeDatabase::new(),
-        loop_attempt_owed: false,
-        loop_sightings: Vec::new(),
         live: None,
     };
     merger.live = Some(live_tracking::LiveTracking::start(
@@ -557,7 +349,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let keyframes: Vec<u64> = state.map.keyframes().map(|(id, ..)| id).collect();
         for keyframe in keyframes {
             if let Some(features) = merger.features_log.features_of(keyframe)? {
-                merger.index_keyframe(keyframe, &features);
+                merger.session.index_keyframe(keyframe, &features);
             }
         }
         let resumed_poses = MapState::of(&state.map, &state.frames);
@@ -567,14 +359,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             .lock()
             .map_err(|_| anyhow::anyhow!("revisions poisoned"))? =
             Revisions::resume(&state.revisions, &resumed_poses);
-        merger.state = state;
+        merger.session.state = state;
         merger.catch_up(None)?;
     }
     // Windows taken off the bus, not applied yet: while the next one waits for the
     // background refinement (`BackgroundRefiner::holds_next_window`), the merger keeps
     // taking them so that the solver's lossless send never times out.
-    let mut backlog: VecDeque<(u64, pb::WindowSolution)> = VecDeque::new();
-    while !merger.state.finished {
+    let mut backlog: VecDeque<(u64, internal::WindowSolution)> = VecDeque::new();
+    while !merger.session.state.finished {
         if backlog.is_empty() {
             let Some(next) = windows.receive_numbered()? else {
                 bail!("terminated by signal")
@@ -585,7 +377,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             backlog.push_back(next);
         }
         let waiting = backlog.front().is_some_and(|(_, w)| !w.end_of_stream)
-            && merger.refiner.holds_next_window();
+            && merger.session.holds_next_window();
         if waiting {
             if !bus.idle(std::time::Duration::from_millis(20)) {
                 bail!("terminated by signal")
@@ -599,12 +391,12 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             tracing::error!(sequence, "EGOSLAM_FAULT: aborting with a window in flight");
             std::process::abort();
         }
-        let same_stream = merger.state.stream_id == Some(w.stream_id);
-        if same_stream && sequence < merger.state.next_sequence() {
+        let same_stream = merger.session.state.stream_id == Some(w.stream_id);
+        if same_stream && sequence < merger.session.state.next_sequence() {
             continue; // already applied (recovered from the journal)
         }
         let expected = if same_stream {
-            merger.state.next_sequence()
+            merger.session.state.next_sequence()
         } else {
             0
         };
@@ -619,7 +411,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     }
     merger.emit(&[], pb::ServiceState::Finished, true)?;
     if let Some(path) = &merger.args.map.map_out {
-        let Some(camera) = &merger.camera else {
+        let Some(camera) = merger.session.camera() else {
             bail!("no window was received: there is no map to save")
         };
         // `egoslam run` hands the services the readout it estimated; a frontend left to
@@ -631,20 +423,20 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         let readout_s = readout_ms / 1000.0;
         let patches = merger
             .features_log
-            .patches(merger.state.patched_tracks.keys().copied())?;
+            .patches(merger.session.state.patched_tracks.keys().copied())?;
         let map = crate::map_file::relocalization_map(
-            &merger.state,
+            &merger.session.state,
             &merger.features_log,
             &patches,
             camera,
             readout_s,
         );
         let source = merger.args.out.display().to_string();
-        crate::map_file::write_map(path, &map, &merger.vocabulary, &source)?;
+        crate::map_file::write_map(path, &map, merger.session.vocabulary(), &source)?;
     }
     tracing::info!(
-        windows = merger.state.windows,
-        segments = merger.state.map.segments(),
+        windows = merger.session.state.windows,
+        segments = merger.session.state.map.segments(),
         "merger finished"
     );
     Ok(())

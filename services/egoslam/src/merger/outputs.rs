@@ -1,11 +1,11 @@
 //! What the merger writes and publishes after a window: result files, stats and (when
 //! enabled) zenoh, all from one snapshot of the map.
 
-use crate::durability::checkpoint::MergerState;
 use crate::merger::map_state::{self, MapState, Revisions};
 use crate::stats::ServiceStats;
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
+use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
 use std::collections::HashMap;

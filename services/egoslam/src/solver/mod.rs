@@ -3,15 +3,16 @@
 
 mod resume;
 use crate::cli::ServiceArgs;
-use crate::convert::{pose_to_pb, vec3_to_pb};
-use crate::durability::log_compaction;
-use crate::durability::window_journal::{self, JournalWriter};
 use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
+use egoslam_durability::log_compaction;
+use egoslam_durability::window_journal::{self, JournalWriter};
 use egoslam_geometry::{PinholeRadtan, StampedPose};
+use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::patch_alignment::PATCH_SIDE;
+use egoslam_relocalization::wire::{pose_to_pb, vec3_to_pb};
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
 use egoslam_solver::windowing::Window;
@@ -19,8 +20,8 @@ use egoslam_solver::{WindowBuilder, WindowOptions};
 use nalgebra::{Point2, UnitQuaternion};
 
 /// Timing facts of a keyframe, for the merger's per-frame trajectory.
-fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
-    pb::KeyframeStamp {
+fn stamp(k: &internal::Keyframe) -> internal::KeyframeStamp {
+    internal::KeyframeStamp {
         keyframe_id: k.keyframe_id,
         frame_id: k.frame_id,
         timestamp_s: k.timestamp_s,
@@ -35,7 +36,7 @@ fn stamp(k: &pb::Keyframe) -> pb::KeyframeStamp {
 }
 
 /// The ideal pinhole camera of the undistorted track positions.
-fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
+fn pinhole(k: &internal::Keyframe) -> anyhow::Result<PinholeRadtan> {
     let Some(i) = &k.intrinsics else {
         bail!("keyframe {} has no intrinsics", k.keyframe_id)
     };
@@ -50,13 +51,13 @@ fn pinhole(k: &pb::Keyframe) -> anyhow::Result<PinholeRadtan> {
 /// The keyframe's tracks as the solver takes them. Tracks with a non-finite or absurd
 /// position (a corrupted message; the frontend never sends them) are dropped and counted.
 /// Windows whose end moves out of a fast turn (`WindowBuilder::with_adaptive_end`).
-fn adaptive(builder: WindowBuilder<pb::Keyframe>) -> WindowBuilder<pb::Keyframe> {
+fn adaptive(builder: WindowBuilder<internal::Keyframe>) -> WindowBuilder<internal::Keyframe> {
     builder.with_adaptive_end(overlap_strength)
 }
 
 /// Tracks seen by every keyframe of `overlap`: how firmly the keyframes two windows share
 /// are tied to both windows' points.
-fn overlap_strength(overlap: &[pb::Keyframe]) -> usize {
+fn overlap_strength(overlap: &[internal::Keyframe]) -> usize {
     let Some((first, rest)) = overlap.split_first() else {
         return 0;
     };
@@ -71,7 +72,10 @@ fn overlap_strength(overlap: &[pb::Keyframe]) -> usize {
         .count()
 }
 
-pub(crate) fn observations(k: &pb::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
+pub(crate) fn observations(
+    k: &internal::Keyframe,
+    stats: &mut ServiceStats,
+) -> KeyframeObservations {
     let limit = k
         .intrinsics
         .as_ref()
@@ -127,12 +131,12 @@ fn relative_translation(solution: &egoslam_solver::window_solver::WindowSolution
 
 /// `(keyframe index in the window, track, pixel)` triples as wire observations.
 fn observation_messages(
-    kfs: &[pb::Keyframe],
+    kfs: &[internal::Keyframe],
     observations: &[(usize, u64, Point2<f64>)],
-) -> Vec<pb::Observation> {
+) -> Vec<internal::Observation> {
     observations
         .iter()
-        .map(|(k, track, px)| pb::Observation {
+        .map(|(k, track, px)| internal::Observation {
             keyframe_id: kfs[*k].keyframe_id,
             track_id: *track,
             x: px.x as f32,
@@ -144,17 +148,17 @@ fn observation_messages(
 /// The described tracks of a keyframe, with the patches of those first described in it,
 /// forwarded once (in the first window holding the keyframe) for the merger's
 /// relocalization map.
-fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
-    let described: Vec<&pb::TrackObservation> = k
+fn keyframe_features(k: &internal::Keyframe) -> internal::KeyframeFeatures {
+    let described: Vec<&internal::TrackObservation> = k
         .tracks
         .iter()
         .filter(|t| t.descriptor.len() == 32)
         .collect();
-    let patched: Vec<&&pb::TrackObservation> = described
+    let patched: Vec<&&internal::TrackObservation> = described
         .iter()
         .filter(|t| t.patch.len() == PATCH_SIDE * PATCH_SIDE)
         .collect();
-    pb::KeyframeFeatures {
+    internal::KeyframeFeatures {
         keyframe_id: k.keyframe_id,
         track_ids: described.iter().map(|t| t.track_id).collect(),
         descriptors: described
@@ -174,11 +178,11 @@ fn keyframe_features(k: &pb::Keyframe) -> pb::KeyframeFeatures {
 /// Solves one window and builds its message.
 fn solve(
     window_id: u64,
-    window: &Window<pb::Keyframe>,
+    window: &Window<internal::Keyframe>,
     cache: &mut EdgeCache,
     options: &WindowSolverOptions,
     stats: &mut ServiceStats,
-) -> anyhow::Result<pb::WindowSolution> {
+) -> anyhow::Result<internal::WindowSolution> {
     let kfs = &window.keyframes;
     let camera = pinhole(&kfs[0])?;
     let obs: Vec<KeyframeObservations> = kfs.iter().map(|k| observations(k, stats)).collect();
@@ -190,18 +194,19 @@ fn solve(
     }
     let (status, reason) = match &solution.status {
         WindowStatus::Solved if solution.keyframes.len() < kfs.len() => (
-            pb::SolveStatus::Solved,
+            internal::SolveStatus::Solved,
             format!(
                 "partial: {} of {} keyframes (view graph in pieces)",
                 solution.keyframes.len(),
                 kfs.len()
             ),
         ),
-        WindowStatus::Solved => (pb::SolveStatus::Solved, String::new()),
-        WindowStatus::RotationOnly(reason) => {
-            (pb::SolveStatus::Solved, format!("rotation only: {reason}"))
-        }
-        WindowStatus::Failed(r) => (pb::SolveStatus::Failed, r.clone()),
+        WindowStatus::Solved => (internal::SolveStatus::Solved, String::new()),
+        WindowStatus::RotationOnly(reason) => (
+            internal::SolveStatus::Solved,
+            format!("rotation only: {reason}"),
+        ),
+        WindowStatus::Failed(r) => (internal::SolveStatus::Failed, r.clone()),
     };
     tracing::info!(
         window = window_id,
@@ -214,7 +219,7 @@ fn solve(
         %reason,
         "window solved"
     );
-    if status == pb::SolveStatus::Failed {
+    if status == internal::SolveStatus::Failed {
         stats.count("failed_windows", 1);
     }
     stats
@@ -229,7 +234,7 @@ fn solve(
         .iter()
         .map(|k| &kfs[*k])
         .zip(&solution.poses)
-        .map(|(k, p)| pb::KeyframePose {
+        .map(|(k, p)| internal::KeyframePose {
             keyframe_id: k.keyframe_id,
             pose: Some(pose_to_pb(
                 k.frame_id,
@@ -242,7 +247,7 @@ fn solve(
             )),
         })
         .collect();
-    Ok(pb::WindowSolution {
+    Ok(internal::WindowSolution {
         window_id,
         keyframe_ids: kfs.iter().map(|k| k.keyframe_id).collect(),
         overlap: window.overlap as u32,
@@ -259,7 +264,7 @@ fn solve(
             })
             .collect(),
         observations: observation_messages(kfs, &solution.observations),
-        quality: Some(pb::SolutionQuality {
+        quality: Some(internal::SolutionQuality {
             status: status as i32,
             reason,
             reprojection_rmse_px: solution.rmse_px,
@@ -269,7 +274,7 @@ fn solve(
         timings: solution
             .timings_ms
             .iter()
-            .map(|(stage, ms)| pb::StageTiming {
+            .map(|(stage, ms)| internal::StageTiming {
                 stage: stage.to_string(),
                 milliseconds: *ms,
             })
@@ -295,7 +300,7 @@ fn solve(
 fn dump_window(
     dir: &std::path::Path,
     window_id: u64,
-    window: &Window<pb::Keyframe>,
+    window: &Window<internal::Keyframe>,
 ) -> anyhow::Result<()> {
     use prost::Message;
     std::fs::create_dir_all(dir)?;
@@ -334,7 +339,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         },
     )?;
     std::fs::create_dir_all(&args.out)?;
-    let state_dir = crate::output::create_state_dir(&args.out)?;
+    let state_dir = egoslam_durability::create_state_dir(&args.out)?;
     let journal_path = state_dir.join(window_journal::FILE_NAME);
     // A restarted solver continues its predecessor's stream (docs/durability.md).
     let resume = resume::find(&args.out, args.pipeline.overlap)?;
@@ -370,9 +375,9 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             )
         }
     };
-    let mut keyframes = MessageSubscriber::<pb::Keyframe>::create(&bus, KEYFRAMES)?;
-    let mut windows =
-        MessagePublisher::<pb::WindowSolution>::create(&bus, WINDOWS)?.continue_at(next_sequence);
+    let mut keyframes = MessageSubscriber::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
+    let mut windows = MessagePublisher::<internal::WindowSolution>::create(&bus, WINDOWS)?
+        .continue_at(next_sequence);
     crate::supervision::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
@@ -382,8 +387,8 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     );
     let overlap = args.pipeline.overlap;
     let mut schedule = log_compaction::CompactionSchedule::from_env();
-    let mut publish = |message: pb::WindowSolution| -> anyhow::Result<()> {
-        let message = pb::WindowSolution {
+    let mut publish = |message: internal::WindowSolution| -> anyhow::Result<()> {
+        let message = internal::WindowSolution {
             stream_id,
             ..message
         };
@@ -441,7 +446,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
             break;
         }
     }
-    publish(pb::WindowSolution {
+    publish(internal::WindowSolution {
         end_of_stream: true,
         trailing_frames: trailing,
         ..Default::default()
@@ -466,13 +471,13 @@ mod tests {
 
     #[test]
     fn tracks_with_invalid_positions_are_dropped_and_counted() {
-        let track = |id: u64, x: f32, y: f32| pb::TrackObservation {
+        let track = |id: u64, x: f32, y: f32| internal::TrackObservation {
             track_id: id,
             x,
             y,
             ..Default::default()
         };
-        let k = pb::Keyframe {
+        let k = internal::Keyframe {
             keyframe_id: 3,
             intrinsics: Some(pb::Intrinsics {
                 width: 640,

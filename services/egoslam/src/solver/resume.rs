@@ -8,20 +8,20 @@
 //! replays the logged keyframes after that window, then goes on with the live channel,
 //! skipping the keyframes it has already replayed.
 
-use crate::durability::record_log::read_records;
-use crate::durability::window_journal::{self, Journal};
 use crate::frontend::KEYFRAME_LOG;
-use egoslam_messages::v1 as pb;
+use egoslam_durability::record_log::read_records;
+use egoslam_durability::window_journal::{self, Journal};
+use egoslam_messages::internal::v1 as internal;
 use std::path::Path;
 
 /// The state a restarted solver resumes from.
 pub struct Resume {
     pub journal: Journal,
     /// Keyframes of the last published window that the next window shares.
-    pub tail: Vec<pb::Keyframe>,
+    pub tail: Vec<internal::Keyframe>,
     /// Logged messages after the last published window, in order (possibly ending with
     /// the end-of-stream message).
-    pub replay: Vec<pb::Keyframe>,
+    pub replay: Vec<internal::Keyframe>,
 }
 
 impl Resume {
@@ -45,7 +45,7 @@ impl Resume {
 /// The resume point in `out`, or `None` for a fresh stream: no journal, a finished one, an
 /// unreadable one (with a warning), or a log that lacks what the journal refers to.
 pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
-    let path = crate::output::state_dir(out).join(window_journal::FILE_NAME);
+    let path = egoslam_durability::state_dir(out).join(window_journal::FILE_NAME);
     if !path.exists() {
         return Ok(None);
     }
@@ -59,8 +59,8 @@ pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
     if journal.messages.last().is_some_and(|m| m.end_of_stream) {
         return Ok(None);
     }
-    let logged: Vec<pb::Keyframe> =
-        read_records(&crate::output::state_dir(out).join(KEYFRAME_LOG))?;
+    let logged: Vec<internal::Keyframe> =
+        read_records(&egoslam_durability::state_dir(out).join(KEYFRAME_LOG))?;
     let (tail_ids, covered) = match journal.messages.last() {
         Some(w) => {
             let ids = &w.keyframe_ids;
@@ -76,12 +76,13 @@ pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
             .find(|k| !k.end_of_stream && k.keyframe_id == id)
             .cloned()
     };
-    let tail: Option<Vec<pb::Keyframe>> = tail_ids.iter().map(|id| find_logged(*id)).collect();
+    let tail: Option<Vec<internal::Keyframe>> =
+        tail_ids.iter().map(|id| find_logged(*id)).collect();
     let Some(tail) = tail else {
         tracing::warn!("the keyframe log lacks the last window's keyframes: starting a new stream");
         return Ok(None);
     };
-    let mut replay: Vec<pb::Keyframe> = Vec::new();
+    let mut replay: Vec<internal::Keyframe> = Vec::new();
     for k in logged {
         let new = k.end_of_stream || covered.is_none_or(|c| k.keyframe_id > c);
         if new

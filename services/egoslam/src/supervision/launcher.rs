@@ -1,10 +1,11 @@
 //! `egoslam run`: checks the input, starts the services, supervises them, reports.
 
 use crate::cli::{PipelineArgs, RunArgs};
-use crate::output::{camera_yaml, write_atomically};
+use crate::output::camera_yaml;
 use crate::stats::ServiceStats;
 use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
 use anyhow::Context;
+use egoslam_durability::write_atomically;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::ground_truth::GroundTruth;
 use egoslam_sources::{
@@ -252,7 +253,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         let _ = std::fs::remove_file(out.join(stale));
     }
     // A new run starts from no state: a checkpoint or journal left there would be resumed.
-    let _ = std::fs::remove_dir_all(crate::output::state_dir(out));
+    let _ = std::fs::remove_dir_all(egoslam_durability::state_dir(out));
     let _ = std::fs::remove_dir_all(out.join("stats"));
     let camera_file = out.join("camera.yaml");
     write_atomically(&camera_file, camera_yaml(&camera, &origin).as_bytes())?;

@@ -12,42 +12,25 @@ _sym_db = _symbol_database.Default()
 
 
 from egoslam_client.messages import geometry_pb2 as egoslam_dot_v1_dot_geometry__pb2
-from egoslam_client.messages import frontend_pb2 as egoslam_dot_v1_dot_frontend__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x65goslam/v1/map.proto\x12\negoslam.v1\x1a\x19\x65goslam/v1/geometry.proto\x1a\x19\x65goslam/v1/frontend.proto\"C\n\x0cKeyframePose\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x1e\n\x04pose\x18\x02 \x01(\x0b\x32\x10.egoslam.v1.Pose\"\xcc\x01\n\x08MapPoint\x12\x10\n\x08track_id\x18\x01 \x01(\x04\x12\"\n\x08position\x18\x02 \x01(\x0b\x32\x10.egoslam.v1.Vec3\x12\x14\n\x0cobservations\x18\x03 \x01(\r\x12\x19\n\x0crelative_std\x18\x04 \x01(\x01H\x00\x88\x01\x01\x12(\n\x1blargest_reprojection_sigmas\x18\x05 \x01(\x01H\x01\x88\x01\x01\x42\x0f\n\r_relative_stdB\x1e\n\x1c_largest_reprojection_sigmas\"J\n\x0bObservation\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x10\n\x08track_id\x18\x02 \x01(\x04\x12\t\n\x01x\x18\x03 \x01(\x02\x12\t\n\x01y\x18\x04 \x01(\x02\"2\n\x0bStageTiming\x12\r\n\x05stage\x18\x01 \x01(\t\x12\x14\n\x0cmilliseconds\x18\x02 \x01(\x01\"\xa3\x01\n\x0fSolutionQuality\x12\'\n\x06status\x18\x01 \x01(\x0e\x32\x17.egoslam.v1.SolveStatus\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x1c\n\x14reprojection_rmse_px\x18\x03 \x01(\x01\x12\x1b\n\x13inlier_observations\x18\x04 \x01(\r\x12\x1c\n\x14outlier_observations\x18\x05 \x01(\r\"\xc2\x04\n\x0eWindowSolution\x12\x11\n\twindow_id\x18\x01 \x01(\x04\x12\x14\n\x0ckeyframe_ids\x18\x02 \x03(\x04\x12\x0f\n\x07overlap\x18\x03 \x01(\r\x12\'\n\x05poses\x18\x04 \x03(\x0b\x32\x18.egoslam.v1.KeyframePose\x12$\n\x06points\x18\x05 \x03(\x0b\x32\x14.egoslam.v1.MapPoint\x12-\n\x0cobservations\x18\x06 \x03(\x0b\x32\x17.egoslam.v1.Observation\x12,\n\x07quality\x18\x07 \x01(\x0b\x32\x1b.egoslam.v1.SolutionQuality\x12(\n\x07timings\x18\x08 \x03(\x0b\x32\x17.egoslam.v1.StageTiming\x12,\n\tkeyframes\x18\t \x03(\x0b\x32\x19.egoslam.v1.KeyframeStamp\x12\x15\n\rend_of_stream\x18\n \x01(\x08\x12/\n\x0ftrailing_frames\x18\x0b \x03(\x0b\x32\x16.egoslam.v1.FrameStamp\x12*\n\nintrinsics\x18\x0c \x01(\x0b\x32\x16.egoslam.v1.Intrinsics\x12\x11\n\tstream_id\x18\r \x01(\x04\x12\x32\n\x11weak_observations\x18\x0e \x03(\x0b\x32\x17.egoslam.v1.Observation\x12\x37\n\x11keyframe_features\x18\x0f \x03(\x0b\x32\x1c.egoslam.v1.KeyframeFeatures\"\xd1\x01\n\rKeyframeStamp\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x13\n\x0btimestamp_s\x18\x03 \x01(\x01\x12!\n\x19\x66rames_since_previous_ids\x18\x04 \x03(\x04\x12*\n\"frames_since_previous_timestamps_s\x18\x05 \x03(\x01\x12\x35\n\x15\x66rames_since_previous\x18\x06 \x03(\x0b\x32\x16.egoslam.v1.FrameStamp\"-\n\nTrajectory\x12\x1f\n\x05poses\x18\x01 \x03(\x0b\x32\x10.egoslam.v1.Pose\"1\n\tMapPoints\x12$\n\x06points\x18\x01 \x03(\x0b\x32\x14.egoslam.v1.MapPoint\"\x97\x01\n\x06Status\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\'\n\x05state\x18\x02 \x01(\x0e\x32\x18.egoslam.v1.ServiceState\x12\x0e\n\x06\x66rames\x18\x03 \x01(\x04\x12\x11\n\tkeyframes\x18\x04 \x01(\x04\x12\x0f\n\x07windows\x18\x05 \x01(\x04\x12\x0f\n\x07message\x18\x06 \x01(\t\x12\x0e\n\x06run_id\x18\x07 \x01(\t\"\xa5\x01\n\x08Snapshot\x12)\n\tkeyframes\x18\x01 \x01(\x0b\x32\x16.egoslam.v1.Trajectory\x12&\n\x06\x66rames\x18\x02 \x01(\x0b\x32\x16.egoslam.v1.Trajectory\x12\"\n\x03map\x18\x03 \x01(\x0b\x32\x15.egoslam.v1.MapPoints\x12\"\n\x06status\x18\x04 \x01(\x0b\x32\x12.egoslam.v1.Status\"\x8f\x01\n\x10KeyframeFeatures\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x11\n\ttrack_ids\x18\x02 \x03(\x04\x12\x13\n\x0b\x64\x65scriptors\x18\x03 \x01(\x0c\x12\t\n\x01x\x18\x04 \x03(\x02\x12\t\n\x01y\x18\x05 \x03(\x02\x12\x17\n\x0fpatch_track_ids\x18\x06 \x03(\x04\x12\x0f\n\x07patches\x18\x07 \x01(\x0c*|\n\x0bSolveStatus\x12\x1c\n\x18SOLVE_STATUS_UNSPECIFIED\x10\x00\x12\x17\n\x13SOLVE_STATUS_SOLVED\x10\x01\x12\x17\n\x13SOLVE_STATUS_FAILED\x10\x02\x12\x1d\n\x19SOLVE_STATUS_PASS_THROUGH\x10\x03*\x9a\x01\n\x0cServiceState\x12\x1d\n\x19SERVICE_STATE_UNSPECIFIED\x10\x00\x12\x1a\n\x16SERVICE_STATE_STARTING\x10\x01\x12\x19\n\x15SERVICE_STATE_RUNNING\x10\x02\x12\x1a\n\x16SERVICE_STATE_FINISHED\x10\x03\x12\x18\n\x14SERVICE_STATE_FAILED\x10\x04\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x65goslam/v1/map.proto\x12\negoslam.v1\x1a\x19\x65goslam/v1/geometry.proto\"\xcc\x01\n\x08MapPoint\x12\x10\n\x08track_id\x18\x01 \x01(\x04\x12\"\n\x08position\x18\x02 \x01(\x0b\x32\x10.egoslam.v1.Vec3\x12\x14\n\x0cobservations\x18\x03 \x01(\r\x12\x19\n\x0crelative_std\x18\x04 \x01(\x01H\x00\x88\x01\x01\x12(\n\x1blargest_reprojection_sigmas\x18\x05 \x01(\x01H\x01\x88\x01\x01\x42\x0f\n\r_relative_stdB\x1e\n\x1c_largest_reprojection_sigmas\"-\n\nTrajectory\x12\x1f\n\x05poses\x18\x01 \x03(\x0b\x32\x10.egoslam.v1.Pose\"1\n\tMapPoints\x12$\n\x06points\x18\x01 \x03(\x0b\x32\x14.egoslam.v1.MapPoint\"\x97\x01\n\x06Status\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\'\n\x05state\x18\x02 \x01(\x0e\x32\x18.egoslam.v1.ServiceState\x12\x0e\n\x06\x66rames\x18\x03 \x01(\x04\x12\x11\n\tkeyframes\x18\x04 \x01(\x04\x12\x0f\n\x07windows\x18\x05 \x01(\x04\x12\x0f\n\x07message\x18\x06 \x01(\t\x12\x0e\n\x06run_id\x18\x07 \x01(\t\"\xa5\x01\n\x08Snapshot\x12)\n\tkeyframes\x18\x01 \x01(\x0b\x32\x16.egoslam.v1.Trajectory\x12&\n\x06\x66rames\x18\x02 \x01(\x0b\x32\x16.egoslam.v1.Trajectory\x12\"\n\x03map\x18\x03 \x01(\x0b\x32\x15.egoslam.v1.MapPoints\x12\"\n\x06status\x18\x04 \x01(\x0b\x32\x12.egoslam.v1.Status*\x9a\x01\n\x0cServiceState\x12\x1d\n\x19SERVICE_STATE_UNSPECIFIED\x10\x00\x12\x1a\n\x16SERVICE_STATE_STARTING\x10\x01\x12\x19\n\x15SERVICE_STATE_RUNNING\x10\x02\x12\x1a\n\x16SERVICE_STATE_FINISHED\x10\x03\x12\x18\n\x14SERVICE_STATE_FAILED\x10\x04\x62\x06proto3')
 
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, globals())
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'egoslam.v1.map_pb2', globals())
 if _descriptor._USE_C_DESCRIPTORS == False:
 
   DESCRIPTOR._options = None
-  _SOLVESTATUS._serialized_start=2019
-  _SOLVESTATUS._serialized_end=2143
-  _SERVICESTATE._serialized_start=2146
-  _SERVICESTATE._serialized_end=2300
-  _KEYFRAMEPOSE._serialized_start=90
-  _KEYFRAMEPOSE._serialized_end=157
-  _MAPPOINT._serialized_start=160
-  _MAPPOINT._serialized_end=364
-  _OBSERVATION._serialized_start=366
-  _OBSERVATION._serialized_end=440
-  _STAGETIMING._serialized_start=442
-  _STAGETIMING._serialized_end=492
-  _SOLUTIONQUALITY._serialized_start=495
-  _SOLUTIONQUALITY._serialized_end=658
-  _WINDOWSOLUTION._serialized_start=661
-  _WINDOWSOLUTION._serialized_end=1239
-  _KEYFRAMESTAMP._serialized_start=1242
-  _KEYFRAMESTAMP._serialized_end=1451
-  _TRAJECTORY._serialized_start=1453
-  _TRAJECTORY._serialized_end=1498
-  _MAPPOINTS._serialized_start=1500
-  _MAPPOINTS._serialized_end=1549
-  _STATUS._serialized_start=1552
-  _STATUS._serialized_end=1703
-  _SNAPSHOT._serialized_start=1706
-  _SNAPSHOT._serialized_end=1871
-  _KEYFRAMEFEATURES._serialized_start=1874
-  _KEYFRAMEFEATURES._serialized_end=2017
+  _SERVICESTATE._serialized_start=691
+  _SERVICESTATE._serialized_end=845
+  _MAPPOINT._serialized_start=64
+  _MAPPOINT._serialized_end=268
+  _TRAJECTORY._serialized_start=270
+  _TRAJECTORY._serialized_end=315
+  _MAPPOINTS._serialized_start=317
+  _MAPPOINTS._serialized_end=366
+  _STATUS._serialized_start=369
+  _STATUS._serialized_end=520
+  _SNAPSHOT._serialized_start=523
+  _SNAPSHOT._serialized_end=688
 # @@protoc_insertion_point(module_scope)

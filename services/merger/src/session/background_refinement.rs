@@ -11,9 +11,9 @@
 //! number is `fold_lag`, or more for a large job ([`KEYFRAMES_PER_LAG_WINDOW`]), so that
 //! the intake seldom waits.
 
-use crate::stats::ServiceStats;
+use super::tally::Tally;
+use crate::{MapBuilder, RefinementOptions, RefinementOutcome};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{MapBuilder, RefinementOptions, RefinementOutcome};
 use std::collections::BTreeSet;
 use std::thread::JoinHandle;
 
@@ -112,7 +112,7 @@ impl BackgroundRefiner {
         camera: &PinholeRadtan,
         new_keyframes: &[u64],
         new_tracks: &BTreeSet<u64>,
-        stats: &mut ServiceStats,
+        stats: &mut Tally,
     ) -> Option<f64> {
         let error = map.cross_window_error(camera, new_keyframes, new_tracks)?;
         let due = error > self.threshold_px && self.worker.is_none();
@@ -145,12 +145,7 @@ impl BackgroundRefiner {
     /// of N the refinement is folded before the N-th window after its start (more for a
     /// large job, [`KEYFRAMES_PER_LAG_WINDOW`]), waited for if still running, never
     /// earlier; with 0, whenever it has finished. Returns whether the map changed.
-    pub fn fold(
-        &mut self,
-        map: &mut MapBuilder,
-        end_of_stream: bool,
-        stats: &mut ServiceStats,
-    ) -> bool {
+    pub fn fold(&mut self, map: &mut MapBuilder, end_of_stream: bool, stats: &mut Tally) -> bool {
         if self.worker.is_none() {
             return false;
         }

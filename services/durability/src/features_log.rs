@@ -11,8 +11,8 @@
 //! windows after the checkpoint are re-applied from the solver's journal, which re-appends
 //! their features.
 
-use crate::durability::record_log::{for_each_record, LogReader, RecordLog};
-use egoslam_messages::v1 as pb;
+use crate::record_log::{for_each_record, LogReader, RecordLog};
+use egoslam_messages::internal::v1 as internal;
 use egoslam_relocalization::patch_alignment::Patch;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_relocalization::MapFeature;
@@ -78,12 +78,12 @@ impl FeaturesLog {
     /// Opens `dir/keyframe_features.log` for appending (created if absent) and reads which
     /// keyframes it describes and the tracks each holds a patch of, later records
     /// replacing earlier ones (a resumed merger's).
-    pub fn open(dir: &Path) -> anyhow::Result<(Self, BTreeMap<u64, PatchedTracks>)> {
+    pub fn open(dir: &Path) -> crate::Result<(Self, BTreeMap<u64, PatchedTracks>)> {
         let path = dir.join(FILE_NAME);
         let mut records = BTreeMap::new();
         let mut descriptions = BTreeMap::new();
         let mut ends = Vec::new();
-        for_each_record::<pb::KeyframeFeatures>(&path, |at, r| {
+        for_each_record::<internal::KeyframeFeatures>(&path, |at, r| {
             match features_from_pb(&r).zip(patches_from_pb(&r)) {
                 Some((_, patches)) => {
                     descriptions.insert(r.keyframe_id, patched_tracks(&patches));
@@ -112,22 +112,22 @@ impl FeaturesLog {
     }
 
     /// Hands what was appended to the kernel, so that reads see it.
-    pub fn flush(&mut self) -> anyhow::Result<()> {
+    pub fn flush(&mut self) -> crate::Result<()> {
         self.log.flush()
     }
 
     /// Keyframe `id`'s described tracks as its latest record holds them (after
     /// [`FeaturesLog::flush`]); `None` for a keyframe without one or an unreadable record.
-    pub fn features_of(&self, id: u64) -> anyhow::Result<Option<Vec<MapFeature>>> {
+    pub fn features_of(&self, id: u64) -> crate::Result<Option<Vec<MapFeature>>> {
         let Some((at, _)) = self.records.get(&id) else {
             return Ok(None);
         };
-        let record: pb::KeyframeFeatures = LogReader::open(&self.path)?.read_at(*at)?;
+        let record: internal::KeyframeFeatures = LogReader::open(&self.path)?.read_at(*at)?;
         Ok(features_from_pb(&record))
     }
 
     /// Appends `record` (buffered; [`FeaturesLog::sync`] makes it durable).
-    pub fn append(&mut self, record: &pb::KeyframeFeatures) -> anyhow::Result<()> {
+    pub fn append(&mut self, record: &internal::KeyframeFeatures) -> crate::Result<()> {
         use prost::Message;
         let at = self.log.append(record)?;
         let bytes =
@@ -137,12 +137,12 @@ impl FeaturesLog {
     }
 
     /// Makes everything appended durable.
-    pub fn sync(&mut self) -> anyhow::Result<()> {
+    pub fn sync(&mut self) -> crate::Result<()> {
         self.log.sync()
     }
 
     /// Empties the log (a new stream starts a new map).
-    pub fn truncate(&mut self) -> anyhow::Result<()> {
+    pub fn truncate(&mut self) -> crate::Result<()> {
         self.records.clear();
         self.log.truncate()
     }
@@ -151,14 +151,14 @@ impl FeaturesLog {
     pub fn patches(
         &mut self,
         keyframes: impl IntoIterator<Item = u64>,
-    ) -> anyhow::Result<BTreeMap<u64, Vec<(u64, Patch)>>> {
+    ) -> crate::Result<BTreeMap<u64, Vec<(u64, Patch)>>> {
         let mut reader = self.log.reader()?;
         let mut out = BTreeMap::new();
         for keyframe in keyframes {
             let Some((at, _)) = self.records.get(&keyframe) else {
                 continue;
             };
-            let record: pb::KeyframeFeatures = reader.read_at(*at)?;
+            let record: internal::KeyframeFeatures = reader.read_at(*at)?;
             if let Some(patches) = patches_from_pb(&record).filter(|p| !p.is_empty()) {
                 out.insert(keyframe, patches);
             }
@@ -173,7 +173,7 @@ impl FeaturesLog {
     /// written (0 when not due). Call it before a checkpoint: the log must cover every
     /// keyframe the checkpoint holds, and the windows after it re-append theirs when
     /// replayed.
-    pub fn compact_if_due(&mut self, keep: impl Fn(u64) -> Keep) -> anyhow::Result<u64> {
+    pub fn compact_if_due(&mut self, keep: impl Fn(u64) -> Keep) -> crate::Result<u64> {
         let size = self.log.len_bytes()?;
         if size < COMPACT_ABOVE_BYTES {
             return Ok(0);
@@ -184,7 +184,7 @@ impl FeaturesLog {
             .map(|(k, (at, _))| (*k, *at, keep(*k)))
             .filter(|(_, _, keep)| *keep != Keep::Nothing)
             .collect();
-        let live: u64 = crate::durability::record_log::HEADER_LEN
+        let live: u64 = crate::record_log::HEADER_LEN
             + decisions
                 .iter()
                 .map(|(k, _, keep)| match keep {
@@ -199,7 +199,7 @@ impl FeaturesLog {
         self.log.rewrite(|reader, writer| {
             use prost::Message;
             for (keyframe, at, keep) in decisions {
-                let mut record: pb::KeyframeFeatures = reader.read_at(at)?;
+                let mut record: internal::KeyframeFeatures = reader.read_at(at)?;
                 if let Keep::Tracks(tracks) = keep {
                     record = only_tracks(&record, &tracks);
                 }
@@ -230,8 +230,11 @@ impl egoslam_merger::KeyframeFeatureSource for FeaturesLog {
 }
 
 /// `record` with the features and patches of `tracks` alone.
-fn only_tracks(record: &pb::KeyframeFeatures, tracks: &BTreeSet<u64>) -> pb::KeyframeFeatures {
-    let mut out = pb::KeyframeFeatures {
+fn only_tracks(
+    record: &internal::KeyframeFeatures,
+    tracks: &BTreeSet<u64>,
+) -> internal::KeyframeFeatures {
+    let mut out = internal::KeyframeFeatures {
         keyframe_id: record.keyframe_id,
         ..Default::default()
     };
@@ -324,7 +327,7 @@ mod tests {
     #[test]
     fn records_come_back_later_ones_win_and_a_torn_tail_is_dropped() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let record = |k: u64, fill: u8| pb::KeyframeFeatures {
+        let record = |k: u64, fill: u8| internal::KeyframeFeatures {
             keyframe_id: k,
             track_ids: vec![1, 2],
             descriptors: vec![fill; 64],

@@ -1,26 +1,30 @@
 //! The merger drops redundant keyframes once no window can bring them again
-//! (egoslam_merger::keyframe_culling): the map, the checkpoint, the descriptors and the
+//! (crate::keyframe_culling): the map, the checkpoint, the descriptors and the
 //! bag-of-words index keep the keyframes that see something the others do not. A culled
 //! keyframe's frame stays in the trajectory, posed relative to the kept keyframes around
 //! it (a `LocalizedFrame`), as do the frames that were posed against it.
 
-use super::Merger;
-use crate::merger::map_state::{relative, LocalizedFrame};
+use super::frames::{frame_poses, relative, LocalizedFrame};
+use super::MergerSession;
+use crate::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions, KeyframeFeatureSource};
 use egoslam_geometry::StampedPose;
-use egoslam_merger::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions};
 use std::collections::BTreeMap;
 
-impl Merger {
+impl MergerSession {
     /// Culls among the keyframes older than `oldest_live` (the newest window's first: the
     /// next window overlaps only that one) not looked at before. Not while a background
     /// refinement runs: its result holds those keyframes (a fold finding one gone drops
     /// the whole result); they are looked at after it is folded. Nor from the first
     /// keyframe of a stretch waiting for its scale on: settling it rescales its keyframes
     /// about that one, which frames kept relative to keyframes before it would not follow.
-    pub(super) fn cull_keyframes(&mut self, oldest_live: u64) {
+    pub(super) fn cull_keyframes(
+        &mut self,
+        oldest_live: u64,
+        features: &dyn KeyframeFeatureSource,
+    ) {
         let provisional = self.state.map.provisional_scale().map(|p| p.first_keyframe);
         let oldest_live = provisional.map_or(oldest_live, |first| first.min(oldest_live));
-        if !self.args.pipeline.cull_keyframes {
+        if !self.options.cull_keyframes {
             return;
         }
         let options = KeyframeCullingOptions::default();
@@ -34,12 +38,12 @@ impl Merger {
                 .filter(|id| (checked..oldest_live).contains(id))
                 .collect();
             self.state.culling_checked_before = oldest_live;
-            self.cull(&candidates, oldest_live, "redundant", |map| {
+            self.cull(&candidates, oldest_live, features, "redundant", |map| {
                 map.cull_keyframes(&candidates, &options)
             });
         }
         let budget = KeyframeBudget {
-            max_keyframes: self.args.pipeline.max_map_keyframes,
+            max_keyframes: self.options.max_map_keyframes,
             ..KeyframeBudget::default()
         };
         if budget.max_keyframes > 0 {
@@ -48,10 +52,10 @@ impl Merger {
             // for most of a long run.
             let before = oldest_live.min(self.refiner.free_before());
             let map = &self.state.map;
-            let over = self.stats.time("keyframe_budget", || {
+            let over = self.tally.time("keyframe_budget", || {
                 map.over_budget_keyframes(before, &budget)
             });
-            self.cull(&over, oldest_live, "over_budget", |map| {
+            self.cull(&over, oldest_live, features, "over_budget", |map| {
                 map.remove_keyframes(&over, &options)
             });
         }
@@ -63,8 +67,9 @@ impl Merger {
         &mut self,
         candidates: &[u64],
         oldest_live: u64,
+        features: &dyn KeyframeFeatureSource,
         rule: &'static str,
-        remove: impl FnOnce(&mut egoslam_merger::MapBuilder) -> egoslam_merger::CullingReport,
+        remove: impl FnOnce(&mut crate::MapBuilder) -> crate::CullingReport,
     ) {
         let Some(&first) = candidates.iter().min() else {
             return;
@@ -86,9 +91,9 @@ impl Merger {
         let (Some(from), Some(to)) = (from, to) else {
             return;
         };
-        let before = crate::merger::map_state::frame_poses(map, frames, from..=to);
+        let before = frame_poses(map, frames, from..=to);
         let map = &mut self.state.map;
-        let report = self.stats.time("cull_keyframes", || remove(map));
+        let report = self.tally.time("cull_keyframes", || remove(map));
         if report.culled.is_empty() {
             return;
         }
@@ -96,16 +101,11 @@ impl Merger {
             report.culled.iter().map(|c| (c.keyframe_id, *c)).collect();
         self.keep_frames_posed(&culled, &before);
         for id in culled.keys() {
-            match self.features_log.features_of(*id) {
-                Ok(Some(features)) => {
-                    let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
-                    self.database
-                        .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
-                }
-                Ok(None) => {}
-                Err(e) => {
-                    tracing::warn!(keyframe = id, error = %e, "culled keyframe's descriptors unreadable: left in the index");
-                }
+            // Unreadable descriptors (the source says so) leave the keyframe in the index.
+            if let Some(described) = features.features(*id) {
+                let descriptors: Vec<_> = described.iter().map(|f| f.descriptor).collect();
+                self.database
+                    .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
             }
             self.keep_patches_of(*id);
         }
@@ -115,9 +115,9 @@ impl Merger {
             points = report.removed_points,
             "keyframes culled"
         );
-        self.stats
+        self.tally
             .count(&format!("culled_keyframes_{rule}"), culled.len() as u64);
-        self.stats
+        self.tally
             .count("culled_points", report.removed_points as u64);
     }
 
@@ -125,7 +125,7 @@ impl Merger {
     /// features (their pixels), in the features log: a patch is kept only in the keyframe
     /// that first described its track, and relocalization's patch alignment
     /// (docs/relocalization.md) warps it from that keyframe's pose, which its frame keeps
-    /// (`map_file::relocalization_map`). Without them, the rendered walks' relocalization
+    /// (egoslam's `map_file::relocalization_map`). Without them, the rendered walks' relocalization
     /// error rose by a quarter to a half.
     fn keep_patches_of(&mut self, keyframe: u64) {
         let map = &self.state.map;
@@ -141,7 +141,7 @@ impl Merger {
     /// Drops the patches culled keyframes keep of tracks that left the map since (later
     /// culls): otherwise they would pile up with the time walked, in memory and in the
     /// features log's compactions.
-    pub(super) fn prune_culled_patches(&mut self) {
+    pub fn prune_culled_patches(&mut self) {
         let map = &self.state.map;
         self.state.patched_tracks.retain(|keyframe, kept| {
             if map.keyframe(*keyframe).is_some() {

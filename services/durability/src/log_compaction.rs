@@ -13,7 +13,6 @@
 //! record a restarted reader asks for; a lost or stale mark only means no compaction (the
 //! launcher and a fresh frontend remove stale marks).
 
-use anyhow::Context;
 use std::path::Path;
 
 /// Written by the merger after each checkpoint: `stream_id next_sequence`, the first
@@ -34,8 +33,8 @@ pub const SOLVER_MARK: &str = "solver.applied";
 pub const DEFAULT_COMPACT_ABOVE_BYTES: u64 = 16 << 20;
 
 /// Writes a mark `first second` atomically (temporary file and rename).
-pub fn write_mark(path: &Path, first: u64, second: u64) -> anyhow::Result<()> {
-    crate::output::write_atomically(path, format!("{first} {second}\n").as_bytes())
+pub fn write_mark(path: &Path, first: u64, second: u64) -> crate::Result<()> {
+    crate::write_atomically(path, format!("{first} {second}\n").as_bytes())
 }
 
 /// Reads a mark; `None` when absent or unreadable (then nothing is compacted).
@@ -52,10 +51,10 @@ pub fn read_mark(path: &Path) -> Option<(u64, u64)> {
 }
 
 /// Removes a mark (a fresh stream must not compact by its predecessor's).
-pub fn remove_mark(path: &Path) -> anyhow::Result<()> {
+pub fn remove_mark(path: &Path) -> crate::Result<()> {
     match std::fs::remove_file(path) {
         Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            Err(e).with_context(|| format!("removing {}", path.display()))
+            Err(crate::io_error("removing", path)(e))
         }
         _ => Ok(()),
     }

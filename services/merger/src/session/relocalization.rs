@@ -2,13 +2,13 @@
 //! a break to an older one, and closing loops inside a segment
 //! (docs/relocalization.md, docs/merger.md).
 
-use super::Merger;
-use egoslam_geometry::PinholeRadtan;
-use egoslam_merger::{
-    find_link, find_loop, relocalized_window_scale, LinkOptions, LoopNotApplied, LoopOptions,
-    RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions, WindowInput,
+use super::MergerSession;
+use crate::{
+    find_link, find_loop, relocalized_window_scale, KeyframeFeatureSource, LinkOptions,
+    LoopNotApplied, LoopOptions, RelocalizationSources, RelocalizedScale, RelocalizedScaleOptions,
+    WindowInput,
 };
-use egoslam_relocalization::saved_map::features_to_pb;
+use egoslam_geometry::PinholeRadtan;
 
 /// A segment is tried for linking to older ones while it has at most this many keyframes
 /// (three windows): after a break the first windows decide; a segment that found no link
@@ -30,60 +30,44 @@ const LINK_RETRY_KEYFRAMES: usize = 20;
 /// is folded in.
 const LOOP_ATTEMPT_WINDOWS: u64 = 2;
 
-impl Merger {
+impl MergerSession {
     /// Runs `f` on the merger's map, descriptors and index as relocalization reads them,
     /// timed as `stage`.
     fn relocalize<T>(
         &mut self,
         camera: &PinholeRadtan,
+        features: &dyn KeyframeFeatureSource,
         stage: &str,
         f: impl FnOnce(&RelocalizationSources) -> T,
     ) -> T {
         let sources = RelocalizationSources {
             map: &self.state.map,
-            features: &self.features_log,
+            features,
             database: &self.database,
             camera,
             vocabulary: &self.vocabulary,
         };
-        self.stats.time(stage, || f(&sources))
-    }
-
-    /// Starts the map from the saved map at `path` (egoslam_merger::base_map): its
-    /// keyframes' descriptors go into the features log and the linking index like the
-    /// run's own, so that a restarted merger and segment linking have them.
-    pub(super) fn extend_saved_map(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
-        let map = crate::map_file::read_map(path, &self.vocabulary)?;
-        let (keyframes, points) = (map.keyframes.len(), map.points.len());
-        for k in crate::map_file::extend_state(&mut self.state, map) {
-            self.features_log
-                .append(&features_to_pb(k.keyframe_id, &k.features, &k.patches))?;
-            self.index_keyframe(k.keyframe_id, &k.features);
-        }
-        self.features_log.flush()?;
-        tracing::info!(
-            map = %path.display(),
-            keyframes,
-            points,
-            "extending a saved map"
-        );
-        Ok(())
+        self.tally.time(stage, || f(&sources))
     }
 
     /// The scale of a window that shares too few points with the map, from its keyframes
-    /// relocalized against the map's recent ones (egoslam_merger::relocalized_scale);
+    /// relocalized against the map's recent ones (crate::relocalized_scale);
     /// `None` when it shares enough points or does not relocalize.
-    pub(super) fn relocalized_scale(&mut self, window: &WindowInput) -> Option<RelocalizedScale> {
+    pub(super) fn relocalized_scale(
+        &mut self,
+        window: &WindowInput,
+        features: &dyn KeyframeFeatureSource,
+    ) -> Option<RelocalizedScale> {
         let camera = self.camera?;
         let segment = self.state.map.current_segment()?;
         if !self.state.map.lacks_shared_points(window) {
             return None;
         }
         let options = RelocalizedScaleOptions::default();
-        let scale = self.relocalize(&camera, "relocalized_scale", |sources| {
+        let scale = self.relocalize(&camera, features, "relocalized_scale", |sources| {
             relocalized_window_scale(sources, segment, window, &options)
         });
-        self.stats.count(
+        self.tally.count(
             if scale.is_some() {
                 "relocalized_scales"
             } else {
@@ -99,7 +83,12 @@ impl Merger {
     /// when they agree (docs/relocalization.md, "Segment linking"). After a merge the other
     /// young segments are tried again: a segment that saw nothing of the older map may see
     /// what the merged one brought.
-    pub(super) fn try_link(&mut self, window_id: u64, segment: u32) {
+    pub(super) fn try_link(
+        &mut self,
+        window_id: u64,
+        segment: u32,
+        features: &dyn KeyframeFeatureSource,
+    ) {
         let Some(camera) = self.camera else {
             return;
         };
@@ -116,7 +105,7 @@ impl Merger {
                 only_newest: (!young).then_some(LINK_RETRY_KEYFRAMES),
                 ..LinkOptions::default()
             };
-            let link = self.relocalize(&camera, "link_segments", |sources| {
+            let link = self.relocalize(&camera, features, "link_segments", |sources| {
                 find_link(sources, segment, &options)
             });
             let Some(link) = link else { continue };
@@ -137,13 +126,18 @@ impl Merger {
     }
 
     /// Closes a loop inside `segment` when its newest keyframes relocalize into a part of
-    /// it mapped long before (egoslam_merger::loop_closure).
-    pub(super) fn try_close_loop(&mut self, window_id: u64, segment: u32) {
+    /// it mapped long before (crate::loop_closure).
+    pub(super) fn try_close_loop(
+        &mut self,
+        window_id: u64,
+        segment: u32,
+        features: &dyn KeyframeFeatureSource,
+    ) {
         let Some(camera) = self.camera else {
             return;
         };
         let due = window_id.is_multiple_of(LOOP_ATTEMPT_WINDOWS) || self.loop_attempt_owed;
-        if !self.args.pipeline.loop_closure || !due {
+        if !self.options.loop_closure || !due {
             return;
         }
         if self.refiner.is_running() {
@@ -155,14 +149,14 @@ impl Merger {
         }
         self.loop_attempt_owed = false;
         let options = LoopOptions::default();
-        let closure = self.relocalize(&camera, "find_loop", |sources| {
+        let closure = self.relocalize(&camera, features, "find_loop", |sources| {
             find_loop(sources, segment, &options)
         });
         let Some(closure) = closure else { return };
         let report = match self.state.map.close_loop(&closure, &options) {
             Ok(report) => report,
             Err(e @ LoopNotApplied::TooLarge { .. }) => {
-                self.stats.count("loops_refused", 1);
+                self.tally.count("loops_refused", 1);
                 tracing::warn!(
                     window = window_id,
                     anchor = closure.anchor_keyframe,
@@ -180,7 +174,7 @@ impl Merger {
                 return;
             }
         };
-        self.stats.count("loops_closed", 1);
+        self.tally.count("loops_closed", 1);
         self.loop_sightings = closure.sightings.clone();
         tracing::info!(
             window = window_id,

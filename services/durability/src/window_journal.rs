@@ -8,8 +8,7 @@
 //! compacts the journal (log_compaction.rs). Version 1 (no first sequence number, always
 //! 0) is still read.
 
-use anyhow::{bail, Context};
-use egoslam_messages::v1 as pb;
+use egoslam_messages::internal::v1 as internal;
 use prost::Message;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -46,11 +45,11 @@ pub struct JournalWriter {
 
 impl JournalWriter {
     /// Creates (truncates) the journal for a new stream.
-    pub fn create(path: &Path, stream_id: u64) -> anyhow::Result<Self> {
+    pub fn create(path: &Path, stream_id: u64) -> crate::Result<Self> {
         let mut file = std::fs::File::create(path)
-            .with_context(|| format!("creating the window journal {}", path.display()))?;
+            .map_err(crate::io_error("creating the window journal", path))?;
         file.write_all(&header(stream_id, 0))
-            .with_context(|| format!("writing {}", path.display()))?;
+            .map_err(crate::io_error("writing", path))?;
         Ok(Self {
             path: path.to_path_buf(),
             file,
@@ -63,14 +62,14 @@ impl JournalWriter {
 
     /// Reopens the journal of a stream that a restarted solver continues: anything after
     /// the last complete record (`journal.valid_len`) is cut, then messages are appended.
-    pub fn resume(path: &Path, journal: &Journal) -> anyhow::Result<Self> {
+    pub fn resume(path: &Path, journal: &Journal) -> crate::Result<Self> {
         let mut file = std::fs::OpenOptions::new()
             .write(true)
             .open(path)
-            .with_context(|| format!("reopening the window journal {}", path.display()))?;
+            .map_err(crate::io_error("reopening the window journal", path))?;
         file.set_len(journal.valid_len)
             .and_then(|()| std::io::Seek::seek(&mut file, std::io::SeekFrom::End(0)))
-            .with_context(|| format!("trimming {}", path.display()))?;
+            .map_err(crate::io_error("trimming", path))?;
         Ok(Self {
             path: path.to_path_buf(),
             file,
@@ -82,11 +81,11 @@ impl JournalWriter {
     }
 
     /// Bytes in the journal file.
-    pub fn len_bytes(&self) -> anyhow::Result<u64> {
+    pub fn len_bytes(&self) -> crate::Result<u64> {
         Ok(self
             .file
             .metadata()
-            .with_context(|| format!("reading the size of {}", self.path.display()))?
+            .map_err(crate::io_error("reading the size of", &self.path))?
             .len())
     }
 
@@ -94,7 +93,7 @@ impl JournalWriter {
     /// the last one: a restarted solver continues after it. The file is rewritten
     /// atomically (a reader sees the old or the new journal, both holding every record from
     /// `sequence` on). Returns the number of records dropped.
-    pub fn compact_before(&mut self, sequence: u64) -> anyhow::Result<u64> {
+    pub fn compact_before(&mut self, sequence: u64) -> crate::Result<u64> {
         let records = self.record_offsets.len() as u64;
         let keep_from = sequence.min((self.first_sequence + records).saturating_sub(1));
         if keep_from <= self.first_sequence {
@@ -103,11 +102,11 @@ impl JournalWriter {
         let dropped = keep_from - self.first_sequence;
         self.record_offsets.drain(..dropped as usize);
         let cut = self.record_offsets.front().copied().unwrap_or(0);
-        crate::output::keep_tail_atomically(&self.path, cut, &header(self.stream_id, keep_from))?;
+        crate::keep_tail_atomically(&self.path, cut, &header(self.stream_id, keep_from))?;
         self.file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)
-            .with_context(|| format!("reopening {}", self.path.display()))?;
+            .map_err(crate::io_error("reopening", &self.path))?;
         for offset in &mut self.record_offsets {
             *offset = *offset - cut + HEADER_LEN as u64;
         }
@@ -117,14 +116,17 @@ impl JournalWriter {
 
     /// Appends one message and hands it to the kernel (and the disk) before returning, so
     /// that a message is in the journal before anyone can have received it.
-    pub fn append(&mut self, message: &pb::WindowSolution) -> anyhow::Result<()> {
+    pub fn append(&mut self, message: &internal::WindowSolution) -> crate::Result<()> {
         let offset = self.len_bytes()?;
         self.buffer.clear();
-        message.encode_length_delimited(&mut self.buffer)?;
+        // A Vec grows as needed: encoding cannot run out of room.
+        message
+            .encode_length_delimited(&mut self.buffer)
+            .map_err(|e| crate::invalid(&self.path, format!("encoding a window: {e}")))?;
         self.file
             .write_all(&self.buffer)
             .and_then(|()| self.file.sync_data())
-            .with_context(|| format!("appending to {}", self.path.display()))?;
+            .map_err(crate::io_error("appending to", &self.path))?;
         self.record_offsets.push_back(offset);
         Ok(())
     }
@@ -137,7 +139,7 @@ pub struct Journal {
     /// Bus sequence number of `messages[0]` (0 unless the journal was compacted).
     pub first_sequence: u64,
     /// Messages in sequence order (index = bus sequence number - `first_sequence`).
-    pub messages: Vec<pb::WindowSolution>,
+    pub messages: Vec<internal::WindowSolution>,
     /// Byte offset of each message's record in the file.
     pub record_offsets: Vec<u64>,
     /// Bytes up to the end of the last complete record (what a resumed writer keeps).
@@ -151,7 +153,7 @@ impl Journal {
     }
 
     /// The message with bus sequence number `sequence`, if the journal holds it.
-    pub fn message(&self, sequence: u64) -> Option<&pb::WindowSolution> {
+    pub fn message(&self, sequence: u64) -> Option<&internal::WindowSolution> {
         let index = usize::try_from(sequence.checked_sub(self.first_sequence)?).ok()?;
         self.messages.get(index)
     }
@@ -159,27 +161,26 @@ impl Journal {
 
 /// Length of the header of the journal `bytes` (by its version); an error for anything
 /// that is not a journal this egoslam reads.
-fn header_len(bytes: &[u8], path: &Path) -> anyhow::Result<usize> {
+fn header_len(bytes: &[u8], path: &Path) -> crate::Result<usize> {
     if bytes.len() < HEADER_LEN_V1 || &bytes[..8] != MAGIC {
-        bail!("{}: not an egoslam window journal", path.display());
+        return Err(crate::invalid(path, "not an egoslam window journal"));
     }
     let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
     match version {
         1 => Ok(HEADER_LEN_V1),
         2 if bytes.len() >= HEADER_LEN => Ok(HEADER_LEN),
-        2 => bail!("{}: journal header cut short", path.display()),
-        _ => bail!(
-            "{}: journal format version {version}, this egoslam reads 1 and {VERSION}",
-            path.display()
-        ),
+        2 => Err(crate::invalid(path, "journal header cut short")),
+        _ => Err(crate::invalid(
+            path,
+            format!("journal format version {version}, this egoslam reads 1 and {VERSION}"),
+        )),
     }
 }
 
 /// Reads a journal. A last record cut short (the solver died while appending) is dropped:
 /// that message was never sent. Anything else malformed is an error naming the file.
-pub fn read(path: &Path) -> anyhow::Result<Journal> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("reading the journal {}", path.display()))?;
+pub fn read(path: &Path) -> crate::Result<Journal> {
+    let bytes = std::fs::read(path).map_err(crate::io_error("reading the journal", path))?;
     let header_len = header_len(&bytes, path)?;
     let word = |at: usize| {
         let mut w = [0u8; 8];
@@ -205,8 +206,9 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
             tracing::warn!(path = %path.display(), records = messages.len(), "journal ends in a partial record (ignored)");
             break;
         }
-        let message = pb::WindowSolution::decode(&cursor[..len])
-            .with_context(|| format!("{}: record {} is corrupt", path.display(), messages.len()))?;
+        let message = internal::WindowSolution::decode(&cursor[..len]).map_err(|e| {
+            crate::invalid(path, format!("record {} is corrupt ({e})", messages.len()))
+        })?;
         messages.push(message);
         record_offsets.push((bytes.len() - rest.len()) as u64);
         rest = &cursor[len..];
@@ -224,8 +226,8 @@ pub fn read(path: &Path) -> anyhow::Result<Journal> {
 mod tests {
     use super::*;
 
-    fn window(id: u64) -> pb::WindowSolution {
-        pb::WindowSolution {
+    fn window(id: u64) -> internal::WindowSolution {
+        internal::WindowSolution {
             window_id: id,
             stream_id: 42,
             keyframe_ids: vec![id, id + 1],

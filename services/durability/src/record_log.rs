@@ -7,7 +7,6 @@
 //! records. A log without the header (written before it existed) is read as it is and
 //! gets the header when it is next rewritten; a log of another version is refused.
 
-use anyhow::Context;
 use prost::Message;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -38,13 +37,13 @@ pub struct RecordLog {
 
 impl RecordLog {
     /// Opens the log at `path` for appending (created if absent).
-    pub fn open(path: &Path) -> anyhow::Result<Self> {
+    pub fn open(path: &Path) -> crate::Result<Self> {
         let path = path.to_path_buf();
         let file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(&path)
-            .with_context(|| format!("opening {}", path.display()))?;
+            .map_err(crate::io_error("opening", &path))?;
         let mut log = Self {
             path,
             writer: std::io::BufWriter::new(file),
@@ -57,56 +56,56 @@ impl RecordLog {
         Ok(log)
     }
 
-    fn write_header(&mut self) -> anyhow::Result<()> {
+    fn write_header(&mut self) -> crate::Result<()> {
         self.writer
             .write_all(&header())
-            .with_context(|| format!("writing the header of {}", self.path.display()))?;
+            .map_err(crate::io_error("writing the header of", &self.path))?;
         self.end = HEADER_LEN;
         Ok(())
     }
 
     /// Appends one record (buffered; see [`RecordLog::sync`] and [`RecordLog::flush`]);
     /// returns its byte offset, at which [`LogReader::read_at`] finds it.
-    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<u64> {
+    pub fn append(&mut self, record: &impl Message) -> crate::Result<u64> {
         let bytes = record.encode_length_delimited_to_vec();
         self.writer
             .write_all(&bytes)
-            .with_context(|| format!("appending to {}", self.path.display()))?;
+            .map_err(crate::io_error("appending to", &self.path))?;
         let at = self.end;
         self.end += bytes.len() as u64;
         Ok(at)
     }
 
     /// A reader of everything appended so far (flushed first).
-    pub fn reader(&mut self) -> anyhow::Result<LogReader> {
+    pub fn reader(&mut self) -> crate::Result<LogReader> {
         self.flush()?;
         LogReader::open(&self.path)
     }
 
     /// Hands everything appended to the kernel: it survives the process being killed.
-    pub fn flush(&mut self) -> anyhow::Result<()> {
+    pub fn flush(&mut self) -> crate::Result<()> {
         self.writer
             .flush()
-            .with_context(|| format!("writing {}", self.path.display()))
+            .map_err(crate::io_error("writing", &self.path))
     }
 
     /// Makes everything appended so far durable (before a checkpoint names it applied).
-    pub fn sync(&mut self) -> anyhow::Result<()> {
+    pub fn sync(&mut self) -> crate::Result<()> {
         self.flush()?;
         self.writer
             .get_ref()
             .sync_data()
-            .with_context(|| format!("syncing {}", self.path.display()))
+            .map_err(crate::io_error("syncing", &self.path))
     }
 
     /// Bytes in the log, including what is still buffered.
-    pub fn len_bytes(&mut self) -> anyhow::Result<u64> {
+    pub fn len_bytes(&mut self) -> crate::Result<u64> {
         self.flush()?;
         self.end = self
             .writer
             .get_ref()
             .metadata()
-            .with_context(|| format!("reading the size of {}", self.path.display()))?
+            .map_err(crate::io_error("reading the size of", &self.path))?
             .len();
         Ok(self.end)
     }
@@ -115,9 +114,9 @@ impl RecordLog {
     /// after the header, to a new file that atomically replaces the log, without decoding a
     /// record. Only the kept tail is read, so the cost does not grow with what is dropped.
     /// Returns the offset at which the kept records now start.
-    pub fn cut_before(&mut self, offset: u64) -> anyhow::Result<u64> {
+    pub fn cut_before(&mut self, offset: u64) -> crate::Result<u64> {
         self.flush()?;
-        crate::output::keep_tail_atomically(&self.path, offset, &header())?;
+        crate::keep_tail_atomically(&self.path, offset, &header())?;
         self.reopen()?;
         Ok(HEADER_LEN)
     }
@@ -127,8 +126,8 @@ impl RecordLog {
     /// so memory does not grow with the log); appending goes on after them.
     pub fn rewrite(
         &mut self,
-        write: impl FnOnce(&mut LogReader, &mut LogWriter) -> anyhow::Result<()>,
-    ) -> anyhow::Result<()> {
+        write: impl FnOnce(&mut LogReader, &mut LogWriter) -> crate::Result<()>,
+    ) -> crate::Result<()> {
         let mut reader = self.reader()?;
         let mut writer = LogWriter::create(&self.path)?;
         write(&mut reader, &mut writer)?;
@@ -137,34 +136,34 @@ impl RecordLog {
     }
 
     /// Appends to the file now at the log's path (after it was replaced).
-    fn reopen(&mut self) -> anyhow::Result<()> {
+    fn reopen(&mut self) -> crate::Result<()> {
         let file = std::fs::OpenOptions::new()
             .append(true)
             .open(&self.path)
-            .with_context(|| format!("reopening {}", self.path.display()))?;
+            .map_err(crate::io_error("reopening", &self.path))?;
         self.writer = std::io::BufWriter::new(file);
         self.len_bytes().map(|_| ())
     }
 
     /// Empties the log (a new stream starts a new map).
-    pub fn truncate(&mut self) -> anyhow::Result<()> {
+    pub fn truncate(&mut self) -> crate::Result<()> {
         self.flush()?;
         self.writer
             .get_ref()
             .set_len(0)
-            .with_context(|| format!("truncating {}", self.path.display()))?;
+            .map_err(crate::io_error("truncating", &self.path))?;
         self.write_header()
     }
 }
 
 /// The records of the log at `path` in order; an absent log is empty, a torn or oversized
 /// final record (a kill mid-append) is dropped with a warning, an undecodable one skipped.
-pub fn read_records<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<M>> {
+pub fn read_records<M: Message + Default>(path: &Path) -> crate::Result<Vec<M>> {
     Ok(read_records_at(path)?.into_iter().map(|(_, r)| r).collect())
 }
 
 /// [`read_records`] with each record's byte offset in the log.
-pub fn read_records_at<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<(u64, M)>> {
+pub fn read_records_at<M: Message + Default>(path: &Path) -> crate::Result<Vec<(u64, M)>> {
     let mut out = Vec::new();
     for_each_record(path, |at, record| out.push((at, record)))?;
     Ok(out)
@@ -175,7 +174,7 @@ pub fn read_records_at<M: Message + Default>(path: &Path) -> anyhow::Result<Vec<
 pub fn for_each_record<M: Message + Default>(
     path: &Path,
     mut each: impl FnMut(u64, M),
-) -> anyhow::Result<()> {
+) -> crate::Result<()> {
     let mut reader = match LogReader::open(path) {
         Ok(r) => r,
         Err(e) if !path.exists() => {
@@ -201,9 +200,7 @@ pub fn for_each_record<M: Message + Default>(
                 tracing::warn!(path = %path.display(), offset = at, "torn record at the end of a log ignored");
                 return Ok(());
             }
-            Err(NextRecordError::Io(e)) => {
-                return Err(e).with_context(|| format!("reading {}", path.display()))
-            }
+            Err(NextRecordError::Io(e)) => return Err(crate::io_error("reading", path)(e)),
         }
     }
 }
@@ -226,12 +223,11 @@ pub struct LogReader {
 
 impl LogReader {
     /// Opens the log at `path` for reading.
-    pub fn open(path: &Path) -> anyhow::Result<Self> {
-        let file =
-            std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    pub fn open(path: &Path) -> crate::Result<Self> {
+        let file = std::fs::File::open(path).map_err(crate::io_error("opening", path))?;
         let len = file
             .metadata()
-            .with_context(|| format!("reading the size of {}", path.display()))?
+            .map_err(crate::io_error("reading the size of", path))?
             .len();
         Ok(Self {
             path: path.to_path_buf(),
@@ -242,20 +238,18 @@ impl LogReader {
 
     /// The offset of the first record: after the header, when the log has one (a log
     /// written before headers existed starts with its first record).
-    fn first_record(&mut self) -> anyhow::Result<u64> {
+    fn first_record(&mut self) -> crate::Result<u64> {
         use std::io::{Read, Seek};
         let mut head = [0u8; HEADER_LEN as usize];
         self.file
             .seek(std::io::SeekFrom::Start(0))
-            .with_context(|| format!("reading {}", self.path.display()))?;
+            .map_err(crate::io_error("reading", &self.path))?;
         let mut got = 0;
         while got < head.len() {
             match self.file.read(&mut head[got..]) {
                 Ok(0) => break,
                 Ok(n) => got += n,
-                Err(e) => {
-                    return Err(e).with_context(|| format!("reading {}", self.path.display()))
-                }
+                Err(e) => return Err(crate::io_error("reading", &self.path)(e)),
             }
         }
         if got < MAGIC.len() || &head[..MAGIC.len()] != MAGIC {
@@ -267,30 +261,34 @@ impl LogReader {
         }
         let version = u32::from_le_bytes([head[8], head[9], head[10], head[11]]);
         if version != FORMAT_VERSION {
-            anyhow::bail!(
-                "{}: record log format version {version}, this egoslam reads {FORMAT_VERSION} \
-                 (and logs without a header)",
-                self.path.display()
-            );
+            return Err(crate::invalid(
+                &self.path,
+                format!(
+                    "record log format version {version}, this egoslam reads {FORMAT_VERSION} \
+                     (and logs without a header)"
+                ),
+            ));
         }
         Ok(HEADER_LEN)
     }
 
     /// The record at byte `offset` (one that [`RecordLog::append`] returned).
-    pub fn read_at<M: Message + Default>(&mut self, offset: u64) -> anyhow::Result<M> {
+    pub fn read_at<M: Message + Default>(&mut self, offset: u64) -> crate::Result<M> {
         match self.next_record::<M>(offset) {
             Ok(Some((Some(record), _))) => Ok(record),
-            Ok(Some((None, _))) => anyhow::bail!(
-                "{}: the record at byte {offset} does not decode",
-                self.path.display()
-            ),
-            Ok(None) => anyhow::bail!("{}: no record at byte {offset}", self.path.display()),
-            Err(e) => Err(e).with_context(|| {
-                format!(
-                    "{}: reading the record at byte {offset}",
-                    self.path.display()
-                )
-            }),
+            Ok(Some((None, _))) => Err(crate::invalid(
+                &self.path,
+                format!("the record at byte {offset} does not decode"),
+            )),
+            Ok(None) => Err(crate::invalid(
+                &self.path,
+                format!("no record at byte {offset}"),
+            )),
+            Err(NextRecordError::Torn) => Err(crate::invalid(
+                &self.path,
+                format!("the record at byte {offset} is torn or oversized"),
+            )),
+            Err(NextRecordError::Io(e)) => Err(crate::io_error("reading", &self.path)(e)),
         }
     }
 
@@ -337,16 +335,15 @@ pub struct LogWriter {
 }
 
 impl LogWriter {
-    fn create(path: &Path) -> anyhow::Result<Self> {
+    fn create(path: &Path) -> crate::Result<Self> {
         let mut tmp = path.as_os_str().to_owned();
         tmp.push(".tmp");
         let tmp = PathBuf::from(tmp);
-        let file =
-            std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        let file = std::fs::File::create(&tmp).map_err(crate::io_error("creating", &tmp))?;
         let mut writer = std::io::BufWriter::new(file);
         writer
             .write_all(&header())
-            .with_context(|| format!("writing {}", tmp.display()))?;
+            .map_err(crate::io_error("writing", &tmp))?;
         Ok(Self {
             tmp,
             path: path.to_path_buf(),
@@ -356,37 +353,36 @@ impl LogWriter {
     }
 
     /// Appends one record; returns its byte offset in the new log.
-    pub fn append(&mut self, record: &impl Message) -> anyhow::Result<u64> {
+    pub fn append(&mut self, record: &impl Message) -> crate::Result<u64> {
         let bytes = record.encode_length_delimited_to_vec();
         self.writer
             .write_all(&bytes)
-            .with_context(|| format!("writing {}", self.tmp.display()))?;
+            .map_err(crate::io_error("writing", &self.tmp))?;
         let at = self.end;
         self.end += bytes.len() as u64;
         Ok(at)
     }
 
     /// Makes the new log durable and puts it in place of the old one.
-    fn commit(self) -> anyhow::Result<()> {
+    fn commit(self) -> crate::Result<()> {
         let file = self
             .writer
             .into_inner()
             .map_err(|e| e.into_error())
-            .with_context(|| format!("writing {}", self.tmp.display()))?;
+            .map_err(crate::io_error("writing", &self.tmp))?;
         file.sync_all()
-            .with_context(|| format!("syncing {}", self.tmp.display()))?;
-        std::fs::rename(&self.tmp, &self.path)
-            .with_context(|| format!("renaming to {}", self.path.display()))
+            .map_err(crate::io_error("syncing", &self.tmp))?;
+        std::fs::rename(&self.tmp, &self.path).map_err(crate::io_error("renaming to", &self.path))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use egoslam_messages::v1 as pb;
+    use egoslam_messages::internal::v1 as internal;
 
-    fn keyframe(id: u64) -> pb::Keyframe {
-        pb::Keyframe {
+    fn keyframe(id: u64) -> internal::Keyframe {
+        internal::Keyframe {
             keyframe_id: id,
             ..Default::default()
         }
@@ -401,7 +397,7 @@ mod tests {
             log.append(&keyframe(id)).expect("append");
         }
         log.flush().expect("flush");
-        let at: Vec<(u64, pb::Keyframe)> = read_records_at(&path).expect("read");
+        let at: Vec<(u64, internal::Keyframe)> = read_records_at(&path).expect("read");
         assert_eq!(at.len(), 10);
         assert_eq!(at[0].0, HEADER_LEN);
         let before = log.len_bytes().expect("len");
@@ -409,7 +405,7 @@ mod tests {
         assert_eq!(log.len_bytes().expect("len"), before - at[6].0 + HEADER_LEN);
         log.append(&keyframe(10)).expect("append");
         log.flush().expect("flush");
-        let ids: Vec<u64> = read_records::<pb::Keyframe>(&path)
+        let ids: Vec<u64> = read_records::<internal::Keyframe>(&path)
             .expect("read")
             .iter()
             .map(|k| k.keyframe_id)
@@ -428,7 +424,7 @@ mod tests {
                 .expect("encode");
         }
         std::fs::write(&path, &bytes).expect("write");
-        let ids: Vec<u64> = read_records::<pb::Keyframe>(&path)
+        let ids: Vec<u64> = read_records::<internal::Keyframe>(&path)
             .expect("read")
             .iter()
             .map(|k| k.keyframe_id)
@@ -438,14 +434,14 @@ mod tests {
         newer.extend_from_slice(&2u32.to_le_bytes());
         newer.extend_from_slice(&bytes);
         std::fs::write(&path, &newer).expect("write");
-        let e = read_records::<pb::Keyframe>(&path).expect_err("version 2");
+        let e = read_records::<internal::Keyframe>(&path).expect_err("version 2");
         assert!(e.to_string().contains("format version 2"), "{e}");
         // Emptied, a log starts over with the header.
         let mut log = RecordLog::open(&path).expect("open");
         log.truncate().expect("truncate");
         log.append(&keyframe(5)).expect("append");
         log.flush().expect("flush");
-        let back: Vec<(u64, pb::Keyframe)> = read_records_at(&path).expect("read");
+        let back: Vec<(u64, internal::Keyframe)> = read_records_at(&path).expect("read");
         assert_eq!(back.len(), 1);
         assert_eq!(back[0].0, HEADER_LEN);
     }

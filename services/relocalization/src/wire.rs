@@ -1,4 +1,5 @@
-//! Conversions between wire messages and geometry types.
+//! Conversions between wire messages (`egoslam.v1`) and geometry types, for the services
+//! and the merger session.
 
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_messages::v1 as pb;
@@ -58,7 +59,7 @@ pub fn camera_from_pb(i: &pb::Intrinsics) -> Option<PinholeRadtan> {
     for (slot, v) in distortion.iter_mut().zip(&i.distortion) {
         *slot = *v;
     }
-    let lens = egoslam_relocalization::lens_from_pb(i.lens)?;
+    let lens = crate::saved_map::lens_from_pb(i.lens)?;
     PinholeRadtan::new(i.width, i.height, [i.fx, i.fy, i.cx, i.cy], distortion)
         .and_then(|camera| camera.with_lens(lens))
         .ok()

@@ -1,0 +1,103 @@
+//! What survives a crash (docs/durability.md): the solver's window journal, the merger's
+//! checkpoint, the append-only record logs (the frontend's keyframes, the merger's keyframe
+//! descriptors), the marks by which each service tells the others what they may drop, and
+//! the atomic writes they all rest on. Every file here is written so that a process killed
+//! at any moment leaves either the old or the new complete state.
+
+pub mod checkpoint;
+pub mod features_log;
+pub mod log_compaction;
+pub mod record_log;
+pub mod window_journal;
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Why a durable file could not be written or read back.
+#[derive(Debug, thiserror::Error)]
+pub enum DurabilityError {
+    /// A file operation failed (the action and the file, then the system's reason).
+    #[error("{action} {}", path.display())]
+    Io {
+        action: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file is there but is not what egoslam writes (another format or version, a
+    /// corrupt record): refused rather than misread.
+    #[error("{}: {reason}", path.display())]
+    Invalid { path: PathBuf, reason: String },
+}
+
+pub type Result<T> = std::result::Result<T, DurabilityError>;
+
+/// Maps an I/O error of `action` on `path` (for `map_err`).
+pub(crate) fn io_error(
+    action: &'static str,
+    path: &Path,
+) -> impl FnOnce(std::io::Error) -> DurabilityError {
+    let path = path.to_path_buf();
+    move |source| DurabilityError::Io {
+        action,
+        path,
+        source,
+    }
+}
+
+/// A file at `path` that is not what egoslam writes there.
+pub(crate) fn invalid(path: &Path, reason: impl Into<String>) -> DurabilityError {
+    DurabilityError::Invalid {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
+}
+
+/// The folder of a run's internal state (checkpoint, journal, logs, marks) inside its
+/// output folder, apart from the results the user asked for (docs/durability.md).
+pub fn state_dir(out: &Path) -> PathBuf {
+    out.join("state")
+}
+
+/// [`state_dir`], created owner-only (0700: egocentric video's descriptors and patches are
+/// private) if it is not there yet.
+pub fn create_state_dir(out: &Path) -> Result<PathBuf> {
+    use std::os::unix::fs::DirBuilderExt;
+    let dir = state_dir(out);
+    std::fs::DirBuilder::new()
+        .recursive(true)
+        .mode(0o700)
+        .create(&dir)
+        .map_err(io_error("creating", &dir))?;
+    Ok(dir)
+}
+
+/// Writes `bytes` to `path` via a temporary file and a rename, so readers (and a crash)
+/// only ever see the old or the new complete file. The temporary file is `path` with
+/// `.tmp` appended: one per target file, so processes writing different files of one
+/// folder (`keyframes.tum` by the merger, `keyframes.log` by the frontend) never share it.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(io_error("creating", dir))?;
+    }
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = PathBuf::from(tmp);
+    let mut f = std::fs::File::create(&tmp).map_err(io_error("creating", &tmp))?;
+    f.write_all(bytes).map_err(io_error("writing", &tmp))?;
+    f.sync_all().ok();
+    std::fs::rename(&tmp, path).map_err(io_error("renaming to", path))
+}
+
+/// Replaces the file at `path` with `prefix` followed by its bytes from `offset` on, via
+/// [`write_atomically`]: how an append-only log drops its head (the journal with a new
+/// header, the keyframe log with none). Only the kept tail is read.
+pub fn keep_tail_atomically(path: &Path, offset: u64, prefix: &[u8]) -> Result<()> {
+    use std::io::{Read, Seek};
+    let mut bytes = prefix.to_vec();
+    let mut file = std::fs::File::open(path).map_err(io_error("opening", path))?;
+    file.seek(std::io::SeekFrom::Start(offset))
+        .and_then(|_| file.read_to_end(&mut bytes))
+        .map_err(io_error("reading", path))?;
+    write_atomically(path, &bytes)
+}
