@@ -1,4 +1,5 @@
-//! Command-line interface (every option documented here is listed in docs/config.md).
+//! Command-line interface; docs/config.md's table of `egoslam run` options is generated from
+//! it (the `docs_table` test below).
 
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
@@ -377,4 +378,91 @@ pub struct ServiceArgs {
     pub egress: EgressArgs,
     #[command(flatten)]
     pub map: MapArgs,
+}
+
+/// docs/config.md's table of `egoslam run`'s options is generated from the definitions
+/// above, so that it cannot drift from them: the test fails while the file's table differs,
+/// and `EGOSLAM_WRITE_DOCS=1 cargo test -p egoslam run_options_table` rewrites it (and
+/// still fails, so that a rewrite is always looked at before it is committed).
+#[cfg(test)]
+mod docs_table {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    const BEGIN: &str = "<!-- egoslam run options: begin (generated from services/egoslam/src/cli.rs, do not edit) -->";
+    const END: &str = "<!-- egoslam run options: end -->";
+
+    /// One row per option of `egoslam run`: flag and value name, default, help text (and
+    /// its environment variable).
+    fn run_options_markdown() -> String {
+        let command = Cli::command();
+        let run = command.find_subcommand("run").expect("the run subcommand");
+        let mut table = String::from("| option | default | meaning |\n|---|---|---|\n");
+        for arg in run.get_arguments().filter(|a| !a.is_hide_set()) {
+            let Some(long) = arg.get_long() else { continue };
+            if long == "help" || long == "version" {
+                continue;
+            }
+            let takes_value = arg.get_action().takes_values();
+            let value = match arg.get_value_names().and_then(|v| v.first()) {
+                _ if !takes_value => String::new(),
+                Some(name) => format!(" {name}"),
+                None => format!(" {}", arg.get_id().as_str().to_uppercase()),
+            };
+            let defaults: Vec<String> = arg
+                .get_default_values()
+                .iter()
+                .map(|v| v.to_string_lossy().into_owned())
+                .collect();
+            let default = if !takes_value {
+                "off".to_string()
+            } else if defaults.is_empty() {
+                "-".to_string()
+            } else {
+                format!("`{}`", defaults.join(" "))
+            };
+            let help = arg
+                .get_long_help()
+                .or(arg.get_help())
+                .map(|h| {
+                    h.to_string()
+                        .split_whitespace()
+                        .collect::<Vec<_>>()
+                        .join(" ")
+                })
+                .unwrap_or_default()
+                .replace('|', "\\|");
+            let env = arg
+                .get_env()
+                .map(|e| format!(" (env `{}`)", e.to_string_lossy()))
+                .unwrap_or_default();
+            table.push_str(&format!(
+                "| `--{long}{value}` | {default} | {help}{env} |\n"
+            ));
+        }
+        table
+    }
+
+    #[test]
+    fn run_options_table() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/config.md");
+        let doc = std::fs::read_to_string(&path).expect("docs/config.md");
+        let (Some(begin), Some(end)) = (doc.find(BEGIN), doc.find(END)) else {
+            panic!("docs/config.md lacks the markers {BEGIN} ... {END}");
+        };
+        let current = &doc[begin + BEGIN.len()..end];
+        let wanted = format!("\n{}", run_options_markdown());
+        if current == wanted {
+            return;
+        }
+        if std::env::var_os("EGOSLAM_WRITE_DOCS").is_some() {
+            let rewritten = format!("{}{BEGIN}{wanted}{}", &doc[..begin], &doc[end..]);
+            std::fs::write(&path, rewritten).expect("writing docs/config.md");
+            panic!("docs/config.md's options table rewritten: review and commit it");
+        }
+        panic!(
+            "docs/config.md's options table is stale: run \
+             EGOSLAM_WRITE_DOCS=1 cargo test -p egoslam run_options_table"
+        );
+    }
 }
