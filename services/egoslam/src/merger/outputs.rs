@@ -66,10 +66,13 @@ impl Outputs {
         }
         if persist {
             let grey = grey_levels(merger);
-            let published =
-                snapshot.write_files(out, &self.point_confidence, self.all_points, &|track| {
-                    grey.get(&track).copied()
-                })?;
+            let published = map_state::write_files(
+                &snapshot,
+                out,
+                &self.point_confidence,
+                self.all_points,
+                &|track| grey.get(&track).copied(),
+            )?;
             stats
                 .counters
                 .insert("published_points".into(), published as u64);
@@ -112,7 +115,8 @@ impl Outputs {
                 .revisions
                 .lock()
                 .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
-            map_state::publish(egress, &snapshot, &mut revisions, changed_points, &status)?;
+            let publication = snapshot.publication(&mut revisions, changed_points);
+            map_state::publish(egress, publication, &status)?;
         }
         Ok(())
     }

@@ -10,6 +10,7 @@
 pub mod background_refinement;
 pub mod frames;
 mod keyframe_culling;
+pub mod publication;
 mod relocalization;
 pub mod state;
 pub mod tally;
