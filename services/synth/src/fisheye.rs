@@ -138,8 +138,12 @@ pub fn render_fisheye_frame(
                     let before = (at.floor() as usize).min(cubes.len() - 1);
                     let after = (before + 1).min(cubes.len() - 1);
                     let share = at - before as f64;
-                    (1.0 - share) * bilinear(&cubes[before][k], u, v)
-                        + share * bilinear(&cubes[after][k], u, v)
+                    let here = bilinear(&cubes[before][k], u, v);
+                    // A global shutter (one map) or a moment on a map: nothing to fade.
+                    if after == before || share == 0.0 {
+                        return here;
+                    }
+                    (1.0 - share) * here + share * bilinear(&cubes[after][k], u, v)
                 })
                 .sum::<f64>()
                 / moments.len() as f64;

@@ -219,8 +219,8 @@ fn suite(args: &BenchArgs) -> Vec<Entry> {
         &[],
     );
     // Long enough for stops and sharp turns to hand scale from window to window: the
-    // chaining regressions a 300-frame walk does not show (docs/benchmarks.md, "Longer
-    // rendered walks").
+    // chaining regressions a 300-frame walk does not show (docs/benchmarks.md, "Rendered
+    // walks of six seeds").
     rendered("synth_walker_1500", "walker", 1500, &["--seed", "7"], &[]);
     for case in [
         "pure-rotation",

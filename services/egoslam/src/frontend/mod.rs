@@ -1,7 +1,8 @@
 //! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
 
-use crate::cli::ServiceArgs;
 mod resume;
+
+use crate::cli::ServiceArgs;
 use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};

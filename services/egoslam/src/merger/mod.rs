@@ -92,12 +92,11 @@ impl Merger {
             timings_ms,
             counters,
         } = self.session.tally.take();
-        for (stage, ms) in timings_ms {
-            self.stats.add_time(&stage, ms);
-        }
-        for (counter, n) in counters {
-            self.stats.count(&counter, n);
-        }
+        self.stats.absorb(ServiceStats {
+            timings_ms,
+            counters,
+            ..ServiceStats::default()
+        });
     }
 
     /// Applies message `sequence`, checkpoints, and writes/publishes the results.

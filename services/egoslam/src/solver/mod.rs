@@ -2,6 +2,7 @@
 //! The geometry is `egoslam_solver::window_solver`; this file only converts and publishes.
 
 mod resume;
+
 use crate::cli::ServiceArgs;
 use crate::stats::ServiceStats;
 use anyhow::bail;
