@@ -15,6 +15,7 @@ pub mod loop_closure;
 pub mod point_confidence;
 pub mod provisional_scale;
 pub mod refinement;
+pub mod refinement_rebase;
 pub mod relocalized_scale;
 pub mod retriangulation;
 pub mod scale_break;

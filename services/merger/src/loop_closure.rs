@@ -27,8 +27,9 @@
 //! shows no such jump the loop is refused.
 
 use crate::chaining::MapBuilder;
+use crate::refinement_rebase::Moves;
 use crate::scale_break::{
-    locate_scale_break, locate_second_break, strongest_pace_jump, ScaleBreakOptions,
+    locate_scale_break, locate_second_break, strongest_pace_jump, ScaleBreak, ScaleBreakOptions,
 };
 use crate::segment_linking::{
     relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
@@ -72,6 +73,14 @@ pub struct LoopOptions {
     pub max_scale_change: f64,
     /// How a break is located ([`crate::scale_break`]).
     pub scale_break: ScaleBreakOptions,
+    /// A scale change beyond drift that the map's pace does not place is applied as a step
+    /// after the last loop's keyframes (`break_since_last_loop`) when every queried
+    /// keyframe agrees on it with at least this many pairs (default 300: ten times
+    /// `min_shared_points`; revisits of the rendered corridor give 300-1,500)...
+    pub min_step_shared_points: usize,
+    /// ... and it is at most this factor either way (default 5: a weak join at a turn was
+    /// measured 3x off; an order of magnitude is a wrong place).
+    pub max_step_scale: f64,
     /// Acceptance of the relocalized group (rotation and position tolerances, keyframes
     /// that must agree); segment linking's defaults.
     pub link: LinkOptions,
@@ -87,6 +96,8 @@ impl Default for LoopOptions {
             min_shared_points: 30,
             max_scale_change: 1.5,
             scale_break: ScaleBreakOptions::default(),
+            min_step_shared_points: 300,
+            max_step_scale: 5.0,
             link: LinkOptions::default(),
         }
     }
@@ -150,6 +161,10 @@ pub struct LoopReport {
     /// How far the newest keyframe moved, in map units, and the loop's path length.
     pub correction: f64,
     pub path: f64,
+    /// Each moved keyframe's move, as a similarity of the map.
+    pub keyframe_moves: Moves,
+    /// Each moved point and the keyframe whose move it followed.
+    pub point_owners: BTreeMap<u64, u64>,
 }
 
 /// Looks for a loop closed by the newest keyframes of `segment`; `None` when none of its
@@ -189,7 +204,17 @@ pub fn find_loop(
             .filter(|(id, s, _)| *s == segment && *id >= anchor_keyframe)
             .map(|(id, _, p)| (id, *p))
             .collect();
-        let Some(found) = locate_scale_break(&looped, scale, &options.scale_break) else {
+        let found = locate_scale_break(&looped, scale, &options.scale_break).or_else(|| {
+            break_since_last_loop(
+                sources.map,
+                segment,
+                anchor_keyframe,
+                scale,
+                &agreement,
+                options,
+            )
+        });
+        let Some(found) = found else {
             let strongest = strongest_pace_jump(&looped, scale, &options.scale_break);
             tracing::warn!(
                 scale,
@@ -235,6 +260,37 @@ pub fn find_loop(
     })
 }
 
+/// A scale break the map's pace does not show, placed where the chain left the last loop:
+/// when a loop closed in this segment after `anchor`, the keyframes up to it were on the
+/// older map's scale, and the chain since (a few seconds on revisited ground) carries all
+/// of this loop's scale change: typically a turn or a stop whose windows shared nothing
+/// with the map. Only for a loop every queried keyframe agrees on, resting on at least
+/// `min_step_shared_points` pairs, and only within `max_step_scale` either way.
+fn break_since_last_loop(
+    map: &MapBuilder,
+    segment: u32,
+    anchor: u64,
+    scale: f64,
+    agreement: &crate::segment_linking::Agreement,
+    options: &LoopOptions,
+) -> Option<ScaleBreak> {
+    let (pinned_segment, pinned) = map.loop_pinned?;
+    let strong = agreement.keyframes >= options.newest_keyframes
+        && agreement.shared_points >= options.min_step_shared_points
+        && scale.max(1.0 / scale) <= options.max_step_scale;
+    (pinned_segment == segment && pinned >= anchor && strong).then(|| {
+        tracing::info!(
+            scale,
+            after_keyframe = pinned,
+            "loop corrects the chain since the last loop as a step"
+        );
+        ScaleBreak {
+            after_keyframe: pinned,
+            pace_ratio: 1.0 / scale,
+        }
+    })
+}
+
 /// How one keyframe of the loop moved: its centre, and the turn and scale about it that
 /// its points follow.
 struct KeyframeMove {
@@ -242,6 +298,17 @@ struct KeyframeMove {
     after: Vector3<f64>,
     rotation: Rotation3<f64>,
     scale: f64,
+}
+
+impl KeyframeMove {
+    /// The move as a similarity of the map: `x -> after + scale * rotation * (x - before)`.
+    fn as_similarity(&self) -> Similarity {
+        Similarity {
+            scale: self.scale,
+            rotation: self.rotation,
+            translation: self.after - self.scale * (self.rotation * self.before),
+        }
+    }
 }
 
 /// Whether a loop's scale correction is within `max_change` either way (drift), not a
@@ -342,7 +409,7 @@ impl MapBuilder {
                 first_seen.entry(*track).or_insert(*kf);
             }
         }
-        let mut points = 0;
+        let mut point_owners = BTreeMap::new();
         for (track, kf) in first_seen {
             let (Some((s, x)), Some(m)) = (self.points.get_mut(&track), moved.get(&kf)) else {
                 continue;
@@ -351,14 +418,29 @@ impl MapBuilder {
                 continue;
             }
             *x = m.after + m.scale * (m.rotation * (*x - m.before));
-            points += 1;
+            point_owners.insert(track, kf);
         }
         self.loop_pinned = ids.last().map(|id| (closure.segment, *id));
+        // A stretch waiting for its scale from the walking pace has it from the old map
+        // now: the loop put its newest keyframes where the map saw them.
+        if let Some(p) = self.provisional.filter(|p| p.segment == closure.segment) {
+            tracing::debug!(
+                first_keyframe = p.first_keyframe,
+                "provisional scale settled by a loop"
+            );
+            self.provisional = None;
+        }
+        let keyframe_moves = moved
+            .iter()
+            .map(|(id, m)| (*id, m.as_similarity()))
+            .collect();
         Ok(LoopReport {
             keyframes: ids.len() - 1,
-            points,
+            points: point_owners.len(),
             correction,
             path,
+            keyframe_moves,
+            point_owners,
         })
     }
     /// Keeps a closed loop's sightings (`LoopClosure::sightings`) as observations of the

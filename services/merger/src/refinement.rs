@@ -14,6 +14,7 @@
 //! refinement applied to the newest refined keyframes.
 
 use crate::chaining::{align_shared, MapBuilder};
+use crate::refinement_rebase::{conjugated, corrected_pose, LoopCorrections};
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_solver::bundle_adjustment::{
     bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
@@ -229,7 +230,13 @@ impl MapBuilder {
     /// the similarity that maps the newest refined keyframes' old poses onto their new ones
     /// (so the map stays continuous at the join); outlier observations are dropped. A job
     /// whose segment is no longer current still updates that segment's own keyframes.
-    pub fn apply_refinement(&mut self, outcome: RefinementOutcome) -> RefinementReport {
+    /// `loops`: the loops closed since the job was made, replayed onto its result
+    /// ([`crate::refinement_rebase`]).
+    pub fn apply_refinement(
+        &mut self,
+        outcome: RefinementOutcome,
+        loops: &LoopCorrections,
+    ) -> RefinementReport {
         let RefinementOutcome { job, result } = outcome;
         let carry = job.options.carry_keyframes.clamp(2, job.ids.len());
         let tail = job.ids.len() - carry;
@@ -270,13 +277,14 @@ impl MapBuilder {
         let (carried, _) = align_shared(&before, &after, &moved_points);
         for (id, pose) in job.ids.iter().zip(&result.poses) {
             if let Some((_, p)) = self.keyframes.get_mut(id) {
-                *p = stamped(p.timestamp, pose);
+                *p = corrected_pose(&loops.of_keyframe(*id), &stamped(p.timestamp, pose));
             }
         }
         for (track, x) in job.tracks.iter().zip(&result.points) {
-            self.points.insert(*track, (job.segment, *x));
+            let x = loops.of_known_point(*track).apply(x);
+            self.points.insert(*track, (job.segment, x));
         }
-        let carried_keyframes = self.carry_new(&job, &carried);
+        let carried_keyframes = self.carry_new(&job, &carried, loops);
         for o in &result.outliers {
             self.observations.remove(&job.keys[*o]);
         }
@@ -291,20 +299,21 @@ impl MapBuilder {
         }
     }
 
-    /// Applies `t` to the segment's keyframes and points that the job did not know.
-    fn carry_new(&mut self, job: &RefinementJob, t: &Similarity) -> usize {
-        let rotation = UnitQuaternion::from_rotation_matrix(&t.rotation);
+    /// Applies `t` to the segment's keyframes and points that the job did not know, in the
+    /// frame the loops closed since corrected each into.
+    fn carry_new(&mut self, job: &RefinementJob, t: &Similarity, loops: &LoopCorrections) -> usize {
         let mut moved = 0;
         for (id, (s, p)) in self.keyframes.iter_mut() {
             if *s == job.segment && !job.known_keyframes.contains(id) {
-                p.position = t.apply(&p.position);
-                p.rotation = rotation * p.rotation;
+                let carry = conjugated(t, &loops.of_keyframe(*id));
+                *p = corrected_pose(&carry, p);
                 moved += 1;
             }
         }
+        let carry = conjugated(t, &loops.newest());
         for (track, (s, x)) in self.points.iter_mut() {
             if *s == job.segment && !job.known_tracks.contains(track) {
-                *x = t.apply(x);
+                *x = carry.apply(x);
             }
         }
         moved
@@ -317,7 +326,7 @@ impl MapBuilder {
         options: &RefinementOptions,
     ) -> Option<RefinementReport> {
         let outcome = self.refinement_job(camera, options)?.solve()?;
-        Some(self.apply_refinement(outcome))
+        Some(self.apply_refinement(outcome, &LoopCorrections::default()))
     }
 
     /// Cross-window reprojection error: the median pixel error of the observations made
@@ -413,7 +422,7 @@ mod tests {
             .expect("job");
         let outcome = job.solve().expect("solved");
         let mut reset = MapBuilder::new();
-        let report = reset.apply_refinement(outcome);
+        let report = reset.apply_refinement(outcome, &LoopCorrections::default());
         assert_eq!(report.keyframes, 0);
         assert_eq!(reset.keyframes().count(), 0);
     }
@@ -457,7 +466,8 @@ mod tests {
             (map.keyframes[&(i as u64)].1.position - truth(i).position).norm()
         };
         let before: Vec<f64> = (0..26).map(|i| error(&map, i)).collect();
-        let report = map.apply_refinement(job.solve().expect("solved"));
+        let report =
+            map.apply_refinement(job.solve().expect("solved"), &LoopCorrections::default());
         assert_eq!(report.keyframes, 25);
         assert_eq!(report.carried_keyframes, 1);
         assert!(report.rmse_px < 0.05, "{report:?}");
@@ -471,5 +481,97 @@ mod tests {
             error(&map, 25),
             before[25]
         );
+    }
+
+    /// The map's reprojection error over every observation (px, RMS).
+    fn reprojection_rmse(map: &MapBuilder, camera: &PinholeRadtan) -> f64 {
+        let mut sum = 0.0;
+        let mut n = 0;
+        for ((kf, track), px) in &map.observations {
+            let (Some((_, pose)), Some((_, x))) = (map.keyframes.get(kf), map.points.get(track))
+            else {
+                continue;
+            };
+            let pc = camera_pose(pose).to_camera(x);
+            if let Some(p) = camera.project_undistorted(&pc) {
+                sum += (p - px).norm_squared();
+                n += 1;
+            }
+        }
+        (sum / n as f64).sqrt()
+    }
+
+    #[test]
+    fn a_loop_closed_while_the_job_runs_survives_the_fold() {
+        use crate::loop_closure::{LoopClosure, LoopOptions};
+        let camera = camera();
+        let mut parts = MapParts {
+            current_segment: Some(0),
+            segments: 1,
+            ..MapParts::default()
+        };
+        let mut track = 0u64;
+        for gx in 0..80 {
+            for gy in 0..6 {
+                let x = Vector3::new(-0.5 + 0.05 * gx as f64, -0.6 + 0.25 * gy as f64, 4.0);
+                for i in 0..32 {
+                    let cam = camera_pose(&drifted(i));
+                    if (cam.centre.x - x.x).abs() > 0.6 {
+                        continue;
+                    }
+                    if let Some(px) = camera.project_undistorted(&cam.to_camera(&x)) {
+                        parts.observations.insert((i as u64, track), px);
+                    }
+                }
+                parts.points.insert(track, (0, x));
+                track += 1;
+            }
+        }
+        for i in 0..25 {
+            parts.keyframes.insert(i as u64, (0, drifted(i)));
+        }
+        let mut map = MapBuilder::from_parts(parts);
+        let job = map
+            .refinement_job(&camera, &RefinementOptions::default())
+            .expect("job");
+        for i in 25..32 {
+            map.keyframes.insert(i as u64, (0, drifted(i)));
+        }
+        // A loop from keyframe 12 on, with a scale, a turn and a shift (the map is
+        // consistent with its observations before and after it: points follow keyframes).
+        let closure = LoopClosure {
+            segment: 0,
+            anchor_keyframe: 12,
+            transform: Similarity {
+                scale: 0.8,
+                rotation: nalgebra::Rotation3::from_euler_angles(0.0, 0.05, 0.02),
+                translation: Vector3::new(0.1, -0.05, 0.2),
+            },
+            keyframes: 3,
+            shared_points: 100,
+            scale_steps: Vec::new(),
+            sightings: Vec::new(),
+        };
+        let options = LoopOptions {
+            max_correction_fraction: 10.0,
+            ..LoopOptions::default()
+        };
+        let before_loop = reprojection_rmse(&map, &camera);
+        let report = map.close_loop(&closure, &options).expect("loop");
+        let after_loop = reprojection_rmse(&map, &camera);
+        let mut loops = LoopCorrections::default();
+        loops.record(&report.keyframe_moves, &report.point_owners);
+        let outcome = job.solve().expect("solved");
+        let folded = map.apply_refinement(outcome, &loops);
+        let after_fold = reprojection_rmse(&map, &camera);
+        assert_eq!(folded.carried_keyframes, 7);
+        assert!(
+            after_fold < 1.5 * after_loop.max(0.5),
+            "before the loop {before_loop} px, after it {after_loop} px, after the fold {after_fold} px"
+        );
+        // The loop's move of the newest keyframe is kept.
+        let newest = map.keyframes[&31].1.position;
+        let target = closure.transform.apply(&drifted(31).position);
+        assert!((newest - target).norm() < 0.05, "{newest} vs {target}");
     }
 }

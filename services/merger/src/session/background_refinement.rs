@@ -12,7 +12,8 @@
 //! the intake seldom waits.
 
 use super::tally::Tally;
-use crate::{MapBuilder, RefinementOptions, RefinementOutcome};
+use crate::refinement_rebase::LoopCorrections;
+use crate::{LoopReport, MapBuilder, RefinementOptions, RefinementOutcome};
 use egoslam_geometry::PinholeRadtan;
 use std::collections::BTreeSet;
 use std::thread::JoinHandle;
@@ -52,6 +53,8 @@ pub struct BackgroundRefiner {
     running_newest: Option<u64>,
     /// The oldest keyframe the running job holds (`None` when none runs).
     running_oldest: Option<u64>,
+    /// Loops closed since the running job was made, replayed onto its result.
+    loops_since_start: LoopCorrections,
 }
 
 impl BackgroundRefiner {
@@ -69,6 +72,16 @@ impl BackgroundRefiner {
             worker: None,
             running_newest: None,
             running_oldest: None,
+            loops_since_start: LoopCorrections::default(),
+        }
+    }
+
+    /// Records a loop closed while a refinement runs, to replay onto its result at the fold
+    /// (crate::refinement_rebase); nothing when none runs.
+    pub fn record_loop(&mut self, report: &LoopReport) {
+        if self.worker.is_some() {
+            self.loops_since_start
+                .record(&report.keyframe_moves, &report.point_owners);
         }
     }
 
@@ -131,6 +144,7 @@ impl BackgroundRefiner {
                 self.job_lag = job_lag(self.fold_lag, job.keyframes());
                 self.running_newest = job.newest_known_keyframe();
                 self.running_oldest = job.oldest_keyframe();
+                self.loops_since_start = LoopCorrections::default();
                 self.worker = Some(std::thread::spawn(move || {
                     let _span = tracing::info_span!("global_refinement").entered();
                     job.solve()
@@ -163,6 +177,7 @@ impl BackgroundRefiner {
         };
         self.running_newest = None;
         self.running_oldest = None;
+        let loops = std::mem::take(&mut self.loops_since_start);
         let wait_start = std::time::Instant::now();
         let outcome = match worker.join() {
             Ok(o) => o,
@@ -177,7 +192,7 @@ impl BackgroundRefiner {
             stats.count("refinements_failed", 1);
             return false;
         };
-        let report = stats.time("refinement_fold", || map.apply_refinement(outcome));
+        let report = stats.time("refinement_fold", || map.apply_refinement(outcome, &loops));
         tracing::info!(
             keyframes = report.keyframes,
             points = report.points,
@@ -185,6 +200,7 @@ impl BackgroundRefiner {
             iterations = report.iterations,
             outliers = report.outliers,
             carried_keyframes = report.carried_keyframes,
+            loops_replayed = !loops.is_empty(),
             "background refinement folded in"
         );
         stats.count("refinements_applied", 1);

@@ -84,9 +84,6 @@ pub struct MergerSession {
     vocabulary: Vocabulary,
     /// Bag-of-words index of every keyframe (rebuilt on restart).
     database: KeyframeDatabase,
-    /// A loop attempt fell due while a background refinement ran: it is made at the first
-    /// window after the refinement is folded in (not checkpointed: a restart skips it).
-    loop_attempt_owed: bool,
     /// The sightings of the loop this window closed, added to the map after the window's
     /// cross-window error is measured (`MapBuilder::add_loop_sightings`).
     loop_sightings: Vec<(u64, u64, Point2<f64>)>,
@@ -107,7 +104,6 @@ impl MergerSession {
             camera: None,
             vocabulary,
             database: KeyframeDatabase::new(),
-            loop_attempt_owed: false,
             loop_sightings: Vec::new(),
             tally: Tally::default(),
         }
@@ -300,9 +296,8 @@ impl MergerSession {
                 *segment
             }
         };
-        // Before the cross-window error may start a background refinement below: an
-        // attempt is not made while one runs, and when each window started one (the error
-        // staying high), every attempt fell into a run and no loop was ever closed.
+        // Before the cross-window error may start a background refinement below, which
+        // would then hold the keyframes as they were before the loop.
         self.try_close_loop(w.window_id, segment, features);
         match outcome {
             WindowOutcome::NewSegment { segment } => {

@@ -24,10 +24,8 @@ const LINK_RETRY_KEYFRAMES: usize = 20;
 /// The segment new windows go to is searched for a loop every this many windows (each
 /// attempt relocalizes its newest 12 keyframes, ~20 ms each). A wearer back in a mapped
 /// place is held to the map by these loops, so the chain may drift only between two
-/// attempts: every 5 windows the rendered corridor walked 6 times back and forth scored
-/// 1.67 m, every 2 windows 0.78 m. An attempt due while a background refinement runs (its
-/// result, folded later, would undo the correction) is made at the first window after it
-/// is folded in.
+/// attempts. Attempts go on while a background refinement runs: the loop is replayed onto
+/// its result at the fold (crate::refinement_rebase).
 const LOOP_ATTEMPT_WINDOWS: u64 = 2;
 
 impl MergerSession {
@@ -136,18 +134,9 @@ impl MergerSession {
         let Some(camera) = self.camera else {
             return;
         };
-        let due = window_id.is_multiple_of(LOOP_ATTEMPT_WINDOWS) || self.loop_attempt_owed;
-        if !self.options.loop_closure || !due {
+        if !self.options.loop_closure || !window_id.is_multiple_of(LOOP_ATTEMPT_WINDOWS) {
             return;
         }
-        if self.refiner.is_running() {
-            // Not now (the refinement's result would undo the correction), but not
-            // skipped either: refinements ran through every attempt of a walk whose
-            // cross-window error stayed high, and it closed no loop at all.
-            self.loop_attempt_owed = true;
-            return;
-        }
-        self.loop_attempt_owed = false;
         let options = LoopOptions::default();
         let closure = self.relocalize(&camera, features, "find_loop", |sources| {
             find_loop(sources, segment, &options)
@@ -175,6 +164,8 @@ impl MergerSession {
             }
         };
         self.tally.count("loops_closed", 1);
+        // A refinement running meanwhile gets the loop replayed onto its result.
+        self.refiner.record_loop(&report);
         self.loop_sightings = closure.sightings.clone();
         tracing::info!(
             window = window_id,
