@@ -24,7 +24,8 @@
 //! drift: the keyframes after the one where the map's walking pace jumps (within 1.5x of
 //! the loop's factor) take that jump as a step, a second jump takes what the first leaves
 //! beyond 1.25x, and the rest is spread as drift ([`crate::scale_break`]); where the pace
-//! shows no such jump the loop is refused.
+//! shows no such jump, a strong loop takes it as a step after the last loop's keyframes
+//! (`break_since_last_loop`), and any other is refused.
 
 use crate::chaining::MapBuilder;
 use crate::refinement_rebase::Moves;
@@ -68,8 +69,8 @@ pub struct LoopOptions {
     /// loops corrected it by 0.97-0.99. A loop that asks for 37x (measured on the
     /// 12,000-frame walk, where one window had broken the chain's scale) is not drift;
     /// spreading it along the loop would distort all of it. Such a loop is applied as a
-    /// step where the map's pace shows the break (`scale_break`), and refused and logged
-    /// where it does not.
+    /// step where the map's pace shows the break (`scale_break`) or after the last loop
+    /// (`break_since_last_loop`), and refused and logged otherwise.
     pub max_scale_change: f64,
     /// How a break is located ([`crate::scale_break`]).
     pub scale_break: ScaleBreakOptions,

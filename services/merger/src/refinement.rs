@@ -427,21 +427,26 @@ mod tests {
         assert_eq!(reset.keyframes().count(), 0);
     }
 
-    #[test]
-    fn a_background_job_corrects_drift_and_carries_what_came_meanwhile() {
-        let camera = camera();
+    /// A map of keyframes 0..25 at their `drifted` poses and points on a wall 4 m ahead
+    /// (`columns` of 6, 5 cm apart), each observed by keyframes `0..observers` within 0.6 m
+    /// of it, where `seen_from(i)` sees it.
+    fn wall_map(
+        camera: &PinholeRadtan,
+        columns: usize,
+        observers: usize,
+        seen_from: fn(usize) -> StampedPose,
+    ) -> MapBuilder {
         let mut parts = MapParts {
             current_segment: Some(0),
             segments: 1,
             ..MapParts::default()
         };
-        // Points on a wall 4 m ahead, each seen by the keyframes within 0.6 m of it.
         let mut track = 0u64;
-        for gx in 0..60 {
+        for gx in 0..columns {
             for gy in 0..6 {
                 let x = Vector3::new(-0.5 + 0.05 * gx as f64, -0.6 + 0.25 * gy as f64, 4.0);
-                for i in 0..26 {
-                    let cam = camera_pose(&truth(i));
+                for i in 0..observers {
+                    let cam = camera_pose(&seen_from(i));
                     if (cam.centre.x - x.x).abs() > 0.6 {
                         continue;
                     }
@@ -456,7 +461,14 @@ mod tests {
         for i in 0..25 {
             parts.keyframes.insert(i as u64, (0, drifted(i)));
         }
-        let mut map = MapBuilder::from_parts(parts);
+        MapBuilder::from_parts(parts)
+    }
+
+    #[test]
+    fn a_background_job_corrects_drift_and_carries_what_came_meanwhile() {
+        let camera = camera();
+        // The points are where the true keyframes see them; the keyframes drifted.
+        let mut map = wall_map(&camera, 60, 26, truth);
         let job = map
             .refinement_job(&camera, &RefinementOptions::default())
             .expect("job");
@@ -505,32 +517,8 @@ mod tests {
     fn a_loop_closed_while_the_job_runs_survives_the_fold() {
         use crate::loop_closure::{LoopClosure, LoopOptions};
         let camera = camera();
-        let mut parts = MapParts {
-            current_segment: Some(0),
-            segments: 1,
-            ..MapParts::default()
-        };
-        let mut track = 0u64;
-        for gx in 0..80 {
-            for gy in 0..6 {
-                let x = Vector3::new(-0.5 + 0.05 * gx as f64, -0.6 + 0.25 * gy as f64, 4.0);
-                for i in 0..32 {
-                    let cam = camera_pose(&drifted(i));
-                    if (cam.centre.x - x.x).abs() > 0.6 {
-                        continue;
-                    }
-                    if let Some(px) = camera.project_undistorted(&cam.to_camera(&x)) {
-                        parts.observations.insert((i as u64, track), px);
-                    }
-                }
-                parts.points.insert(track, (0, x));
-                track += 1;
-            }
-        }
-        for i in 0..25 {
-            parts.keyframes.insert(i as u64, (0, drifted(i)));
-        }
-        let mut map = MapBuilder::from_parts(parts);
+        // Consistent with its observations (the drifted poses see the points).
+        let mut map = wall_map(&camera, 80, 32, drifted);
         let job = map
             .refinement_job(&camera, &RefinementOptions::default())
             .expect("job");
