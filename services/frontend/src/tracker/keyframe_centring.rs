@@ -6,7 +6,7 @@
 //! onset of a sharp head turn (4000-5000 deg/s^2 on a walking head) that velocity lags,
 //! and it carries 2.5x the tracker's position noise (0.7x for the centred difference
 //! below). Windows solved from such keyframes came out 3-21 %
-//! of their path off (docs/config.md, "Long rolling-shutter walks"). With the next frame
+//! of their path off (docs/config.md, "`rolling_shutter_ms`"). With the next frame
 //! tracked, the velocity at the keyframe is the centred difference
 //! `(p[k+1] - p[k-1]) / (t[k+1] - t[k-1])`, half the extrapolation's error on a smooth
 //! onset (a cubic) and exact on a constant acceleration. A track born on the keyframe
