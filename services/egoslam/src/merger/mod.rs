@@ -191,6 +191,8 @@ impl Merger {
                 .unwrap_or(PERSIST_INTERVAL),
         );
         self.stats.count("checkpoints", 1);
+        // The serialization buffer and anything a folded refinement freed since.
+        crate::supervision::memory::return_freed_memory();
         Ok(())
     }
 

@@ -233,6 +233,10 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         crate::calibration::self_calibration::resolve_focal(&args, &input, &layout, camera);
     let (camera, radial_report) =
         crate::calibration::self_calibration::resolve_radial(&args, &input, &layout, camera);
+    // The pre-passes tracked and solved hundreds of frames in this process, which then
+    // waits for the services for the rest of the run.
+    let returned = crate::supervision::memory::return_freed_memory();
+    tracing::debug!(mib = returned >> 20, "pre-pass memory returned");
     let mut origin = calibration.origin.display().to_string();
     if let Some(scale) = focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
         origin += &format!(", focal lengths x{scale:.4} (self-calibrated, report.json)");
