@@ -42,6 +42,9 @@ pub enum Keep {
     /// The features and patches of these tracks alone (a culled keyframe's patched
     /// points).
     Tracks(BTreeSet<u64>),
+    /// The features without the patches (a keyframe of the map whose patches, pixels of
+    /// the wearer's surroundings, are older than the retention allows).
+    Features,
     /// Nothing.
     Nothing,
 }
@@ -72,6 +75,13 @@ pub struct FeaturesLog {
     log: RecordLog,
     /// keyframe -> (byte offset, bytes) of its latest record.
     records: BTreeMap<u64, (u64, u64)>,
+    /// keyframe -> bytes of the patches in its latest record (those with any).
+    patch_bytes: BTreeMap<u64, u64>,
+}
+
+/// The bytes a record's patches take (pixels and track ids).
+fn patch_bytes_of(record: &internal::KeyframeFeatures) -> u64 {
+    (record.patches.len() + 10 * record.patch_track_ids.len()) as u64
 }
 
 impl FeaturesLog {
@@ -81,6 +91,7 @@ impl FeaturesLog {
     pub fn open(dir: &Path) -> crate::Result<(Self, BTreeMap<u64, PatchedTracks>)> {
         let path = dir.join(FILE_NAME);
         let mut records = BTreeMap::new();
+        let mut patch_bytes = BTreeMap::new();
         let mut descriptions = BTreeMap::new();
         let mut ends = Vec::new();
         for_each_record::<internal::KeyframeFeatures>(&path, |at, r| {
@@ -88,6 +99,7 @@ impl FeaturesLog {
                 Some((_, patches)) => {
                     descriptions.insert(r.keyframe_id, patched_tracks(&patches));
                     records.insert(r.keyframe_id, (at, 0));
+                    patch_bytes.insert(r.keyframe_id, patch_bytes_of(&r));
                     ends.push(at);
                 }
                 None => tracing::warn!(
@@ -108,7 +120,16 @@ impl FeaturesLog {
                 .unwrap_or(end);
             *bytes = next - *at;
         }
-        Ok((Self { path, log, records }, descriptions))
+        patch_bytes.retain(|_, bytes| *bytes > 0);
+        Ok((
+            Self {
+                path,
+                log,
+                records,
+                patch_bytes,
+            },
+            descriptions,
+        ))
     }
 
     /// Hands what was appended to the kernel, so that reads see it.
@@ -133,6 +154,10 @@ impl FeaturesLog {
         let bytes =
             (prost::length_delimiter_len(record.encoded_len()) + record.encoded_len()) as u64;
         self.records.insert(record.keyframe_id, (at, bytes));
+        match patch_bytes_of(record) {
+            0 => self.patch_bytes.remove(&record.keyframe_id),
+            b => self.patch_bytes.insert(record.keyframe_id, b),
+        };
         Ok(())
     }
 
@@ -144,6 +169,7 @@ impl FeaturesLog {
     /// Empties the log (a new stream starts a new map).
     pub fn truncate(&mut self) -> crate::Result<()> {
         self.records.clear();
+        self.patch_bytes.clear();
         self.log.truncate()
     }
 
@@ -187,29 +213,45 @@ impl FeaturesLog {
         let live: u64 = crate::record_log::HEADER_LEN
             + decisions
                 .iter()
-                .map(|(k, _, keep)| match keep {
-                    Keep::Tracks(t) => BYTES_PER_KEPT_TRACK * t.len() as u64,
-                    _ => self.records.get(k).map_or(0, |(_, bytes)| *bytes),
+                .map(|(k, _, keep)| {
+                    let whole = self.records.get(k).map_or(0, |(_, bytes)| *bytes);
+                    match keep {
+                        Keep::Tracks(t) => BYTES_PER_KEPT_TRACK * t.len() as u64,
+                        Keep::Features => {
+                            whole.saturating_sub(self.patch_bytes.get(k).copied().unwrap_or(0))
+                        }
+                        _ => whole,
+                    }
                 })
                 .sum::<u64>();
         if (size as f64) <= COMPACT_AT_FACTOR * live as f64 {
             return Ok(0);
         }
         let mut records = BTreeMap::new();
+        let mut patch_bytes = BTreeMap::new();
         self.log.rewrite(|reader, writer| {
             use prost::Message;
             for (keyframe, at, keep) in decisions {
                 let mut record: internal::KeyframeFeatures = reader.read_at(at)?;
-                if let Keep::Tracks(tracks) = keep {
-                    record = only_tracks(&record, &tracks);
+                match keep {
+                    Keep::Tracks(tracks) => record = only_tracks(&record, &tracks),
+                    Keep::Features => {
+                        record.patch_track_ids.clear();
+                        record.patches.clear();
+                    }
+                    Keep::Whole | Keep::Nothing => {}
                 }
                 let bytes = record.encoded_len();
                 let bytes = (prost::length_delimiter_len(bytes) + bytes) as u64;
                 records.insert(keyframe, (writer.append(&record)?, bytes));
+                if patch_bytes_of(&record) > 0 {
+                    patch_bytes.insert(keyframe, patch_bytes_of(&record));
+                }
             }
             Ok(())
         })?;
         self.records = records;
+        self.patch_bytes = patch_bytes;
         let after = self.log.len_bytes()?;
         tracing::info!(before = size, after, "keyframe features log compacted");
         Ok(after)
@@ -322,6 +364,37 @@ mod tests {
         assert_eq!(back_log.patches([8]).expect("patches")[&8], patches[&8]);
         // The sizes read back on opening drive the next compaction as before.
         assert_eq!(back_log.compact_if_due(keep).expect("again"), 0);
+    }
+
+    #[test]
+    fn patches_past_retention_leave_and_the_features_stay() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (mut log, _) = FeaturesLog::open(dir.path()).expect("open");
+        // 700 keyframes of 100 features and 100 patches (~15 KB each, two thirds patches).
+        for k in 0..700u64 {
+            let f: Vec<MapFeature> = (0..100).map(|i| feature(k * 1000 + i)).collect();
+            let p: Vec<(u64, Patch)> = (0..100).map(|i| (k * 1000 + i, [3; 100])).collect();
+            log.append(&features_to_pb(k, &f, &p)).expect("append");
+        }
+        let all_whole = |_: u64| Keep::Whole;
+        assert_eq!(log.compact_if_due(all_whole).expect("not due"), 0);
+        // The oldest half's patches are past retention: the log shrinks by their bytes.
+        let keep = |k: u64| if k < 350 { Keep::Features } else { Keep::Whole };
+        let before = log.log.len_bytes().expect("len");
+        assert!(before > COMPACT_ABOVE_BYTES);
+        let after = log.compact_if_due(keep).expect("compact");
+        assert!(
+            after > 0 && (after as f64) < 0.72 * before as f64,
+            "{after} of {before}"
+        );
+        assert_eq!(log.compact_if_due(keep).expect("again"), 0, "settled");
+        log.sync().expect("sync");
+        let (mut back, patched) = FeaturesLog::open(dir.path()).expect("reopen");
+        assert_eq!(back.features_of(5).expect("read").expect("kept").len(), 100);
+        assert!(patched[&5].is_empty(), "no patch left of keyframe 5");
+        assert_eq!(patched[&500].len(), 100);
+        let patches = back.patches([5, 500]).expect("patches");
+        assert_eq!(patches.keys().copied().collect::<Vec<_>>(), [500]);
     }
 
     #[test]

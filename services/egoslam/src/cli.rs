@@ -161,6 +161,21 @@ pub struct PipelineArgs {
     /// relative standard deviation (NaN where the views do not fix it).
     #[arg(long)]
     pub map_all_points: bool,
+    /// Merger: minutes of video a keyframe's image patches (pixels of the wearer's
+    /// surroundings, kept for relocalization and map.ply's colours) are kept in the state
+    /// folder; older ones leave at the features log's next compaction, descriptors stay
+    /// while the map holds the keyframe (docs/durability.md, "Retention"). 0: as long as the
+    /// map needs them.
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative_minutes)]
+    pub patch_retention_min: f64,
+}
+
+/// A retention in minutes: finite and not negative.
+fn non_negative_minutes(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(m) if m.is_finite() && m >= 0.0 => Ok(m),
+        _ => Err(format!("{text:?}: minutes, a number >= 0 (0: no limit)")),
+    }
 }
 
 /// Where results go over zenoh (docs/egress.md).

@@ -82,6 +82,7 @@ pub struct MergerSection {
     pub max_map_keyframes: Option<usize>,
     pub max_point_std: Option<f64>,
     pub map_all_points: Option<bool>,
+    pub patch_retention_min: Option<f64>,
 }
 
 /// `[zenoh]`: where results are published.
@@ -291,6 +292,12 @@ fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
         "max_map_keyframes",
         &mut p.max_map_keyframes,
         &c.merger.max_map_keyframes,
+    );
+    fill(
+        m,
+        "patch_retention_min",
+        &mut p.patch_retention_min,
+        &c.merger.patch_retention_min,
     );
 }
 

@@ -159,10 +159,15 @@ impl Merger {
             .numbers();
         let save_start = std::time::Instant::now();
         self.session.prune_culled_patches();
-        let (map, patched) = (&self.session.state.map, &self.session.state.patched_tracks);
+        let session = &self.session;
+        let (map, patched) = (&session.state.map, &session.state.patched_tracks);
         let keep = |keyframe: u64| {
             if map.keyframe(keyframe).is_some() {
-                Keep::Whole
+                if session.patches_expired(keyframe) {
+                    Keep::Features
+                } else {
+                    Keep::Whole
+                }
             } else if let Some(tracks) = patched.get(&keyframe) {
                 Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
             } else {
@@ -303,6 +308,10 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         loop_closure: args.pipeline.loop_closure,
         cull_keyframes: args.pipeline.cull_keyframes,
         max_map_keyframes: args.pipeline.max_map_keyframes,
+        patch_retention_s: match args.pipeline.patch_retention_min {
+            m if m > 0.0 => 60.0 * m,
+            _ => f64::INFINITY,
+        },
     };
     let mut merger = Merger {
         args,

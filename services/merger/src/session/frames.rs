@@ -102,6 +102,15 @@ impl FrameIndex {
             );
         }
     }
+
+    /// Seconds of stream time between keyframe `keyframe`'s frame and the newest frame
+    /// known; `None` for a keyframe without a stamp.
+    pub fn keyframe_age_s(&self, keyframe: u64) -> Option<f64> {
+        let frame = self.keyframe_frames.get(&keyframe)?;
+        let taken = self.frames.get(frame)?;
+        let (_, newest) = self.frames.last_key_value()?;
+        Some((newest - taken).max(0.0))
+    }
 }
 
 /// A posed frame.
@@ -282,6 +291,23 @@ pub fn localize_pending(
 mod tests {
     use super::*;
     use nalgebra::{UnitQuaternion, Vector3};
+
+    #[test]
+    fn a_keyframe_ages_with_the_newest_frame() {
+        let mut index = FrameIndex::default();
+        for (keyframe, frame, t) in [(0, 0, 10.0), (1, 30, 11.0)] {
+            index.add_stamp(&internal::KeyframeStamp {
+                keyframe_id: keyframe,
+                frame_id: frame,
+                timestamp_s: t,
+                ..Default::default()
+            });
+        }
+        index.frames.insert(95, 13.5);
+        assert_eq!(index.keyframe_age_s(0), Some(3.5));
+        assert_eq!(index.keyframe_age_s(1), Some(2.5));
+        assert_eq!(index.keyframe_age_s(2), None, "no stamp");
+    }
 
     #[test]
     fn a_localized_frame_follows_the_scale_of_its_bracket() {

@@ -140,8 +140,20 @@ impl MergerSession {
 
     /// Drops the patches culled keyframes keep of tracks that left the map since (later
     /// culls): otherwise they would pile up with the time walked, in memory and in the
-    /// features log's compactions.
+    /// features log's compactions. Drops every keyframe's patches past the retention
+    /// (`SessionOptions::patch_retention_s`) too, with the grey levels map.ply colours
+    /// their points by.
     pub fn prune_culled_patches(&mut self) {
+        let expired: Vec<u64> = self
+            .state
+            .patched_tracks
+            .keys()
+            .copied()
+            .filter(|k| self.patches_expired(*k))
+            .collect();
+        for keyframe in expired {
+            self.state.patched_tracks.remove(&keyframe);
+        }
         let map = &self.state.map;
         self.state.patched_tracks.retain(|keyframe, kept| {
             if map.keyframe(*keyframe).is_some() {

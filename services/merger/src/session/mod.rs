@@ -43,6 +43,9 @@ pub struct SessionOptions {
     pub cull_keyframes: bool,
     /// Keyframes the map aims to keep at most (0: no ceiling).
     pub max_map_keyframes: usize,
+    /// Seconds of stream time a keyframe's patches (pixels of the wearer's surroundings)
+    /// are kept; infinite: as long as the map needs them (docs/durability.md, "Retention").
+    pub patch_retention_s: f64,
 }
 
 impl Default for SessionOptions {
@@ -55,6 +58,7 @@ impl Default for SessionOptions {
             loop_closure: true,
             cull_keyframes: true,
             max_map_keyframes: 3000,
+            patch_retention_s: f64::INFINITY,
         }
     }
 }
@@ -107,6 +111,18 @@ impl MergerSession {
             loop_sightings: Vec::new(),
             tally: Tally::default(),
         }
+    }
+
+    /// Whether keyframe `keyframe`'s patches are older than the retention allows (the
+    /// features log then drops them at its next compaction).
+    pub fn patches_expired(&self, keyframe: u64) -> bool {
+        let retention = self.options.patch_retention_s;
+        retention.is_finite()
+            && self
+                .state
+                .frames
+                .keyframe_age_s(keyframe)
+                .is_some_and(|age| age > retention)
     }
 
     /// The ideal camera of the observations, once a window brought it.
