@@ -496,6 +496,53 @@ mod tests {
     }
 
     #[test]
+    fn a_strong_loop_steps_after_the_last_loop_and_no_other_does() {
+        let map = |pinned: Option<(u32, u64)>| {
+            MapBuilder::from_parts(crate::chaining::MapParts {
+                loop_pinned: pinned,
+                ..crate::chaining::MapParts::default()
+            })
+        };
+        let agreement =
+            |keyframes: usize, shared_points: usize| crate::segment_linking::Agreement {
+                to: 0,
+                transform: Similarity::identity(),
+                keyframes,
+                shared_points,
+                old_keyframes: vec![10],
+                sightings: Vec::new(),
+            };
+        let options = LoopOptions::default();
+        let strong = agreement(12, 800);
+        let step = break_since_last_loop(&map(Some((0, 500))), 0, 10, 0.33, &strong, &options)
+            .expect("a step after the last loop");
+        assert_eq!(step.after_keyframe, 500);
+        assert!((step.pace_ratio - 1.0 / 0.33).abs() < 1e-12);
+        let none =
+            |m: &MapBuilder, anchor: u64, scale: f64, a: &crate::segment_linking::Agreement| {
+                break_since_last_loop(m, 0, anchor, scale, a, &options).is_none()
+            };
+        assert!(none(&map(None), 10, 0.33, &strong), "no loop before");
+        assert!(
+            none(&map(Some((1, 500))), 10, 0.33, &strong),
+            "another segment's"
+        );
+        assert!(
+            none(&map(Some((0, 5))), 10, 0.33, &strong),
+            "before the anchor"
+        );
+        assert!(none(&map(Some((0, 500))), 10, 0.1, &strong), "beyond 5x");
+        assert!(
+            none(&map(Some((0, 500))), 10, 0.33, &agreement(12, 100)),
+            "few pairs"
+        );
+        assert!(
+            none(&map(Some((0, 500))), 10, 0.33, &agreement(9, 800)),
+            "not all agree"
+        );
+    }
+
+    #[test]
     fn a_scale_change_beyond_drift_is_refused() {
         for ok in [0.97, 0.99, 1.0, 1.2, 1.49, 1.0 / 1.49] {
             assert!(scale_is_drift(ok, 1.5), "{ok}");
