@@ -99,7 +99,10 @@ impl FeaturesLog {
                 Some((_, patches)) => {
                     descriptions.insert(r.keyframe_id, patched_tracks(&patches));
                     records.insert(r.keyframe_id, (at, 0));
-                    patch_bytes.insert(r.keyframe_id, patch_bytes_of(&r));
+                    match patch_bytes_of(&r) {
+                        0 => patch_bytes.remove(&r.keyframe_id),
+                        b => patch_bytes.insert(r.keyframe_id, b),
+                    };
                     ends.push(at);
                 }
                 None => tracing::warn!(
@@ -120,7 +123,6 @@ impl FeaturesLog {
                 .unwrap_or(end);
             *bytes = next - *at;
         }
-        patch_bytes.retain(|_, bytes| *bytes > 0);
         Ok((
             Self {
                 path,
@@ -244,8 +246,8 @@ impl FeaturesLog {
                 let bytes = record.encoded_len();
                 let bytes = (prost::length_delimiter_len(bytes) + bytes) as u64;
                 records.insert(keyframe, (writer.append(&record)?, bytes));
-                if patch_bytes_of(&record) > 0 {
-                    patch_bytes.insert(keyframe, patch_bytes_of(&record));
+                if let b @ 1.. = patch_bytes_of(&record) {
+                    patch_bytes.insert(keyframe, b);
                 }
             }
             Ok(())

@@ -13,8 +13,9 @@
 //! back, carrying keyframes and points added meanwhile along by the similarity that the
 //! refinement applied to the newest refined keyframes.
 
+use crate::chaining::transform_pose;
 use crate::chaining::{align_shared, MapBuilder};
-use crate::refinement_rebase::{conjugated, corrected_pose, LoopCorrections};
+use crate::refinement_rebase::{conjugated, LoopCorrections};
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_solver::bundle_adjustment::{
     bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
@@ -277,7 +278,7 @@ impl MapBuilder {
         let (carried, _) = align_shared(&before, &after, &moved_points);
         for (id, pose) in job.ids.iter().zip(&result.poses) {
             if let Some((_, p)) = self.keyframes.get_mut(id) {
-                *p = corrected_pose(&loops.of_keyframe(*id), &stamped(p.timestamp, pose));
+                *p = transform_pose(&loops.of_keyframe(*id), &stamped(p.timestamp, pose));
             }
         }
         for (track, x) in job.tracks.iter().zip(&result.points) {
@@ -306,7 +307,7 @@ impl MapBuilder {
         for (id, (s, p)) in self.keyframes.iter_mut() {
             if *s == job.segment && !job.known_keyframes.contains(id) {
                 let carry = conjugated(t, &loops.of_keyframe(*id));
-                *p = corrected_pose(&carry, p);
+                *p = transform_pose(&carry, p);
                 moved += 1;
             }
         }

@@ -9,8 +9,7 @@
 //! is carried in the corrected frame (`C T C^-1`), as if the loop had been closed after
 //! the refinement.
 
-use egoslam_geometry::{Similarity, StampedPose};
-use nalgebra::UnitQuaternion;
+use egoslam_geometry::Similarity;
 use std::collections::BTreeMap;
 
 /// The corrections made since a refinement started, per keyframe and per point.
@@ -85,15 +84,6 @@ impl LoopCorrections {
                 .unwrap_or_else(Similarity::identity);
             self.keyframes.insert(*id, m.compose(&before));
         }
-    }
-}
-
-/// `c` applied to a keyframe pose (its centre mapped, its orientation turned).
-pub fn corrected_pose(c: &Similarity, pose: &StampedPose) -> StampedPose {
-    StampedPose {
-        timestamp: pose.timestamp,
-        position: c.apply(&pose.position),
-        rotation: UnitQuaternion::from_rotation_matrix(&c.rotation) * pose.rotation,
     }
 }
 
