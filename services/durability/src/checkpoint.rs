@@ -159,6 +159,7 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 relative: Some(pose_to_pb(*frame, 0, &l.relative)),
                 next_keyframe_id: l.next_keyframe,
                 bracket_length: l.bracket_length,
+                interpolated: l.interpolated,
             })
             .collect(),
     }
@@ -263,6 +264,7 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
                         relative,
                         next_keyframe: l.next_keyframe_id,
                         bracket_length: l.bracket_length,
+                        interpolated: l.interpolated,
                     };
                     Some((l.frame_id, frame))
                 })
@@ -333,6 +335,7 @@ mod tests {
                 },
                 next_keyframe: 1,
                 bracket_length: 0.05,
+                interpolated: true,
             },
         );
         state.last_sequence = Some(3);

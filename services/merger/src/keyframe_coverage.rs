@@ -5,8 +5,10 @@
 //! ground covered. A keyframe is covered when an older keyframe of an earlier pass stands
 //! where it stands and looks where it looks; it is then culled like a redundant one, as the
 //! reduced pose graph of Johannsson et al. ("Temporally scalable visual SLAM using a reduced
-//! pose graph", ICRA 2013) adds no keyframe where the map already has one. A sparse spine of
-//! the pass is kept, so that its frames stay posed relative to keyframes close in time.
+//! pose graph", ICRA 2013) adds no keyframe where the map already has one. The culled
+//! keyframes' frames are then posed relative to the kept keyframe nearest in space, often
+//! one of the earlier pass (`session::keyframe_culling`), so a pass walked over known ground
+//! leaves nothing in the map.
 
 use crate::chaining::MapBuilder;
 use egoslam_geometry::StampedPose;
@@ -23,9 +25,6 @@ pub struct CoverageOptions {
     /// Optical axes at most this far apart, degrees (ORB-SLAM's loop and relocalization
     /// candidates share most of their view at 20-30 deg).
     pub max_angle_deg: f64,
-    /// A keyframe this many ids after the previous keyframe the map keeps is kept: the
-    /// spine of the pass, to which its frames are posed.
-    pub spine: u64,
 }
 
 impl Default for CoverageOptions {
@@ -34,7 +33,6 @@ impl Default for CoverageOptions {
             min_age: 200,
             max_offset: 0.1,
             max_angle_deg: 20.0,
-            spine: 30,
         }
     }
 }
@@ -67,14 +65,9 @@ impl OlderKeyframes {
         }
     }
 
-    /// Whether keyframe `id` of `segment` at `pose` is covered by an older keyframe, and
-    /// not needed for the spine.
+    /// Whether keyframe `id` of `segment` at `pose` is covered by an older keyframe.
     pub fn cover(&self, map: &MapBuilder, id: u64, segment: u32, pose: &StampedPose) -> bool {
         let o = &self.options;
-        let previous = map.keyframes.range(..id).next_back().map(|(k, _)| *k);
-        if previous.is_none_or(|k| id - k > o.spine) {
-            return false;
-        }
         // A keyframe without points of its own is measured by the scene depth of the
         // older keyframe that would cover it.
         let own_depth = map.observed_depth(id, pose);
@@ -134,21 +127,19 @@ mod tests {
     }
 
     #[test]
-    fn a_second_pass_keeps_a_spine_and_a_new_view_is_kept() {
+    fn a_second_pass_over_known_ground_leaves_nothing_and_a_new_view_is_kept() {
         let options = crate::keyframe_culling::tests::any_size();
         let candidates: Vec<u64> = (300..590).collect();
         let mut map = two_passes(5.0);
         let report = map.cull_keyframes(&candidates, &options);
-        // 5 deg away, 0.01 apart at depth 5: covered, but one keyframe in 31 is kept (the
-        // spine: 299, the first pass's last, then 330, 361, ..., 578).
-        let kept: Vec<u64> = map
-            .keyframes()
-            .map(|(id, ..)| id)
-            .filter(|id| (300..590).contains(id))
-            .collect();
-        assert_eq!(kept.len(), 9, "{kept:?}");
-        assert!(kept.windows(2).all(|w| w[1] - w[0] == 31), "{kept:?}");
-        assert_eq!(report.culled.len() + kept.len(), 290);
+        // 5 deg away, 0.01 apart at depth 5: every candidate is covered.
+        assert_eq!(report.culled.len(), 290);
+        assert_eq!(
+            map.keyframes()
+                .filter(|(id, ..)| (300..590).contains(id))
+                .count(),
+            0
+        );
         // Their own points went with them.
         assert_eq!(report.removed_points, 10 * report.culled.len());
         // The first pass is untouched.
@@ -178,14 +169,8 @@ mod tests {
         let options = crate::keyframe_culling::tests::any_size();
         let candidates: Vec<u64> = (300..590).collect();
         let report = map.cull_keyframes(&candidates, &options);
-        let kept: Vec<u64> = map
-            .keyframes()
-            .map(|(id, ..)| id)
-            .filter(|id| (300..590).contains(id))
-            .collect();
-        // As with points: covered, and one keyframe in 31 kept for the spine.
-        assert_eq!(kept.len(), 9, "{kept:?}");
-        assert_eq!(report.culled.len() + kept.len(), 290);
+        // As with points: every candidate is covered.
+        assert_eq!(report.culled.len(), 290);
         // Without the older pass there is nothing to cover them, and without points they
         // are not redundant: none goes.
         let mut parts = two_passes(5.0).to_parts();

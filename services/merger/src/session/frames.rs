@@ -34,6 +34,9 @@ pub struct LocalizedFrame {
     /// Distance from the anchor to `next_keyframe` when the frame was posed, map units
     /// (0: not known; `relative` is then used as it is).
     pub bracket_length: f64,
+    /// Interpolated between keyframes, not posed by PnP, when culling fixed it relative to
+    /// a kept keyframe: it stays marked so on the wire.
+    pub interpolated: bool,
 }
 
 impl LocalizedFrame {
@@ -181,13 +184,13 @@ pub fn posed_frames(
                 let next = map
                     .keyframe(l.next_keyframe)
                     .and_then(|(sn, next)| (sn == s).then_some(next));
-                (s == segment).then(|| l.pose(anchor, next))
+                (s == segment).then(|| (l.pose(anchor, next), l.interpolated))
             });
             PosedFrame {
                 frame_id,
                 segment,
-                interpolated: localized.is_none() && !keyframe_ids.contains(&frame_id),
-                pose: localized.unwrap_or(pose),
+                interpolated: localized.map_or(!keyframe_ids.contains(&frame_id), |l| l.1),
+                pose: localized.map_or(pose, |l| l.0),
             }
         })
         .collect()
@@ -275,6 +278,7 @@ pub fn localize_pending(
                         relative: relative(anchor, &l.pose),
                         next_keyframe: pending.next_keyframe,
                         bracket_length,
+                        interpolated: false,
                     },
                 );
                 stats.count("localized_frames", 1);
@@ -329,6 +333,7 @@ mod tests {
             relative: relative(&anchor, &posed),
             next_keyframe: 1,
             bracket_length: 10.0,
+            interpolated: false,
         };
         // Unchanged map: the pose as found.
         let same = frame.pose(&anchor, Some(&next));

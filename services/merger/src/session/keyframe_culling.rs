@@ -8,7 +8,7 @@ use super::frames::{frame_poses, relative, LocalizedFrame};
 use super::MergerSession;
 use crate::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions, KeyframeFeatureSource};
 use egoslam_geometry::StampedPose;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 impl MergerSession {
     /// Culls among the keyframes older than `oldest_live` (the newest window's first: the
@@ -91,7 +91,23 @@ impl MergerSession {
         let (Some(from), Some(to)) = (from, to) else {
             return;
         };
-        let before = frame_poses(map, frames, from..=to);
+        let mut before = frame_poses(map, frames, from..=to);
+        // Frames of later passes posed against a candidate (culling anchors a revisit's
+        // frames to the kept keyframe nearest in space, which may be one of these).
+        let candidate_ids: BTreeSet<u64> = candidates.iter().copied().collect();
+        for (frame, l) in &frames.localized {
+            let posed_against = candidate_ids.contains(&l.anchor_keyframe)
+                || candidate_ids.contains(&l.next_keyframe);
+            if !posed_against || before.contains_key(frame) {
+                continue;
+            }
+            if let Some((segment, anchor)) = map.keyframe(l.anchor_keyframe) {
+                let next = map
+                    .keyframe(l.next_keyframe)
+                    .and_then(|(s, next)| (s == segment).then_some(next));
+                before.insert(*frame, (segment, l.pose(anchor, next)));
+            }
+        }
         let map = &mut self.state.map;
         let report = self.tally.time("cull_keyframes", || remove(map));
         if report.culled.is_empty() {
@@ -99,7 +115,7 @@ impl MergerSession {
         }
         let culled: BTreeMap<u64, CulledKeyframe> =
             report.culled.iter().map(|c| (c.keyframe_id, *c)).collect();
-        self.keep_frames_posed(&culled, &before);
+        self.keep_frames_posed(&culled, &before, oldest_live);
         for id in culled.keys() {
             // Unreadable descriptors (the source says so) leave the keyframe in the index.
             if let Some(described) = features.features(*id) {
@@ -164,13 +180,18 @@ impl MergerSession {
         });
     }
 
-    /// Keeps each culled keyframe's frame, and every frame posed against a culled keyframe,
-    /// at its pose in `before`, relative to the kept keyframes around it. Frames that were
-    /// interpolated stay interpolated (now between the kept keyframes).
+    /// Keeps each culled keyframe's frame, every frame posed against a culled keyframe and
+    /// the interpolated frames among them at their pose in `before`, relative to the kept
+    /// keyframe nearest in space among those no later window brings again (older than
+    /// `oldest_live`) and the ones just around it in time: on a revisit that is a keyframe
+    /// of the earlier pass, in a first visit one of its neighbours. A frame whose anchor is
+    /// the keyframe just before it in time follows the scale of its bracket; the others
+    /// move rigidly with their anchor. Interpolated frames stay marked so.
     fn keep_frames_posed(
         &mut self,
         culled: &BTreeMap<u64, CulledKeyframe>,
         before: &BTreeMap<u64, (u32, StampedPose)>,
+        oldest_live: u64,
     ) {
         let kept: Vec<(u64, u32, StampedPose)> = self
             .state
@@ -179,41 +200,73 @@ impl MergerSession {
             .map(|(id, s, p)| (id, s, *p))
             .collect();
         let index = &mut self.state.frames;
-        let mut frozen: Vec<u64> = culled
+        let kept_frames: BTreeSet<u64> = kept
+            .iter()
+            .filter_map(|(k, ..)| index.keyframe_frames.get(k).copied())
+            .collect();
+        let culled_frames: BTreeSet<u64> = culled
             .keys()
             .filter_map(|k| index.keyframe_frames.get(k).copied())
             .collect();
-        // Only frames `before` poses can be kept: the localized ones outside it are skipped
-        // without looking at every frame of the run.
-        let (Some((&first, _)), Some((&last, _))) =
-            (before.first_key_value(), before.last_key_value())
-        else {
-            return;
-        };
-        frozen.extend(index.localized.range(first..=last).filter_map(|(f, l)| {
+        let posed_against_culled = index.localized.iter().filter_map(|(f, l)| {
             (culled.contains_key(&l.anchor_keyframe) || culled.contains_key(&l.next_keyframe))
                 .then_some(*f)
-        }));
+        });
+        // Interpolated frames of the span: between the kept keyframes left around them
+        // they could be interpolated across a whole culled pass.
+        let interpolated: BTreeSet<u64> = before
+            .keys()
+            .copied()
+            .filter(|f| {
+                !index.localized.contains_key(f)
+                    && !index.pending.contains_key(f)
+                    && !kept_frames.contains(f)
+                    && !culled_frames.contains(f)
+            })
+            .collect();
+        let frozen: BTreeSet<u64> = culled_frames
+            .iter()
+            .copied()
+            .chain(posed_against_culled)
+            .chain(interpolated.iter().copied())
+            .collect();
+        let settled: Vec<&(u64, u32, StampedPose)> =
+            kept.iter().filter(|(k, ..)| *k < oldest_live).collect();
         for frame in frozen {
             let Some(&(segment, pose)) = before.get(&frame) else {
                 continue;
             };
-            match bracket(&kept, pose.timestamp, segment) {
-                Some((anchor_id, anchor, next_id, next)) => {
-                    index.localized.insert(
-                        frame,
-                        LocalizedFrame {
-                            anchor_keyframe: anchor_id,
-                            relative: relative(&anchor, &pose),
-                            next_keyframe: next_id,
-                            bracket_length: (next.position - anchor.position).norm(),
-                        },
-                    );
-                }
-                None => {
+            let was_interpolated = interpolated.contains(&frame)
+                || index.localized.get(&frame).is_some_and(|l| l.interpolated);
+            let distance = |p: &StampedPose| (p.position - pose.position).norm();
+            let nearest = settled
+                .iter()
+                .filter(|(_, s, _)| *s == segment)
+                .min_by(|a, b| distance(&a.2).total_cmp(&distance(&b.2)));
+            let bracketed = bracket(&kept, pose.timestamp, segment).filter(|(_, anchor, ..)| {
+                nearest.is_none_or(|(_, _, n)| distance(anchor) <= distance(n))
+            });
+            let frozen = match (bracketed, nearest) {
+                (Some((anchor_id, anchor, next_id, next)), _) => LocalizedFrame {
+                    anchor_keyframe: anchor_id,
+                    relative: relative(&anchor, &pose),
+                    next_keyframe: next_id,
+                    bracket_length: (next.position - anchor.position).norm(),
+                    interpolated: was_interpolated,
+                },
+                (None, Some((anchor_id, _, anchor))) => LocalizedFrame {
+                    anchor_keyframe: *anchor_id,
+                    relative: relative(anchor, &pose),
+                    next_keyframe: *anchor_id,
+                    bracket_length: 0.0,
+                    interpolated: was_interpolated,
+                },
+                (None, None) => {
                     index.localized.remove(&frame);
+                    continue;
                 }
-            }
+            };
+            index.localized.insert(frame, frozen);
         }
     }
 }
@@ -229,4 +282,120 @@ fn bracket(
     let (a_id, a_segment, anchor) = *kept.get(after.checked_sub(1)?)?;
     let (n_id, n_segment, next) = *kept.get(after)?;
     (a_segment == segment && n_segment == segment).then_some((a_id, anchor, n_id, next))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::session::frames::{posed_frames, posed_keyframes};
+    use crate::{MapBuilder, MapParts, SessionOptions};
+    use egoslam_relocalization::{default_vocabulary, MapFeature};
+    use nalgebra::{Point2, UnitQuaternion, Vector3};
+
+    fn at(t: f64, x: f64, y: f64) -> StampedPose {
+        StampedPose {
+            timestamp: t,
+            position: Vector3::new(x, y, 0.0),
+            rotation: UnitQuaternion::identity(),
+        }
+    }
+
+    /// A corridor walked twice along x: keyframes 0..300 and again 300..600 at x = (k %
+    /// 300) / 100, keyframe k being frame 2k (time 2k), each seeing 10 points of its own 5
+    /// units ahead. Of the frames 2k + 1 between them, those after an even keyframe of the
+    /// second pass are localized, the others interpolated.
+    fn two_passes(shift_first_pass_below: u64) -> (MapParts, FrameIndex) {
+        let mut parts = MapParts::default();
+        let mut index = FrameIndex::default();
+        for k in 0..600u64 {
+            let x = (k % 300) as f64 / 100.0;
+            let y = if k < shift_first_pass_below { 1.0 } else { 0.0 };
+            parts.keyframes.insert(k, (0, at(2.0 * k as f64, x, y)));
+            for t in 0..10 {
+                let track = k * 10 + t;
+                parts
+                    .points
+                    .insert(track, (0, Vector3::new(x, 0.1 * t as f64, 5.0)));
+                parts.observations.insert((k, track), Point2::new(1.0, 2.0));
+            }
+            index.frames.insert(2 * k, 2.0 * k as f64);
+            index.frames.insert(2 * k + 1, 2.0 * k as f64 + 1.0);
+            index.keyframe_frames.insert(k, 2 * k);
+            if k >= 300 && k % 2 == 0 {
+                let anchor = at(2.0 * k as f64, x, 0.0);
+                index.localized.insert(
+                    2 * k + 1,
+                    LocalizedFrame {
+                        anchor_keyframe: k,
+                        relative: relative(&anchor, &at(2.0 * k as f64 + 1.0, x + 0.005, 0.0)),
+                        next_keyframe: k + 1,
+                        bracket_length: 0.01,
+                        interpolated: false,
+                    },
+                );
+            }
+        }
+        parts.segments = 1;
+        parts.current_segment = Some(0);
+        (parts, index)
+    }
+
+    fn posed(session: &MergerSession) -> Vec<PosedFrame> {
+        let (map, index) = (&session.state.map, &session.state.frames);
+        posed_frames(map, index, &posed_keyframes(map, index), ..)
+    }
+
+    use super::super::frames::{FrameIndex, PosedFrame};
+
+    #[test]
+    fn a_culled_revisit_is_posed_against_the_earlier_pass_and_follows_it() {
+        let vocabulary = default_vocabulary().expect("the built-in vocabulary");
+        let mut session = MergerSession::new(SessionOptions::default(), vocabulary);
+        let (parts, index) = two_passes(0);
+        session.state.map = MapBuilder::from_parts(parts);
+        session.state.frames = index;
+        let before = posed(&session);
+        let candidates: Vec<u64> = (300..590).collect();
+        let options = crate::keyframe_culling::tests::any_size();
+        let features = BTreeMap::<u64, Vec<MapFeature>>::new();
+        session.cull(&candidates, 590, &features, "redundant", |map| {
+            map.cull_keyframes(&candidates, &options)
+        });
+        assert_eq!(session.state.map.keyframes().count(), 310, "the pass went");
+        // Every frame is where it was, marked as it was.
+        let after = posed(&session);
+        assert_eq!(before.len(), after.len());
+        for (b, a) in before.iter().zip(&after) {
+            assert_eq!(b.frame_id, a.frame_id);
+            assert!(
+                (b.pose.position - a.pose.position).norm() < 1e-9,
+                "{b:?} {a:?}"
+            );
+            let was_keyframe = b.frame_id % 2 == 0;
+            assert_eq!(a.interpolated, b.interpolated && !was_keyframe, "{a:?}");
+        }
+        // The second pass's frames hang on the first pass's keyframes at their place.
+        for frame in 600..1180 {
+            let l = session.state.frames.localized[&frame];
+            assert!(l.anchor_keyframe < 300, "frame {frame}: {l:?}");
+            assert!(l.relative.position.norm() <= 0.011, "frame {frame}: {l:?}");
+        }
+        // A correction of the first pass's start moves the revisit's frames there with it,
+        // not those over the rest of the corridor.
+        let (mut shifted, _) = two_passes(150);
+        shifted
+            .keyframes
+            .retain(|k, _| session.state.map.keyframe(*k).is_some());
+        session.state.map = MapBuilder::from_parts(shifted);
+        for f in posed(&session)
+            .iter()
+            .filter(|f| (600..1180).contains(&f.frame_id))
+        {
+            let x = f.pose.position.x;
+            let expected_y = if x < 1.49 { 1.0 } else { 0.0 };
+            if !(1.49..=1.51).contains(&x) {
+                assert!((f.pose.position.y - expected_y).abs() < 1e-9, "{f:?}");
+            }
+        }
+    }
 }
