@@ -48,42 +48,54 @@ fn ply_points(
 /// trajectory.tum, keyframes.tum, keyframe_segments.txt, map.ply, each written
 /// atomically. The segments file says which map segment (own gauge and scale) each
 /// keyframe is in, so that a run with breaks can be evaluated segment by segment.
-/// Returns the number of points map.ply holds.
 pub fn write_files(
     state: &MapState,
     out: &Path,
     published: &PointConfidenceOptions,
     all_points: bool,
     grey: &dyn Fn(u64) -> Option<u8>,
-) -> anyhow::Result<usize> {
+) -> anyhow::Result<WrittenFiles> {
     let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
     let points = ply_points(state, published, false, grey);
-    let published_points = points.len();
-    write_atomically(
-        &out.join("trajectory.tum"),
-        tum_text(&poses(&state.frames)).as_bytes(),
-    )?;
-    write_atomically(
-        &out.join("keyframes.tum"),
+    let mut written = WrittenFiles {
+        published_points: points.len(),
+        bytes: 0,
+    };
+    let mut write = |name: &str, bytes: &[u8]| -> anyhow::Result<()> {
+        write_atomically(&out.join(name), bytes)?;
+        written.bytes += bytes.len() as u64;
+        Ok(())
+    };
+    write("trajectory.tum", tum_text(&poses(&state.frames)).as_bytes())?;
+    write(
+        "keyframes.tum",
         tum_text(&poses(&state.keyframes)).as_bytes(),
     )?;
     let mut segments = String::from("# timestamp segment\n");
     for k in &state.keyframes {
         segments += &format!("{:.6} {}\n", k.pose.timestamp, k.segment);
     }
-    write_atomically(&out.join("keyframe_segments.txt"), segments.as_bytes())?;
-    write_atomically(
-        &out.join("map.ply"),
+    write("keyframe_segments.txt", segments.as_bytes())?;
+    write(
+        "map.ply",
         &map_ply::to_bytes(points, "egoslam map points (docs/merger.md)")?,
     )?;
     if all_points {
         let all = ply_points(state, published, true, grey);
-        write_atomically(
-            &out.join("map_all.ply"),
+        write(
+            "map_all.ply",
             &map_ply::to_bytes(all, "egoslam: every triangulated point")?,
         )?;
     }
-    Ok(published_points)
+    Ok(written)
+}
+
+/// What [`write_files`] wrote.
+pub struct WrittenFiles {
+    /// Points map.ply holds.
+    pub published_points: usize,
+    /// Bytes of all the files (what the write budget counts).
+    pub bytes: u64,
 }
 
 /// Hands a window's messages to zenoh: what changed, the keyframe trajectory and the

@@ -53,11 +53,13 @@ struct Merger {
 /// with the map); the journal makes waiting safe.
 const PERSIST_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
 
-/// Average bytes per second the checkpoint's rewrites may write (512 KiB/s, 1.8 GiB per
-/// hour): a rewrite waits, beyond [`PERSIST_INTERVAL`], as long as the last checkpoint's
-/// size takes at that rate. The checkpoint is the whole map (80 MB after 6 minutes of a
-/// looped walk), and rewritten every 5 s it wrote ~16 MB/s: flash wear that would end a
-/// wearable's storage within months. Windows in between stay in the solver's journal.
+/// Average bytes per second the rewrites of the checkpoint and the result files may write
+/// (512 KiB/s, 1.8 GiB per hour): a rewrite waits, beyond [`PERSIST_INTERVAL`], as long as
+/// the last one's size takes at that rate. The checkpoint is the whole map and
+/// trajectory.tum every frame of the run (~9 MB after an hour of video, ~70 MB after a
+/// day): rewritten every 5 s they would write more each hour than the last, flash wear that
+/// would end a wearable's storage within months. Windows in between stay in the solver's
+/// journal.
 /// `EGOSLAM_PERSIST_BUDGET_BYTES_PER_S` sets another rate ("inf": every 5 s).
 const PERSIST_BUDGET_BYTES_PER_S: f64 = 512.0 * 1024.0;
 
@@ -139,18 +141,20 @@ impl Merger {
             pb::ServiceState::Running
         };
         let persist = self.persist_due();
-        self.emit(&changed, state, persist)?;
+        let result_bytes = self.emit(&changed, state, persist)?;
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
         if persist {
-            self.persist()?;
+            self.persist(result_bytes)?;
         }
         Ok(())
     }
 
     /// Checkpoints the session's state (with the revisions published), compacting the
-    /// features log when due, and tells the solver what its journal may drop.
-    fn persist(&mut self) -> anyhow::Result<()> {
+    /// features log when due, and tells the solver what its journal may drop;
+    /// `result_bytes` is what the result files just written took, counted with the
+    /// checkpoint against the write budget.
+    fn persist(&mut self, result_bytes: u64) -> anyhow::Result<()> {
         self.session.state.revisions = self
             .outputs
             .revisions
@@ -190,7 +194,7 @@ impl Merger {
         self.stats
             .add_time("checkpoint", save_start.elapsed().as_secs_f64() * 1e3);
         self.last_persist = Some(std::time::Instant::now());
-        let bytes = std::fs::metadata(self.checkpoint_path()).map_or(0, |m| m.len());
+        let bytes = result_bytes + std::fs::metadata(self.checkpoint_path()).map_or(0, |m| m.len());
         self.persist_spacing = PERSIST_INTERVAL.max(
             std::time::Duration::try_from_secs_f64(bytes as f64 / persist_budget())
                 .unwrap_or(PERSIST_INTERVAL),
@@ -201,13 +205,14 @@ impl Merger {
         Ok(())
     }
 
-    /// Publishes over zenoh; with `persist`, also rewrites the result files.
+    /// Publishes over zenoh; with `persist`, also rewrites the result files (returns the
+    /// bytes written).
     fn emit(
         &mut self,
         changed: &[u64],
         state: pb::ServiceState,
         persist: bool,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<u64> {
         self.stats.windows = self.session.state.windows;
         self.stats.counters.insert(
             "unsolved_windows".into(),

@@ -44,9 +44,9 @@ impl Outputs {
         state: pb::ServiceState,
         stats: &mut ServiceStats,
         persist: bool,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<u64> {
         if !persist && self.egress.is_none() {
-            return Ok(()); // nobody reads the poses of every frame now: don't compute them
+            return Ok(0); // nobody reads the poses of every frame now: don't compute them
         }
         let (map, index) = (&merger.map, &merger.frames);
         let mut snapshot = MapState::of(map, index);
@@ -64,18 +64,20 @@ impl Outputs {
         if let Some(confidence) = &self.confidence {
             snapshot = snapshot.with_confidence(Arc::clone(confidence));
         }
+        let mut written_bytes = 0;
         if persist {
             let grey = grey_levels(merger);
-            let published = map_state::write_files(
+            let written = map_state::write_files(
                 &snapshot,
                 out,
                 &self.point_confidence,
                 self.all_points,
                 &|track| grey.get(&track).copied(),
             )?;
+            written_bytes = written.bytes;
             stats
                 .counters
-                .insert("published_points".into(), published as u64);
+                .insert("published_points".into(), written.published_points as u64);
         }
         stats.frames = index.frames.len() as u64;
         stats.keyframes = snapshot.keyframes.len() as u64;
@@ -118,6 +120,6 @@ impl Outputs {
             let publication = snapshot.publication(&mut revisions, changed_points);
             map_state::publish(egress, publication, &status)?;
         }
-        Ok(())
+        Ok(written_bytes)
     }
 }
