@@ -92,7 +92,7 @@ impl OlderKeyframes {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::chaining::MapParts;
     use crate::keyframe_culling::KeyframeCullingOptions;
@@ -109,7 +109,7 @@ mod tests {
     /// A corridor walked along x twice: keyframes 0..300 at x = k / 100, then keyframes
     /// 300..600 at the same places again, each seeing 10 tracks of its own (no shared
     /// points: only coverage can cull) 5 units ahead; the second pass looks `yaw` away.
-    fn two_passes(yaw_deg: f64) -> MapBuilder {
+    pub(crate) fn two_passes(yaw_deg: f64) -> MapBuilder {
         let mut parts = MapParts::default();
         for k in 0..600u64 {
             let x = (k % 300) as f64 / 100.0;

@@ -290,44 +290,35 @@ mod tests {
     use crate::session::frames::{posed_frames, posed_keyframes};
     use crate::{MapBuilder, MapParts, SessionOptions};
     use egoslam_relocalization::{default_vocabulary, MapFeature};
-    use nalgebra::{Point2, UnitQuaternion, Vector3};
+    use nalgebra::Vector3;
 
-    fn at(t: f64, x: f64, y: f64) -> StampedPose {
-        StampedPose {
-            timestamp: t,
-            position: Vector3::new(x, y, 0.0),
-            rotation: UnitQuaternion::identity(),
-        }
-    }
-
-    /// A corridor walked twice along x: keyframes 0..300 and again 300..600 at x = (k %
-    /// 300) / 100, keyframe k being frame 2k (time 2k), each seeing 10 points of its own 5
-    /// units ahead. Of the frames 2k + 1 between them, those after an even keyframe of the
-    /// second pass are localized, the others interpolated.
+    /// The corridor walked twice of `keyframe_coverage`'s tests (keyframes 0..300 and
+    /// 300..600 at x = (k % 300) / 100, at time k, each seeing 10 points of its own), with
+    /// keyframe k as frame 2k and a frame 2k + 1 half-way to the next: those after an even
+    /// keyframe of the second pass localized, the others interpolated. Keyframes below
+    /// `shift_first_pass_below` stand 1 unit aside in y.
     fn two_passes(shift_first_pass_below: u64) -> (MapParts, FrameIndex) {
-        let mut parts = MapParts::default();
+        let mut parts = crate::keyframe_coverage::tests::two_passes(0.0).to_parts();
         let mut index = FrameIndex::default();
-        for k in 0..600u64 {
-            let x = (k % 300) as f64 / 100.0;
-            let y = if k < shift_first_pass_below { 1.0 } else { 0.0 };
-            parts.keyframes.insert(k, (0, at(2.0 * k as f64, x, y)));
-            for t in 0..10 {
-                let track = k * 10 + t;
-                parts
-                    .points
-                    .insert(track, (0, Vector3::new(x, 0.1 * t as f64, 5.0)));
-                parts.observations.insert((k, track), Point2::new(1.0, 2.0));
+        for (&k, (_, pose)) in parts.keyframes.iter_mut() {
+            if k < shift_first_pass_below {
+                pose.position.y += 1.0;
             }
-            index.frames.insert(2 * k, 2.0 * k as f64);
-            index.frames.insert(2 * k + 1, 2.0 * k as f64 + 1.0);
+            let t = k as f64;
+            index.frames.insert(2 * k, t);
+            index.frames.insert(2 * k + 1, t + 0.5);
             index.keyframe_frames.insert(k, 2 * k);
             if k >= 300 && k % 2 == 0 {
-                let anchor = at(2.0 * k as f64, x, 0.0);
+                let frame = StampedPose {
+                    timestamp: t + 0.5,
+                    position: pose.position + Vector3::new(0.005, 0.0, 0.0),
+                    ..*pose
+                };
                 index.localized.insert(
                     2 * k + 1,
                     LocalizedFrame {
                         anchor_keyframe: k,
-                        relative: relative(&anchor, &at(2.0 * k as f64 + 1.0, x + 0.005, 0.0)),
+                        relative: relative(pose, &frame),
                         next_keyframe: k + 1,
                         bracket_length: 0.01,
                         interpolated: false,
