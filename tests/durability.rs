@@ -116,6 +116,47 @@ fn a_merger_that_checkpoints_rarely_still_loses_nothing() {
     assert_eq!(merger["counters"]["checkpoints"], 2, "{merger}");
 }
 
+#[test]
+fn a_merger_behind_takes_the_windows_it_could_not_hold_from_the_journal() {
+    let _turn = one_test_at_a_time();
+    let undisturbed = tempfile::tempdir().expect("tempdir");
+    wait_success(run_fixture(undisturbed.path(), None));
+    let expected = keyframes(undisturbed.path());
+
+    // A merger that holds one window in memory, stopped for a while after its first
+    // window: the solver goes on, and the windows it sent meanwhile wait on the bus.
+    let behind = tempfile::tempdir().expect("tempdir");
+    let mut c = egoslam_without_pre_passes();
+    let run = c
+        .args(["run", "--global-ba-px=inf", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(behind.path())
+        .env("EGOSLAM_MERGER_BACKLOG_WINDOWS", "1")
+        .spawn()
+        .expect("run");
+    let start = Instant::now();
+    while !behind.path().join("state/merger.checkpoint").exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    signal("merger", behind.path(), "-STOP");
+    std::thread::sleep(Duration::from_millis(1500));
+    signal("merger", behind.path(), "-CONT");
+    wait_success(run);
+    let r = report(behind.path());
+    assert_eq!(r["restarts"]["merger"], 0, "{r}");
+    assert_eq!(keyframes(behind.path()), expected, "results differ");
+    let merger: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(behind.path().join("stats/merger.json")).expect("stats"),
+    )
+    .expect("json");
+    let left = merger["counters"]["windows_left_in_journal"]
+        .as_u64()
+        .unwrap_or(0);
+    assert!(left >= 1, "no window was left in the journal: {merger}");
+}
+
 /// Runs the clip (in real time with `realtime`), SIGKILLs `service` after `after`, and
 /// returns the report of the run, which must complete, with the number of keyframes in
 /// keyframes.tum.

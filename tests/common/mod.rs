@@ -109,6 +109,12 @@ pub fn service_pid(service: &str, out: &Path) -> Option<u32> {
 
 /// SIGKILLs the `service` process writing to `out`.
 pub fn sigkill(service: &str, out: &Path) {
+    signal(service, out, "-KILL");
+}
+
+/// Sends `signal` (`kill`'s spelling: "-KILL", "-STOP", "-CONT") to the `service` process
+/// writing to `out`.
+pub fn signal(service: &str, out: &Path, signal: &str) {
     // Under load the launcher may not have started the service yet: look for up to 5 s.
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
     let pid = loop {
@@ -121,7 +127,7 @@ pub fn sigkill(service: &str, out: &Path) {
         }
     };
     let status = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
+        .args([signal, &pid.to_string()])
         .status()
         .expect("kill");
     assert!(status.success());

@@ -222,6 +222,77 @@ pub fn read(path: &Path) -> crate::Result<Journal> {
     })
 }
 
+/// Reads the one message with bus sequence number `sequence` of stream `stream_id`
+/// without loading the journal: the header, then record lengths, skipping to the record.
+/// `Ok(None)` when the journal is of another stream or does not (or no longer) hold it.
+/// Safe while the solver appends (the record was whole before its message was sent) or
+/// compacts (a rename: the file opened holds every record from the merger's mark on).
+pub fn read_one(
+    path: &Path,
+    stream_id: u64,
+    sequence: u64,
+) -> crate::Result<Option<internal::WindowSolution>> {
+    use std::io::{BufReader, Read, Seek, SeekFrom};
+    let file = std::fs::File::open(path).map_err(crate::io_error("opening the journal", path))?;
+    let mut reader = BufReader::new(file);
+    let mut head = [0u8; HEADER_LEN];
+    let read = reader
+        .read(&mut head)
+        .map_err(crate::io_error("reading the journal", path))?;
+    let header_len = header_len(&head[..read], path)?;
+    let word = |at: usize| {
+        let mut w = [0u8; 8];
+        w.copy_from_slice(&head[at..at + 8]);
+        u64::from_le_bytes(w)
+    };
+    let first_sequence = if header_len == HEADER_LEN {
+        word(20)
+    } else {
+        0
+    };
+    if word(12) != stream_id || sequence < first_sequence {
+        return Ok(None);
+    }
+    let io = || crate::io_error("reading the journal", path);
+    reader
+        .seek(SeekFrom::Start(header_len as u64))
+        .map_err(io())?;
+    for _ in first_sequence..sequence {
+        let Some(len) = read_length(&mut reader).map_err(io())? else {
+            return Ok(None);
+        };
+        let len = i64::try_from(len).map_err(|_| crate::invalid(path, "record length"))?;
+        reader.seek_relative(len).map_err(io())?;
+    }
+    let Some(len) = read_length(&mut reader).map_err(io())? else {
+        return Ok(None);
+    };
+    let len = usize::try_from(len).map_err(|_| crate::invalid(path, "record length"))?;
+    let mut record = vec![0u8; len];
+    if reader.read_exact(&mut record).is_err() {
+        return Ok(None); // cut short: not sent yet
+    }
+    let message = internal::WindowSolution::decode(record.as_slice())
+        .map_err(|e| crate::invalid(path, format!("record {sequence} is corrupt ({e})")))?;
+    Ok(Some(message))
+}
+
+/// The varint length prefix of the next record; `None` at the end of the file.
+fn read_length(reader: &mut impl std::io::Read) -> std::io::Result<Option<u64>> {
+    let mut value = 0u64;
+    for shift in (0..64).step_by(7) {
+        let mut byte = [0u8; 1];
+        if reader.read(&mut byte)? == 0 {
+            return Ok(None);
+        }
+        value |= u64::from(byte[0] & 0x7f) << shift;
+        if byte[0] & 0x80 == 0 {
+            return Ok(Some(value));
+        }
+    }
+    Ok(None)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -233,6 +304,35 @@ mod tests {
             keyframe_ids: vec![id, id + 1],
             ..Default::default()
         }
+    }
+
+    #[test]
+    fn one_message_is_read_by_its_sequence_number_also_after_compaction() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(FILE_NAME);
+        let mut w = JournalWriter::create(&path, 42).expect("create");
+        for i in 0..5 {
+            w.append(&window(i)).expect("append");
+        }
+        for i in 0..5 {
+            assert_eq!(read_one(&path, 42, i).expect("read"), Some(window(i)));
+        }
+        assert_eq!(read_one(&path, 42, 5).expect("read"), None, "not sent yet");
+        assert_eq!(read_one(&path, 7, 1).expect("read"), None, "another stream");
+        w.compact_before(3).expect("compact");
+        assert_eq!(
+            read_one(&path, 42, 2).expect("read"),
+            None,
+            "compacted away"
+        );
+        assert_eq!(read_one(&path, 42, 3).expect("read"), Some(window(3)));
+        assert_eq!(read_one(&path, 42, 4).expect("read"), Some(window(4)));
+        // A record cut short (the solver died appending it) was never sent.
+        w.append(&window(5)).expect("append");
+        let full = std::fs::read(&path).expect("bytes");
+        std::fs::write(&path, &full[..full.len() - 3]).expect("truncate");
+        assert_eq!(read_one(&path, 42, 5).expect("read"), None);
+        assert_eq!(read_one(&path, 42, 4).expect("read"), Some(window(4)));
     }
 
     #[test]

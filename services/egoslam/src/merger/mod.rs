@@ -241,6 +241,69 @@ impl Merger {
     }
 }
 
+/// Windows a merger holds in memory while it is behind the solver, at most
+/// [`BACKLOG_WINDOWS`] (~1 MB each on a head-mounted walk; unbounded, a merger behind by
+/// minutes held ~500 MB of them). Beyond that a window is dropped from memory: the
+/// solver journaled it before sending it, and the merger reads it back from the journal
+/// when its turn comes (`window_journal::read_one`). The end of a stream and a new
+/// stream's windows are always kept.
+struct Backlog {
+    windows: VecDeque<(u64, internal::WindowSolution)>,
+    capacity: usize,
+    /// The newest window of the current stream left in the journal.
+    left_in_journal: Option<u64>,
+}
+
+/// Windows held in memory at most (`EGOSLAM_MERGER_BACKLOG_WINDOWS` sets another number,
+/// at least 1).
+const BACKLOG_WINDOWS: usize = 16;
+
+fn backlog_windows() -> usize {
+    std::env::var("EGOSLAM_MERGER_BACKLOG_WINDOWS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|n| *n > 0)
+        .unwrap_or(BACKLOG_WINDOWS)
+}
+
+impl Backlog {
+    fn new(capacity: usize) -> Self {
+        Self {
+            windows: VecDeque::new(),
+            capacity,
+            left_in_journal: None,
+        }
+    }
+
+    /// Keeps window `next` (of the merger's `stream`) in memory, or leaves it in the
+    /// journal when the backlog is full (false).
+    fn take(&mut self, next: (u64, internal::WindowSolution), stream: Option<u64>) -> bool {
+        let (sequence, w) = &next;
+        let same_stream = stream == Some(w.stream_id);
+        if self.windows.len() < self.capacity || w.end_of_stream || !same_stream {
+            self.windows.push_back(next);
+            return true;
+        }
+        self.left_in_journal = Some(self.left_in_journal.map_or(*sequence, |s| s.max(*sequence)));
+        false
+    }
+
+    /// Nothing to apply: no window in memory and none of `stream` left in the journal
+    /// from sequence number `next` on.
+    fn is_empty(&self, stream: Option<u64>, next: u64) -> bool {
+        self.windows.is_empty()
+            && (stream.is_none() || self.left_in_journal.is_none_or(|last| last < next))
+    }
+
+    fn front(&self) -> Option<&(u64, internal::WindowSolution)> {
+        self.windows.front()
+    }
+
+    fn pop_front(&mut self) -> Option<(u64, internal::WindowSolution)> {
+        self.windows.pop_front()
+    }
+}
+
 fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {
     if args.egress.zenoh_listen.iter().any(|e| e == "none") {
         return Ok(None);
@@ -378,25 +441,51 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         merger.catch_up(None)?;
     }
     // Windows taken off the bus, not applied yet: while the next one waits for the
-    // background refinement (`BackgroundRefiner::holds_next_window`), the merger keeps
-    // taking them so that the solver's lossless send never times out.
-    let mut backlog: VecDeque<(u64, internal::WindowSolution)> = VecDeque::new();
+    // background refinement (`BackgroundRefiner::holds_next_window`) or the merger is
+    // behind, it keeps taking them so that the solver's lossless send never times out.
+    let mut backlog = Backlog::new(backlog_windows());
     while !merger.session.state.finished {
-        if backlog.is_empty() {
+        let stream = merger.session.state.stream_id;
+        if backlog.is_empty(stream, merger.session.state.next_sequence()) {
             let Some(next) = windows.receive_numbered()? else {
                 bail!("terminated by signal")
             };
-            backlog.push_back(next);
+            backlog.take(next, stream);
         }
         while let Some(next) = windows.try_receive_numbered()? {
-            backlog.push_back(next);
+            if !backlog.take(next, stream) {
+                merger.stats.count("windows_left_in_journal", 1);
+            }
         }
-        let waiting = backlog.front().is_some_and(|(_, w)| !w.end_of_stream)
-            && merger.session.holds_next_window();
-        if waiting {
+        let expected = merger.session.state.next_sequence();
+        if backlog.left_in_journal.is_some_and(|last| last < expected) {
+            backlog.left_in_journal = None;
+        }
+        let in_memory = backlog
+            .front()
+            .is_some_and(|(s, w)| *s == expected && Some(w.stream_id) == stream);
+        let from_journal = stream.filter(|_| backlog.left_in_journal.is_some() && !in_memory);
+        let next_is_window =
+            from_journal.is_some() || backlog.front().is_some_and(|(_, w)| !w.end_of_stream);
+        if next_is_window && merger.session.holds_next_window() {
             if !bus.idle(std::time::Duration::from_millis(20)) {
                 bail!("terminated by signal")
             }
+            continue;
+        }
+        // Windows left in the journal while the backlog was full come first, one at a
+        // time, so that the bus keeps being read in between.
+        if let Some(stream) = from_journal {
+            let path = egoslam_durability::state_dir(&merger.args.out)
+                .join(egoslam_durability::window_journal::FILE_NAME);
+            let Some(w) = egoslam_durability::window_journal::read_one(&path, stream, expected)?
+            else {
+                bail!(
+                    "window {expected} was left in {} and it no longer holds it",
+                    path.display()
+                );
+            };
+            merger.apply(expected, &w)?;
             continue;
         }
         let Some((sequence, w)) = backlog.pop_front() else {
