@@ -31,6 +31,32 @@ fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
     c.spawn().expect("egoslam run")
 }
 
+/// Starts the clip into `out` with the environment variable `env` set (as `run_fixture`,
+/// deterministic) and waits for the merger's first checkpoint.
+fn run_fixture_until_checkpoint(out: &Path, env: (&str, &str)) -> std::process::Child {
+    let mut c = egoslam_without_pre_passes();
+    let run = c
+        .args(["run", "--global-ba-px=inf", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out)
+        .env(env.0, env.1)
+        .spawn()
+        .expect("run");
+    let start = Instant::now();
+    while !out.join("state/merger.checkpoint").exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    run
+}
+
+/// The merger's stats of the run in `out`.
+fn merger_stats(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("stats/merger.json")).expect("stats"))
+        .expect("json")
+}
+
 fn wait_success(mut run: std::process::Child) {
     let status = run.wait().expect("wait");
     assert!(status.success(), "egoslam run failed: {status}");
@@ -87,20 +113,8 @@ fn a_merger_that_checkpoints_rarely_still_loses_nothing() {
     let expected = keyframes(undisturbed.path());
 
     let rare = tempfile::tempdir().expect("tempdir");
-    let mut c = egoslam_without_pre_passes();
-    let run = c
-        .args(["run", "--global-ba-px=inf", "--input"])
-        .arg(tum_fixture())
-        .arg("--out")
-        .arg(rare.path())
-        .env("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S", "1")
-        .spawn()
-        .expect("run");
-    let start = Instant::now();
-    while !rare.path().join("state/merger.checkpoint").exists() {
-        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
-        std::thread::sleep(Duration::from_millis(5));
-    }
+    let run =
+        run_fixture_until_checkpoint(rare.path(), ("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S", "1"));
     // A few windows later (the clip's six take ~2 s), before the end.
     std::thread::sleep(Duration::from_millis(500));
     sigkill("merger", rare.path());
@@ -108,10 +122,7 @@ fn a_merger_that_checkpoints_rarely_still_loses_nothing() {
     let r = report(rare.path());
     assert_eq!(r["restarts"]["merger"], 1, "{r}");
     assert_eq!(keyframes(rare.path()), expected, "results differ");
-    let merger: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(rare.path().join("stats/merger.json")).expect("stats"),
-    )
-    .expect("json");
+    let merger = merger_stats(rare.path());
     // The restarted merger's: its first window's checkpoint and the end's.
     assert_eq!(merger["counters"]["checkpoints"], 2, "{merger}");
 }
@@ -126,20 +137,7 @@ fn a_merger_behind_takes_the_windows_it_could_not_hold_from_the_journal() {
     // A merger that holds one window in memory, stopped for a while after its first
     // window: the solver goes on, and the windows it sent meanwhile wait on the bus.
     let behind = tempfile::tempdir().expect("tempdir");
-    let mut c = egoslam_without_pre_passes();
-    let run = c
-        .args(["run", "--global-ba-px=inf", "--input"])
-        .arg(tum_fixture())
-        .arg("--out")
-        .arg(behind.path())
-        .env("EGOSLAM_MERGER_BACKLOG_WINDOWS", "1")
-        .spawn()
-        .expect("run");
-    let start = Instant::now();
-    while !behind.path().join("state/merger.checkpoint").exists() {
-        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
-        std::thread::sleep(Duration::from_millis(5));
-    }
+    let run = run_fixture_until_checkpoint(behind.path(), ("EGOSLAM_MERGER_BACKLOG_WINDOWS", "1"));
     signal("merger", behind.path(), "-STOP");
     std::thread::sleep(Duration::from_millis(1500));
     signal("merger", behind.path(), "-CONT");
@@ -147,10 +145,7 @@ fn a_merger_behind_takes_the_windows_it_could_not_hold_from_the_journal() {
     let r = report(behind.path());
     assert_eq!(r["restarts"]["merger"], 0, "{r}");
     assert_eq!(keyframes(behind.path()), expected, "results differ");
-    let merger: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(behind.path().join("stats/merger.json")).expect("stats"),
-    )
-    .expect("json");
+    let merger = merger_stats(behind.path());
     let left = merger["counters"]["windows_left_in_journal"]
         .as_u64()
         .unwrap_or(0);

@@ -64,11 +64,15 @@ const PERSIST_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
 const PERSIST_BUDGET_BYTES_PER_S: f64 = 512.0 * 1024.0;
 
 fn persist_budget() -> f64 {
-    std::env::var("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S")
+    positive_from_env("EGOSLAM_PERSIST_BUDGET_BYTES_PER_S").unwrap_or(PERSIST_BUDGET_BYTES_PER_S)
+}
+
+/// The positive number environment variable `name` gives, if any.
+fn positive_from_env<T: std::str::FromStr + PartialOrd + Default>(name: &str) -> Option<T> {
+    std::env::var(name)
         .ok()
-        .and_then(|v| v.parse::<f64>().ok())
-        .filter(|b| *b > 0.0)
-        .unwrap_or(PERSIST_BUDGET_BYTES_PER_S)
+        .and_then(|v| v.parse::<T>().ok())
+        .filter(|n| *n > T::default())
 }
 
 impl Merger {
@@ -259,11 +263,7 @@ struct Backlog {
 const BACKLOG_WINDOWS: usize = 16;
 
 fn backlog_windows() -> usize {
-    std::env::var("EGOSLAM_MERGER_BACKLOG_WINDOWS")
-        .ok()
-        .and_then(|v| v.parse::<usize>().ok())
-        .filter(|n| *n > 0)
-        .unwrap_or(BACKLOG_WINDOWS)
+    positive_from_env("EGOSLAM_MERGER_BACKLOG_WINDOWS").unwrap_or(BACKLOG_WINDOWS)
 }
 
 impl Backlog {
