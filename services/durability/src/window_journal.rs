@@ -177,22 +177,28 @@ fn header_len(bytes: &[u8], path: &Path) -> crate::Result<usize> {
     }
 }
 
-/// Reads a journal. A last record cut short (the solver died while appending) is dropped:
-/// that message was never sent. Anything else malformed is an error naming the file.
-pub fn read(path: &Path) -> crate::Result<Journal> {
-    let bytes = std::fs::read(path).map_err(crate::io_error("reading the journal", path))?;
-    let header_len = header_len(&bytes, path)?;
+/// The header at the start of `bytes`: its length, the stream id and the first record's
+/// sequence number (0 in version 1).
+fn parse_header(bytes: &[u8], path: &Path) -> crate::Result<(usize, u64, u64)> {
+    let header_len = header_len(bytes, path)?;
     let word = |at: usize| {
         let mut w = [0u8; 8];
         w.copy_from_slice(&bytes[at..at + 8]);
         u64::from_le_bytes(w)
     };
-    let stream_id = word(12);
     let first_sequence = if header_len == HEADER_LEN {
         word(20)
     } else {
         0
     };
+    Ok((header_len, word(12), first_sequence))
+}
+
+/// Reads a journal. A last record cut short (the solver died while appending) is dropped:
+/// that message was never sent. Anything else malformed is an error naming the file.
+pub fn read(path: &Path) -> crate::Result<Journal> {
+    let bytes = std::fs::read(path).map_err(crate::io_error("reading the journal", path))?;
+    let (header_len, stream_id, first_sequence) = parse_header(&bytes, path)?;
     let mut rest = &bytes[header_len..];
     let mut messages = Vec::new();
     let mut record_offsets = Vec::new();
@@ -239,18 +245,8 @@ pub fn read_one(
     let read = reader
         .read(&mut head)
         .map_err(crate::io_error("reading the journal", path))?;
-    let header_len = header_len(&head[..read], path)?;
-    let word = |at: usize| {
-        let mut w = [0u8; 8];
-        w.copy_from_slice(&head[at..at + 8]);
-        u64::from_le_bytes(w)
-    };
-    let first_sequence = if header_len == HEADER_LEN {
-        word(20)
-    } else {
-        0
-    };
-    if word(12) != stream_id || sequence < first_sequence {
+    let (header_len, journal_stream, first_sequence) = parse_header(&head[..read], path)?;
+    if journal_stream != stream_id || sequence < first_sequence {
         return Ok(None);
     }
     let io = || crate::io_error("reading the journal", path);

@@ -56,8 +56,8 @@ const PERSIST_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
 /// Average bytes per second the rewrites of the checkpoint and the result files may write
 /// (512 KiB/s, 1.8 GiB per hour): a rewrite waits, beyond [`PERSIST_INTERVAL`], as long as
 /// the last one's size takes at that rate. The checkpoint is the whole map and
-/// trajectory.tum every frame of the run (~9 MB after an hour of video, ~70 MB after a
-/// day): rewritten every 5 s they would write more each hour than the last, flash wear that
+/// trajectory.tum every frame of the run (9.1 MB after the hour-long endurance run, and it
+/// grows linearly with the frames): rewritten every 5 s they would write more each hour than the last, flash wear that
 /// would end a wearable's storage within months. Windows in between stay in the solver's
 /// journal.
 /// `EGOSLAM_PERSIST_BUDGET_BYTES_PER_S` sets another rate ("inf": every 5 s).

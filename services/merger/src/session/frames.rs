@@ -56,6 +56,16 @@ impl LocalizedFrame {
         };
         compose(anchor, &relative)
     }
+
+    /// The anchor's segment and world_from_frame as `map` poses the anchor (and the next
+    /// keyframe, when in the anchor's segment) now; `None` once the anchor left the map.
+    pub fn posed_in(&self, map: &MapBuilder) -> Option<(u32, StampedPose)> {
+        let (segment, anchor) = map.keyframe(self.anchor_keyframe)?;
+        let next = map
+            .keyframe(self.next_keyframe)
+            .and_then(|(s, next)| (s == segment).then_some(next));
+        Some((segment, self.pose(anchor, next)))
+    }
 }
 
 /// Every frame known to the merger, which keyframe is which frame, and how the frames
@@ -180,11 +190,8 @@ pub fn posed_frames(
         .map(|(i, pose, segment)| {
             let frame_id = ids[i];
             let localized = index.localized.get(&frame_id).and_then(|l| {
-                let (s, anchor) = map.keyframe(l.anchor_keyframe)?;
-                let next = map
-                    .keyframe(l.next_keyframe)
-                    .and_then(|(sn, next)| (sn == s).then_some(next));
-                (s == segment).then(|| (l.pose(anchor, next), l.interpolated))
+                let (s, pose) = l.posed_in(map)?;
+                (s == segment).then_some((pose, l.interpolated))
             });
             PosedFrame {
                 frame_id,

@@ -101,11 +101,8 @@ impl MergerSession {
             if !posed_against || before.contains_key(frame) {
                 continue;
             }
-            if let Some((segment, anchor)) = map.keyframe(l.anchor_keyframe) {
-                let next = map
-                    .keyframe(l.next_keyframe)
-                    .and_then(|(s, next)| (s == segment).then_some(next));
-                before.insert(*frame, (segment, l.pose(anchor, next)));
+            if let Some(posed) = l.posed_in(map) {
+                before.insert(*frame, posed);
             }
         }
         let map = &mut self.state.map;
@@ -208,9 +205,11 @@ impl MergerSession {
             .keys()
             .filter_map(|k| index.keyframe_frames.get(k).copied())
             .collect();
-        let posed_against_culled = index.localized.iter().filter_map(|(f, l)| {
-            (culled.contains_key(&l.anchor_keyframe) || culled.contains_key(&l.next_keyframe))
-                .then_some(*f)
+        // `before` holds every frame posed against a candidate (`cull`): no other can be.
+        let posed_against_culled = before.keys().copied().filter(|f| {
+            index.localized.get(f).is_some_and(|l| {
+                culled.contains_key(&l.anchor_keyframe) || culled.contains_key(&l.next_keyframe)
+            })
         });
         // Interpolated frames of the span: between the kept keyframes left around them
         // they could be interpolated across a whole culled pass.
@@ -286,6 +285,7 @@ fn bracket(
 
 #[cfg(test)]
 mod tests {
+    use super::super::frames::{FrameIndex, PosedFrame};
     use super::*;
     use crate::session::frames::{posed_frames, posed_keyframes};
     use crate::{MapBuilder, MapParts, SessionOptions};
@@ -335,8 +335,6 @@ mod tests {
         let (map, index) = (&session.state.map, &session.state.frames);
         posed_frames(map, index, &posed_keyframes(map, index), ..)
     }
-
-    use super::super::frames::{FrameIndex, PosedFrame};
 
     #[test]
     fn a_culled_revisit_is_posed_against_the_earlier_pass_and_follows_it() {
