@@ -78,41 +78,6 @@ impl MapBuilder {
         median(depths_in_front(pose, points))
     }
 
-    /// Median scene depth around keyframe `id` of `segment`: that of the keyframes of
-    /// `segment` nearest to it in time that see enough map points. A keyframe of a turn on
-    /// the spot sees no point (a rotation triangulates nothing), but it looks at the
-    /// surroundings its neighbours in time saw.
-    pub(crate) fn scene_depth_near(&self, id: u64, segment: u32) -> Option<f64> {
-        let depth_of = |(k, (s, pose)): (&u64, &(u32, StampedPose))| {
-            (*s == segment)
-                .then(|| {
-                    let points = self
-                        .observations
-                        .range((*k, 0)..=(*k, u64::MAX))
-                        .filter_map(|((_, track), _)| self.points.get(track))
-                        .map(|(_, x)| x);
-                    keyframe_depth(pose, points)
-                })
-                .flatten()
-        };
-        let mut before = self.keyframes.range(..id).rev().take(MAX_SEARCHED);
-        let mut after = self.keyframes.range(id + 1..).take(MAX_SEARCHED);
-        let mut depths = Vec::new();
-        // Alternately one step back and one forward, so the nearest on either side count.
-        loop {
-            let (b, a) = (before.next(), after.next());
-            if b.is_none() && a.is_none() {
-                break;
-            }
-            depths.extend(b.and_then(depth_of));
-            depths.extend(a.and_then(depth_of));
-            if depths.len() >= KEYFRAMES {
-                break;
-            }
-        }
-        median(depths)
-    }
-
     /// Median scene depth of the latest keyframes of `segment` that see enough map points.
     pub(crate) fn recent_scene_depth(&self, segment: u32) -> Option<f64> {
         let depths: Vec<f64> = self
