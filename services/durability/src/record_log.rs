@@ -303,19 +303,9 @@ impl LogReader {
             return Ok(None);
         }
         self.file.seek(std::io::SeekFrom::Start(offset))?;
-        let mut length: u64 = 0;
-        let mut varint_len = 0u64;
-        loop {
-            let mut byte = [0u8; 1];
-            if self.file.read(&mut byte)? == 0 || varint_len == 10 {
-                return Err(NextRecordError::Torn);
-            }
-            length |= u64::from(byte[0] & 0x7f) << (7 * varint_len);
-            varint_len += 1;
-            if byte[0] & 0x80 == 0 {
-                break;
-            }
-        }
+        let Some((length, varint_len)) = read_length_prefix(&mut self.file)? else {
+            return Err(NextRecordError::Torn);
+        };
         let start = offset + varint_len;
         if length > MAX_RECORD_BYTES as u64 || start + length > self.len {
             return Err(NextRecordError::Torn);
@@ -324,6 +314,25 @@ impl LogReader {
         self.file.read_exact(&mut bytes)?;
         Ok(Some((M::decode(&bytes[..]).ok(), start + length)))
     }
+}
+
+/// The varint length prefix of the record `reader` is at, and the bytes it takes; `None`
+/// when the reader ends inside it or it runs past 10 bytes (a torn or foreign record).
+pub(crate) fn read_length_prefix(
+    reader: &mut impl std::io::Read,
+) -> std::io::Result<Option<(u64, u64)>> {
+    let mut value = 0u64;
+    for taken in 0..10u64 {
+        let mut byte = [0u8; 1];
+        if reader.read(&mut byte)? == 0 {
+            return Ok(None);
+        }
+        value |= u64::from(byte[0] & 0x7f) << (7 * taken);
+        if byte[0] & 0x80 == 0 {
+            return Ok(Some((value, taken + 1)));
+        }
+    }
+    Ok(None)
 }
 
 /// A new log being written beside the one it replaces ([`RecordLog::rewrite`]).

@@ -8,6 +8,7 @@
 //! compacts the journal (log_compaction.rs). Version 1 (no first sequence number, always
 //! 0) is still read.
 
+use crate::record_log::read_length_prefix;
 use egoslam_messages::internal::v1 as internal;
 use prost::Message;
 use std::io::Write;
@@ -254,13 +255,13 @@ pub fn read_one(
         .seek(SeekFrom::Start(header_len as u64))
         .map_err(io())?;
     for _ in first_sequence..sequence {
-        let Some(len) = read_length(&mut reader).map_err(io())? else {
+        let Some((len, _)) = read_length_prefix(&mut reader).map_err(io())? else {
             return Ok(None);
         };
         let len = i64::try_from(len).map_err(|_| crate::invalid(path, "record length"))?;
         reader.seek_relative(len).map_err(io())?;
     }
-    let Some(len) = read_length(&mut reader).map_err(io())? else {
+    let Some((len, _)) = read_length_prefix(&mut reader).map_err(io())? else {
         return Ok(None);
     };
     let len = usize::try_from(len).map_err(|_| crate::invalid(path, "record length"))?;
@@ -271,22 +272,6 @@ pub fn read_one(
     let message = internal::WindowSolution::decode(record.as_slice())
         .map_err(|e| crate::invalid(path, format!("record {sequence} is corrupt ({e})")))?;
     Ok(Some(message))
-}
-
-/// The varint length prefix of the next record; `None` at the end of the file.
-fn read_length(reader: &mut impl std::io::Read) -> std::io::Result<Option<u64>> {
-    let mut value = 0u64;
-    for shift in (0..64).step_by(7) {
-        let mut byte = [0u8; 1];
-        if reader.read(&mut byte)? == 0 {
-            return Ok(None);
-        }
-        value |= u64::from(byte[0] & 0x7f) << shift;
-        if byte[0] & 0x80 == 0 {
-            return Ok(Some(value));
-        }
-    }
-    Ok(None)
 }
 
 #[cfg(test)]
