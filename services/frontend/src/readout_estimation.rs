@@ -37,9 +37,17 @@ pub struct ReadoutEstimationOptions {
     /// of the right readout, e.g. tum_fr1_rpy 1.69 / 1.75 cm told 20 / 30 ms).
     pub step_s: f64,
     /// The best readout's residual must be this fraction below the residual at 0, else 0
-    /// is returned (default 0.02: rolling-shutter sequences gained 7-33 %, global-shutter
-    /// ones at most 0.9 %).
+    /// is returned (default 0.02: pinhole rolling-shutter sequences gained 7-33 %,
+    /// global-shutter ones at most 0.9 %), for a lens of [`Self::gain_focal_px`] or longer.
     pub min_relative_gain: f64,
+    /// Focal length (pixels per radian at the centre) at and above which
+    /// [`Self::min_relative_gain`] applies as it is; a shorter one scales it down in
+    /// proportion (default 500, the rendered pinhole walks it was measured on). The
+    /// readout's misfit is an angle times the focal, in pixels, while the tracking noise
+    /// that makes up the rest of the residual is pixels whatever the lens: through a
+    /// 260 px/rad fisheye the same 20 ms readout gained 1.5 % against 6 % through a
+    /// 500 px pinhole, and the fisheye's global-shutter renders 0-0.2 %.
+    pub gain_focal_px: f64,
     /// Fewest usable frame pairs (default 20: about a second of video at 30 fps with turns).
     pub min_pairs: usize,
     /// Fewest tracks a frame pair must share with known velocities (default 30: the
@@ -65,6 +73,7 @@ impl Default for ReadoutEstimationOptions {
             max_readout_s: 0.05,
             step_s: 0.001,
             min_relative_gain: 0.02,
+            gain_focal_px: 500.0,
             min_pairs: 20,
             min_tracks: 30,
             max_tracks: 1000,
@@ -94,7 +103,8 @@ pub struct ReadoutEstimate {
     pub residual_at_zero_px: f64,
     /// Frame pairs the residual is averaged over.
     pub pairs: usize,
-    /// Whether `best_s` cleared [`ReadoutEstimationOptions::min_relative_gain`].
+    /// Whether `best_s` cleared [`ReadoutEstimationOptions::min_relative_gain`] (scaled to
+    /// the lens) and lies inside the searched range.
     pub significant: bool,
 }
 
@@ -299,7 +309,13 @@ pub fn estimate_readout(
         }
     }
     let best_s = best_k as f64 * step;
-    let significant = best < at_zero * (1.0 - options.min_relative_gain);
+    let min_gain = options.min_relative_gain * (focal / options.gain_focal_px).min(1.0);
+    // A residual still falling at the longest readout searched (1.5 frame intervals) has
+    // no minimum there: something else than a readout is being fitted (on a rendered
+    // global-shutter fisheye walk translating sideways, the parallax gained 1.2 % at the
+    // 50 ms limit).
+    let inside = best_k < steps;
+    let significant = inside && best < at_zero * (1.0 - min_gain);
     Ok(ReadoutEstimate {
         readout_s: if significant { best_s } else { 0.0 },
         best_s,
@@ -370,8 +386,18 @@ mod tests {
     /// A camera turning at a changing rate among far points, imaged by a rolling shutter of
     /// `readout_s` (each point's row time found by fixed-point iteration), 0.3 px noise.
     fn turning_camera(readout_s: f64) -> (PinholeRadtan, Vec<FrameTracks>) {
+        turning_lens(500.0, readout_s, JIT)
+    }
+
+    /// [`turning_camera`] through a lens of `focal` pixels per radian, with `jitter` px of
+    /// noise (uniform, peak to peak).
+    fn turning_lens(
+        focal: f64,
+        readout_s: f64,
+        jitter_px: f64,
+    ) -> (PinholeRadtan, Vec<FrameTracks>) {
         let camera =
-            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
+            PinholeRadtan::new(640, 480, [focal, focal, 320.0, 240.0], [0.0; 5]).expect("camera");
         let points: Vec<V3<f64>> = (0..400)
             .map(|k| {
                 let a = k as f64;
@@ -386,7 +412,7 @@ mod tests {
             noise ^= noise << 13;
             noise ^= noise >> 7;
             noise ^= noise << 17;
-            ((noise >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * JIT
+            ((noise >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * jitter_px
         };
         let frames = (0..40)
             .map(|f| {
@@ -429,6 +455,39 @@ mod tests {
             .expect("estimate");
         assert!(e.significant, "{e:?}");
         assert!((e.readout_s - 0.025).abs() <= 0.002, "{e:?}");
+    }
+
+    #[test]
+    fn a_short_focal_needs_a_smaller_gain() {
+        // Through 260 px/rad with 0.7 px of noise a 20 ms readout lowers the residual by
+        // ~1.7 % (the same noise through 500 px: ~4.6 %), below the pinhole's 2 %.
+        let (camera, frames) = turning_lens(260.0, 0.02, 0.7);
+        let options = ReadoutEstimationOptions::default();
+        let e = estimate_readout(&frames, &camera, &options).expect("estimate");
+        assert!(e.significant, "{e:?}");
+        assert!((e.readout_s - 0.02).abs() <= 0.005, "{e:?}");
+        let gain = 1.0 - e.residual_px / e.residual_at_zero_px;
+        assert!((0.0104..0.02).contains(&gain), "gain {gain}");
+        let unscaled = ReadoutEstimationOptions {
+            gain_focal_px: 260.0,
+            ..options
+        };
+        let e = estimate_readout(&frames, &camera, &unscaled).expect("estimate");
+        assert!(!e.significant, "{e:?}");
+        let (camera, frames) = turning_lens(260.0, 0.0, 0.7);
+        let e = estimate_readout(&frames, &camera, &options).expect("estimate");
+        assert_eq!(e.readout_s, 0.0, "{e:?}");
+    }
+
+    #[test]
+    fn a_minimum_beyond_the_searched_range_is_not_a_readout() {
+        // 80 ms: the residual still falls at the 50 ms limit, by half.
+        let (camera, frames) = turning_camera(0.08);
+        let e = estimate_readout(&frames, &camera, &ReadoutEstimationOptions::default())
+            .expect("estimate");
+        assert_eq!(e.best_s, 0.05, "{e:?}");
+        assert!(e.residual_px < 0.6 * e.residual_at_zero_px, "{e:?}");
+        assert!(!e.significant && e.readout_s == 0.0, "{e:?}");
     }
 
     #[test]
