@@ -311,9 +311,9 @@ pub fn estimate_readout(
     let best_s = best_k as f64 * step;
     let min_gain = options.min_relative_gain * (focal / options.gain_focal_px).min(1.0);
     // A residual still falling at the longest readout searched (1.5 frame intervals) has
-    // no minimum there: something else than a readout is being fitted (on a rendered
-    // global-shutter fisheye walk translating sideways, the parallax gained 1.2 % at the
-    // 50 ms limit).
+    // no minimum there: something else than a readout is being fitted (the rendered
+    // egomotion profile through a global-shutter fisheye: its parallax gained 1.2 % at
+    // the 50 ms limit).
     let inside = best_k < steps;
     let significant = inside && best < at_zero * (1.0 - min_gain);
     Ok(ReadoutEstimate {
