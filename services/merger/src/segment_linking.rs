@@ -13,8 +13,8 @@
 use crate::chaining::{align_shared, transform_pose, MapBuilder};
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_relocalization::{
-    KeyframeDatabase, MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap, Relocalizer,
-    RelocalizerOptions, Vocabulary,
+    BowVector, KeyframeDatabase, MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap,
+    Relocalizer, RelocalizerOptions, Vocabulary,
 };
 use nalgebra::{Point2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -238,15 +238,22 @@ pub(crate) fn relocalize_consistently(
         .filter(|(id, s, _)| (older.accept)(*id, *s))
         .map(|(id, _, _)| id)
         .collect();
+    // Bags of words as the index holds them, computed only for keyframes it lacks.
+    let bag_of = |id: u64, features: &[MapFeature]| -> BowVector {
+        database.bag(id).cloned().unwrap_or_else(|| {
+            let descriptors: Vec<_> = features.iter().map(|f| f.descriptor).collect();
+            vocabulary.bag_of_words(&descriptors)
+        })
+    };
     let mut chosen = BTreeSet::new();
+    let mut query_bags = HashMap::new();
     for (id, _) in queries {
         let Some(query) = features.features(*id) else {
             continue;
         };
-        let descriptors: Vec<_> = query.iter().map(|f| f.descriptor).collect();
-        let bow = vocabulary.bag_of_words(&descriptors);
+        let bow = query_bags.entry(*id).or_insert_with(|| bag_of(*id, &query));
         let candidates = database.query_where(
-            &bow,
+            bow,
             options.relocalizer.candidates,
             |id| matches!(map.keyframe(id), Some((s, _)) if (older.accept)(id, s)),
         );
@@ -257,15 +264,18 @@ pub(crate) fn relocalize_consistently(
             chosen.extend(&older_ids[lo..hi]);
         }
     }
+    let mut candidate_bags = KeyframeDatabase::new();
     let candidates: Vec<MapKeyframe> = chosen
         .iter()
         .filter_map(|&id| {
             let (s, pose) = map.keyframe(id)?;
+            let described = features.features(id)?;
+            candidate_bags.add(id, &bag_of(id, &described));
             Some(MapKeyframe {
                 keyframe_id: id,
                 segment: s,
                 pose: *pose,
-                features: features.features(id)?,
+                features: described,
                 // Queries here are keyframes' own tracks, already where their points are.
                 patches: Vec::new(),
             })
@@ -282,7 +292,7 @@ pub(crate) fn relocalize_consistently(
             (s == ks).then_some((track, (s, *x)))
         })
         .collect();
-    let relocalizer = Relocalizer::new(
+    let relocalizer = Relocalizer::with_database(
         vocabulary.clone(),
         RelocalizationMap {
             camera: *camera,
@@ -291,13 +301,18 @@ pub(crate) fn relocalize_consistently(
             // The pipeline's keyframe features are corrected already.
             rolling_shutter_s: 0.0,
         },
+        candidate_bags,
     );
     let mut found: Vec<Relocalized> = Vec::new();
     for &(id, in_new) in queries {
         let Some(kf_features) = features.features(id) else {
             continue;
         };
-        let Ok(r) = relocalizer.relocalize(&query_of(&kf_features), &options.relocalizer) else {
+        let bow = query_bags
+            .remove(&id)
+            .unwrap_or_else(|| bag_of(id, &kf_features));
+        let query = query_of(&kf_features);
+        let Ok(r) = relocalizer.relocalize_bag(&query, &bow, &options.relocalizer) else {
             continue;
         };
         let pairs = r

@@ -22,6 +22,10 @@ pub struct KeyframeDatabase {
     entries: HashMap<u64, u32>,
     /// word -> (index into `keyframes`, weight).
     inverted: HashMap<u32, Vec<(u32, f32)>>,
+    /// keyframe id -> its bag of words, of the keyframes indexed now: what removes it, and
+    /// what a relocalizer over a few of them indexes again without computing them anew
+    /// (a loop attempt's ~50-100 candidates, each ~500 descriptors down the tree).
+    bags: HashMap<u64, BowVector>,
 }
 
 impl KeyframeDatabase {
@@ -29,8 +33,10 @@ impl KeyframeDatabase {
         Self::default()
     }
 
-    /// Adds a keyframe's (L1-normalised) bag of words.
+    /// Adds a keyframe's (L1-normalised) bag of words (replacing the one it had).
     pub fn add(&mut self, keyframe_id: u64, bow: &BowVector) {
+        self.remove(keyframe_id);
+        self.bags.insert(keyframe_id, bow.clone());
         let index = self.keyframes.len() as u32;
         self.keyframes.push(keyframe_id);
         self.entries.insert(keyframe_id, index);
@@ -39,13 +45,16 @@ impl KeyframeDatabase {
         }
     }
 
-    /// Takes a keyframe out of the index (`bow`: the bag of words it was added with); its
-    /// entries go, so the index's size follows the keyframes kept, not those ever added.
-    pub fn remove(&mut self, keyframe_id: u64, bow: &BowVector) {
-        let Some(index) = self.entries.remove(&keyframe_id) else {
+    /// Takes a keyframe out of the index; its entries go, so the index's size follows the
+    /// keyframes kept, not those ever added.
+    pub fn remove(&mut self, keyframe_id: u64) {
+        let (Some(index), Some(bow)) = (
+            self.entries.remove(&keyframe_id),
+            self.bags.remove(&keyframe_id),
+        ) else {
             return;
         };
-        for &(word, _) in bow {
+        for &(word, _) in &bow {
             if let Some(list) = self.inverted.get_mut(&word) {
                 list.retain(|(entry, _)| *entry != index);
                 if list.is_empty() {
@@ -58,6 +67,11 @@ impl KeyframeDatabase {
     /// Whether keyframe `keyframe_id` is indexed now.
     pub fn contains(&self, keyframe_id: u64) -> bool {
         self.entries.contains_key(&keyframe_id)
+    }
+
+    /// The bag of words keyframe `keyframe_id` is indexed with, if it is.
+    pub fn bag(&self, keyframe_id: u64) -> Option<&BowVector> {
+        self.bags.get(&keyframe_id)
     }
 
     /// Number of keyframes indexed.
@@ -86,20 +100,30 @@ impl KeyframeDatabase {
         max_results: usize,
         accept: impl Fn(u64) -> bool,
     ) -> Vec<Candidate> {
-        let mut scores: HashMap<u32, f32> = HashMap::new();
+        // Scores by entry in a dense array: a query against a map of thousands of
+        // keyframes adds up hundreds of thousands of word matches, and a hash map's
+        // lookups were most of the query's cost.
+        let mut scores = vec![0.0f32; self.keyframes.len()];
+        let mut touched = vec![false; self.keyframes.len()];
+        let mut found: Vec<u32> = Vec::new();
         for &(word, q) in bow {
             let Some(list) = self.inverted.get(&word) else {
                 continue;
             };
             for &(entry, d) in list {
-                *scores.entry(entry).or_default() += q.abs() + d.abs() - (q - d).abs();
+                let e = entry as usize;
+                if !touched[e] {
+                    touched[e] = true;
+                    found.push(entry);
+                }
+                scores[e] += q.abs() + d.abs() - (q - d).abs();
             }
         }
-        let mut out: Vec<Candidate> = scores
+        let mut out: Vec<Candidate> = found
             .into_iter()
-            .map(|(entry, s)| Candidate {
+            .map(|entry| Candidate {
                 keyframe_id: self.keyframes[entry as usize],
-                score: 0.5 * s,
+                score: 0.5 * scores[entry as usize],
             })
             .filter(|c| accept(c.keyframe_id))
             .collect();
@@ -131,7 +155,9 @@ mod tests {
         assert!((got[1].score - 0.25).abs() < 1e-6);
         assert_eq!(db.query(&vec![(1, 1.0)], 1).len(), 1);
         assert_eq!(db.len(), 3);
-        db.remove(7, &vec![(1, 0.5), (4, 0.5)]);
+        assert_eq!(db.bag(7), Some(&vec![(1, 0.5), (4, 0.5)]));
+        db.remove(7);
+        assert_eq!(db.bag(7), None);
         let got = db.query(&vec![(1, 0.5), (4, 0.5)], 5);
         assert_eq!(got.len(), 1);
         assert_eq!(got[0].keyframe_id, 8);

@@ -13,7 +13,7 @@ use crate::keyframe_database::KeyframeDatabase;
 use crate::patch_alignment::AlignmentOptions;
 pub use crate::relocalization_map::{MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap};
 use crate::rolling_shutter_pose::{refine_rolling_shutter_pose, RollingShutterPoseOptions};
-use crate::vocabulary::Vocabulary;
+use crate::vocabulary::{BowVector, Vocabulary};
 use egoslam_geometry::StampedPose;
 use nalgebra::{Point2, Vector3};
 use std::collections::{BTreeMap, HashMap};
@@ -182,9 +182,24 @@ const NO_POINT: u32 = u32::MAX;
 impl Relocalizer {
     /// Indexes every keyframe of `map` with `vocabulary`.
     pub fn new(vocabulary: Vocabulary, map: RelocalizationMap) -> Self {
+        let mut database = KeyframeDatabase::new();
+        for k in &map.keyframes {
+            let descriptors: Vec<Descriptor> = k.features.iter().map(|f| f.descriptor).collect();
+            database.add(k.keyframe_id, &vocabulary.bag_of_words(&descriptors));
+        }
+        Self::with_database(vocabulary, map, database)
+    }
+
+    /// [`Self::new`] with the keyframes' bags of words already indexed in `database` (made
+    /// with `vocabulary`): every keyframe of `map` and no other, else a query finds a
+    /// keyframe the map does not hold (skipped) or misses one it does.
+    pub fn with_database(
+        vocabulary: Vocabulary,
+        map: RelocalizationMap,
+        database: KeyframeDatabase,
+    ) -> Self {
         let _span =
             tracing::info_span!("index_keyframes", keyframes = map.keyframes.len()).entered();
-        let mut database = KeyframeDatabase::new();
         let mut index = HashMap::new();
         let mut patch_index = HashMap::new();
         let (mut dense, mut point_positions) = (HashMap::new(), Vec::new());
@@ -205,8 +220,6 @@ impl Relocalizer {
             })
             .collect();
         for (i, k) in map.keyframes.iter().enumerate() {
-            let descriptors: Vec<Descriptor> = k.features.iter().map(|f| f.descriptor).collect();
-            database.add(k.keyframe_id, &vocabulary.bag_of_words(&descriptors));
             index.insert(k.keyframe_id, i);
             if !k.patches.is_empty() {
                 let pixels: HashMap<u64, Point2<f64>> = k
@@ -459,7 +472,21 @@ impl Relocalizer {
             return Err(RelocalizationError::NoFeatures);
         }
         let bow = self.vocabulary.bag_of_words(&query.descriptors);
-        let candidates = self.database.query(&bow, options.candidates);
+        self.relocalize_bag(query, &bow, options)
+    }
+
+    /// [`Self::relocalize`] of a query whose bag of words (`bow`, of its descriptors with
+    /// this relocalizer's vocabulary) is known already.
+    pub fn relocalize_bag(
+        &self,
+        query: &QueryFeatures,
+        bow: &BowVector,
+        options: &RelocalizerOptions,
+    ) -> Result<Relocalization, RelocalizationError> {
+        if query.descriptors.is_empty() {
+            return Err(RelocalizationError::NoFeatures);
+        }
+        let candidates = self.database.query(bow, options.candidates);
         if candidates.is_empty() {
             return Err(RelocalizationError::NoCandidates);
         }

@@ -6,7 +6,7 @@
 
 use super::frames::{frame_poses, relative, LocalizedFrame};
 use super::MergerSession;
-use crate::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions, KeyframeFeatureSource};
+use crate::{CulledKeyframe, KeyframeBudget, KeyframeCullingOptions};
 use egoslam_geometry::StampedPose;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -17,11 +17,7 @@ impl MergerSession {
     /// the whole result); they are looked at after it is folded. Nor from the first
     /// keyframe of a stretch waiting for its scale on: settling it rescales its keyframes
     /// about that one, which frames kept relative to keyframes before it would not follow.
-    pub(super) fn cull_keyframes(
-        &mut self,
-        oldest_live: u64,
-        features: &dyn KeyframeFeatureSource,
-    ) {
+    pub(super) fn cull_keyframes(&mut self, oldest_live: u64) {
         let provisional = self.state.map.provisional_scale().map(|p| p.first_keyframe);
         let oldest_live = provisional.map_or(oldest_live, |first| first.min(oldest_live));
         if !self.options.cull_keyframes {
@@ -38,7 +34,7 @@ impl MergerSession {
                 .filter(|id| (checked..oldest_live).contains(id))
                 .collect();
             self.state.culling_checked_before = oldest_live;
-            self.cull(&candidates, oldest_live, features, "redundant", |map| {
+            self.cull(&candidates, oldest_live, "redundant", |map| {
                 map.cull_keyframes(&candidates, &options)
             });
         }
@@ -55,7 +51,7 @@ impl MergerSession {
             let over = self.tally.time("keyframe_budget", || {
                 map.over_budget_keyframes(before, &budget)
             });
-            self.cull(&over, oldest_live, features, "over_budget", |map| {
+            self.cull(&over, oldest_live, "over_budget", |map| {
                 map.remove_keyframes(&over, &options)
             });
         }
@@ -67,7 +63,6 @@ impl MergerSession {
         &mut self,
         candidates: &[u64],
         oldest_live: u64,
-        features: &dyn KeyframeFeatureSource,
         rule: &'static str,
         remove: impl FnOnce(&mut crate::MapBuilder) -> crate::CullingReport,
     ) {
@@ -114,12 +109,7 @@ impl MergerSession {
             report.culled.iter().map(|c| (c.keyframe_id, *c)).collect();
         self.keep_frames_posed(&culled, &before, oldest_live);
         for id in culled.keys() {
-            // Unreadable descriptors (the source says so) leave the keyframe in the index.
-            if let Some(described) = features.features(*id) {
-                let descriptors: Vec<_> = described.iter().map(|f| f.descriptor).collect();
-                self.database
-                    .remove(*id, &self.vocabulary.bag_of_words(&descriptors));
-            }
+            self.database.remove(*id);
             self.keep_patches_of(*id);
         }
         tracing::debug!(
@@ -289,7 +279,7 @@ mod tests {
     use super::*;
     use crate::session::frames::{posed_frames, posed_keyframes};
     use crate::{MapBuilder, MapParts, SessionOptions};
-    use egoslam_relocalization::{default_vocabulary, MapFeature};
+    use egoslam_relocalization::default_vocabulary;
     use nalgebra::Vector3;
 
     /// The corridor walked twice of `keyframe_coverage`'s tests (keyframes 0..300 and
@@ -346,8 +336,7 @@ mod tests {
         let before = posed(&session);
         let candidates: Vec<u64> = (300..590).collect();
         let options = crate::keyframe_culling::tests::any_size();
-        let features = BTreeMap::<u64, Vec<MapFeature>>::new();
-        session.cull(&candidates, 590, &features, "redundant", |map| {
+        session.cull(&candidates, 590, "redundant", |map| {
             map.cull_keyframes(&candidates, &options)
         });
         assert_eq!(session.state.map.keyframes().count(), 310, "the pass went");

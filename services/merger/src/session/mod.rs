@@ -206,7 +206,7 @@ impl MergerSession {
         // right after a fold, it gets its turn. Keyframes older than this window's first
         // are in no later window.
         if let (false, Some(first)) = (w.end_of_stream, w.keyframe_ids.first()) {
-            self.cull_keyframes(*first, features);
+            self.cull_keyframes(*first);
         }
         if w.end_of_stream {
             self.state.finished = true;
