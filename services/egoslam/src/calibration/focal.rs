@@ -11,7 +11,7 @@
 use crate::calibration::readout::tracker_options;
 use crate::cli::PipelineArgs;
 use anyhow::Context;
-use egoslam_frontend::{KeyframeTracks, Tracker};
+use egoslam_frontend::{FrameOutcome, KeyframeTracks, Tracker};
 use egoslam_geometry::PinholeRadtan;
 use egoslam_solver::focal_calibration::{
     estimate_focal_scale, estimate_radial_term, FocalCalibrationOptions, FocalEstimate,
@@ -78,6 +78,48 @@ pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> P
     *calibrated
 }
 
+/// Keyframes of a tracker as the self-calibrations take them: each keyframe's undistorted
+/// tracks, centred (with the tracker's readout) once the frame after it is tracked.
+#[derive(Default)]
+pub struct KeyframeCollector {
+    keyframes: Vec<KeyframeObservations>,
+    pending: Option<(KeyframeTracks, f64)>,
+}
+
+impl KeyframeCollector {
+    /// After `tracker` tracked the frame of `timestamp` with `outcome`.
+    pub fn push(&mut self, tracker: &Tracker, outcome: FrameOutcome, timestamp: f64) {
+        if let Some((mut k, at)) = self.pending.take() {
+            tracker.centre_keyframe(&mut k);
+            self.keyframes.push(as_observations(k, at));
+        }
+        self.pending = outcome.keyframe.map(|k| (k, timestamp));
+    }
+
+    /// The keyframes, the last one included.
+    pub fn finish(mut self) -> Vec<KeyframeObservations> {
+        let last = self.pending.take();
+        self.keyframes
+            .extend(last.map(|(k, timestamp)| as_observations(k, timestamp)));
+        self.keyframes
+    }
+}
+
+fn as_observations(k: KeyframeTracks, timestamp: f64) -> KeyframeObservations {
+    KeyframeObservations {
+        id: k.keyframe_id,
+        timestamp,
+        tracks: k
+            .tracks
+            .iter()
+            .map(|p| {
+                let u = p.undistorted;
+                (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
+            })
+            .collect(),
+    }
+}
+
 /// Tracks the first [`FOCAL_FRAMES`] frames of `source` as the frontend does (with the
 /// run's readout, each keyframe's correction centred on the next frame) and returns their
 /// keyframes' undistorted tracks. Frames that cannot be read or are of another size are
@@ -89,47 +131,19 @@ pub fn first_keyframes(
     readout_s: f64,
 ) -> anyhow::Result<Vec<KeyframeObservations>> {
     let mut tracker = Tracker::new(camera, tracker_options(pipeline, readout_s));
-    let as_observations = |k: KeyframeTracks, timestamp: f64| KeyframeObservations {
-        id: k.keyframe_id,
-        timestamp,
-        tracks: k
-            .tracks
-            .iter()
-            .map(|p| {
-                let u = p.undistorted;
-                (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
-            })
-            .collect(),
-    };
-    let mut keyframes = Vec::new();
-    let mut pending: Option<(KeyframeTracks, f64)> = None;
+    let mut keyframes = KeyframeCollector::default();
     for frame in std::iter::from_fn(|| source.next_frame()).take(FOCAL_FRAMES) {
         // Bad frames were skipped by the source (FrameStream), as the run skips them.
         let frame = frame.context("reading frames for the focal calibration")?;
         let outcome = tracker.process_timed(frame.index, frame.timestamp, &frame.image)?;
-        if let Some((mut k, timestamp)) = pending.take() {
-            tracker.centre_keyframe(&mut k);
-            keyframes.push(as_observations(k, timestamp));
-        }
-        pending = outcome.keyframe.map(|k| (k, frame.timestamp));
+        keyframes.push(&tracker, outcome, frame.timestamp);
     }
-    keyframes.extend(pending.map(|(k, timestamp)| as_observations(k, timestamp)));
-    Ok(keyframes)
+    Ok(keyframes.finish())
 }
 
-/// What both estimates are made from: the first keyframes of `source` (tracked with
-/// `camera`) and the windows and solver the run will use.
-fn first_windows_input(
-    source: &mut dyn FrameSource,
-    camera: PinholeRadtan,
-    pipeline: &PipelineArgs,
-    readout_s: f64,
-) -> anyhow::Result<(
-    Vec<KeyframeObservations>,
-    FocalCalibrationOptions,
-    WindowSolverOptions,
-)> {
-    let keyframes = first_keyframes(source, camera, pipeline, readout_s)?;
+/// The focal and radial estimates' options for `pipeline`: the windows and solver the run
+/// will use.
+fn calibration_options(pipeline: &PipelineArgs) -> (FocalCalibrationOptions, WindowSolverOptions) {
     let options = FocalCalibrationOptions {
         window: usize::from(pipeline.window),
         overlap: pipeline.overlap,
@@ -137,18 +151,17 @@ fn first_windows_input(
     };
     let mut solver = WindowSolverOptions::default();
     solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
-    Ok((keyframes, options, solver))
+    (options, solver)
 }
 
-/// The focal estimate of a recorded input's first windows (module doc), logged.
-pub fn estimate_from_source(
-    source: &mut dyn FrameSource,
+/// The focal estimate of a recording's first keyframes (module doc), logged.
+pub fn estimate_from_keyframes(
+    keyframes: &[KeyframeObservations],
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
-    readout_s: f64,
 ) -> anyhow::Result<FocalEstimate> {
-    let (keyframes, options, solver) = first_windows_input(source, camera, pipeline, readout_s)?;
-    let estimate = estimate_focal_scale(&camera, &keyframes, &options, &solver)
+    let (options, solver) = calibration_options(pipeline);
+    let estimate = estimate_focal_scale(&camera, keyframes, &options, &solver)
         .with_context(|| format!("{} keyframes", keyframes.len()))?;
     tracing::info!(
         scale = estimate.scale,
@@ -160,15 +173,14 @@ pub fn estimate_from_source(
     Ok(estimate)
 }
 
-/// The radial estimate of a recorded input's first windows (module doc), logged.
-pub fn radial_from_source(
-    source: &mut dyn FrameSource,
+/// The radial estimate of a recording's first keyframes (module doc), logged.
+pub fn radial_from_keyframes(
+    keyframes: &[KeyframeObservations],
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
-    readout_s: f64,
 ) -> anyhow::Result<RadialEstimate> {
-    let (keyframes, options, solver) = first_windows_input(source, camera, pipeline, readout_s)?;
-    let estimate = estimate_radial_term(&camera, &keyframes, &options, &solver)
+    let (options, solver) = calibration_options(pipeline);
+    let estimate = estimate_radial_term(&camera, keyframes, &options, &solver)
         .with_context(|| format!("{} keyframes", keyframes.len()))?;
     tracing::info!(
         k = estimate.k,

@@ -185,28 +185,75 @@ pub fn estimate_from_source(
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
 ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
+    estimate_and_track(first, source, camera, pipeline, 0).0
+}
+
+/// The first keyframes of a recording as the focal and radial self-calibrations take them
+/// (`focal::first_keyframes`, tracked with no readout through `camera`).
+pub struct FirstKeyframes {
+    pub camera: PinholeRadtan,
+    pub keyframes: Vec<egoslam_solver::view_graph::KeyframeObservations>,
+}
+
+/// [`estimate_from_source`], tracking on to the first `keyframe_frames` frames for
+/// [`FirstKeyframes`] when that is more: the self-calibrations then need not read and track
+/// them again when the readout comes out 0. `None` when a frame up to there could not be
+/// read or tracked (the self-calibration reads them again and reports why).
+pub fn estimate_and_track(
+    first: Frame,
+    source: &mut dyn FrameSource,
+    camera: PinholeRadtan,
+    pipeline: &PipelineArgs,
+    keyframe_frames: usize,
+) -> (
+    Result<ReadoutEstimate, ReadoutEstimationError>,
+    Option<FirstKeyframes>,
+) {
     let mut tracker = Tracker::new(camera, tracker_options(pipeline, 0.0));
     let mut tracked = Vec::new();
+    let mut keyframes = crate::calibration::focal::KeyframeCollector::default();
+    let mut complete = true;
+    let readout_frames = pipeline.readout_frames as usize;
     let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
-    for frame in frames.take(pipeline.readout_frames as usize) {
+    for (k, frame) in frames.take(readout_frames.max(keyframe_frames)).enumerate() {
         let frame = match frame {
             Ok(frame) => frame,
             Err(e) => {
                 tracing::warn!(%e, "readout estimation stops where the source gave up");
+                complete = false;
                 break;
             }
         };
-        if let Err(e) = tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
-            tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
-            break;
+        let outcome = match tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
+            Ok(outcome) => outcome,
+            Err(e) => {
+                tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
+                complete = false;
+                break;
+            }
+        };
+        if k < readout_frames {
+            tracked.push(FrameTracks {
+                timestamp_s: frame.timestamp,
+                tracks: tracker.sample_tracks(usize::MAX),
+            });
         }
-        tracked.push(FrameTracks {
-            timestamp_s: frame.timestamp,
-            tracks: tracker.sample_tracks(usize::MAX),
-        });
+        keyframes.push(&tracker, outcome, frame.timestamp);
     }
+    let keyframes = (complete && keyframe_frames > 0).then(|| FirstKeyframes {
+        camera,
+        keyframes: keyframes.finish(),
+    });
+    (estimate_tracked(&tracked, &camera), keyframes)
+}
+
+/// The readout estimate of frames tracked with no correction, logged.
+fn estimate_tracked(
+    tracked: &[FrameTracks],
+    camera: &PinholeRadtan,
+) -> Result<ReadoutEstimate, ReadoutEstimationError> {
     let fit_started = std::time::Instant::now();
-    let estimate = estimate_readout(&tracked, &camera, &ReadoutEstimationOptions::default())?;
+    let estimate = estimate_readout(tracked, camera, &ReadoutEstimationOptions::default())?;
     tracing::debug!(
         fit_ms = fit_started.elapsed().as_secs_f64() * 1e3,
         "readout fit"

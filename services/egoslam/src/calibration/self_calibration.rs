@@ -1,25 +1,29 @@
 //! `egoslam run`'s intrinsics self-calibration before the services start
-//! (`--calibrate-focal`, `--calibrate-radial`; focal.rs estimates): each reads the input
-//! again from its start, and reports what it did for report.json.
+//! (`--calibrate-focal`, `--calibrate-radial`; focal.rs estimates): each estimates from the
+//! input's first keyframes, those the readout pre-pass tracked on its way when it found no
+//! readout (the same frames, tracker and camera), else read again from the input's start,
+//! and reports what it did for report.json.
 
-use crate::calibration::focal::FOCAL_FRAMES;
-use crate::calibration::readout::Readout;
+use crate::calibration::focal::{first_keyframes, FOCAL_FRAMES};
+use crate::calibration::readout::{FirstKeyframes, Readout};
 use crate::cli::RunArgs;
 use egoslam_geometry::PinholeRadtan;
-use egoslam_sources::{open_source, FrameSource, Layout};
+use egoslam_solver::view_graph::KeyframeObservations;
+use egoslam_sources::{open_source, Layout};
 use serde_json::json;
 use std::path::Path;
 use std::time::Instant;
 
-/// Runs `estimate` on the input read again from its start, with the run's readout, and
-/// times it; `Err` is the report of why nothing was estimated (`setting` off, a live
+/// Runs `estimate` on the input's first keyframes (`tracked`, when they were tracked with
+/// this camera and the run's readout is 0; else tracked again from the input's start with
+/// the run's readout), and times it; `Err` is the report of why nothing was estimated (`setting` off, a live
 /// camera, or the estimate's error).
 fn read_ahead<T>(
     args: &RunArgs,
-    input: &Path,
-    layout: &Layout,
+    (input, layout, camera): (&Path, &Layout, PinholeRadtan),
+    tracked: Option<&FirstKeyframes>,
     (setting, what): (bool, &str),
-    estimate: impl FnOnce(&mut dyn FrameSource, f64) -> anyhow::Result<T>,
+    estimate: impl FnOnce(&[KeyframeObservations]) -> anyhow::Result<T>,
 ) -> Result<(T, f64), serde_json::Value> {
     if !setting {
         return Err(json!({ "setting": false }));
@@ -33,18 +37,23 @@ fn read_ahead<T>(
         Readout::Millis(ms) => ms / 1000.0,
         Readout::Auto => 0.0,
     };
-    let result = open_source(input, args.fps)
-        .map_err(anyhow::Error::from)
-        .and_then(|source| {
-            let step = format!("{what} calibration");
-            crate::supervision::progress::reading_frames(
-                &step,
-                &mut source.quiet(),
-                FOCAL_FRAMES,
-                0,
-                |s| estimate(s, readout_s),
-            )
-        });
+    // The readout pre-pass tracked these frames already, with no readout and this camera.
+    let result = match tracked.filter(|t| readout_s == 0.0 && t.camera == camera) {
+        Some(tracked) => estimate(&tracked.keyframes),
+        None => open_source(input, args.fps)
+            .map_err(anyhow::Error::from)
+            .and_then(|source| {
+                let step = format!("{what} calibration");
+                crate::supervision::progress::reading_frames(
+                    &step,
+                    &mut source.quiet(),
+                    FOCAL_FRAMES,
+                    0,
+                    |s| first_keyframes(s, camera, &args.pipeline, readout_s),
+                )
+            })
+            .and_then(|keyframes| estimate(&keyframes)),
+    };
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     result.map(|e| (e, elapsed_ms)).map_err(|e| {
         tracing::info!("no {what} estimate ({e:#}): the calibration is used as given");
@@ -57,13 +66,14 @@ fn read_ahead<T>(
 /// what was done, for the report.
 pub fn resolve_focal(
     args: &RunArgs,
-    input: &Path,
-    layout: &Layout,
+    (input, layout): (&Path, &Layout),
     camera: PinholeRadtan,
+    tracked: Option<&FirstKeyframes>,
 ) -> (PinholeRadtan, serde_json::Value) {
     let setting = (args.pipeline.calibrate_focal, "focal");
-    match read_ahead(args, input, layout, setting, |source, readout_s| {
-        crate::calibration::focal::estimate_from_source(source, camera, &args.pipeline, readout_s)
+    let recording = (input, layout, camera);
+    match read_ahead(args, recording, tracked, setting, |keyframes| {
+        crate::calibration::focal::estimate_from_keyframes(keyframes, camera, &args.pipeline)
     }) {
         Ok((e, elapsed_ms)) => {
             let applied = e.applied();
@@ -89,9 +99,9 @@ pub fn resolve_focal(
 /// report.
 pub fn resolve_radial(
     args: &RunArgs,
-    input: &Path,
-    layout: &Layout,
+    (input, layout): (&Path, &Layout),
     camera: PinholeRadtan,
+    tracked: Option<&FirstKeyframes>,
 ) -> (PinholeRadtan, serde_json::Value) {
     let setting = args.pipeline.calibrate_radial;
     if setting == RadialSetting::Auto && !setting.applies_to(&camera) {
@@ -101,8 +111,9 @@ pub fn resolve_radial(
         );
     }
     let setting = (setting.applies_to(&camera), "radial");
-    match read_ahead(args, input, layout, setting, |source, readout_s| {
-        crate::calibration::focal::radial_from_source(source, camera, &args.pipeline, readout_s)
+    let recording = (input, layout, camera);
+    match read_ahead(args, recording, tracked, setting, |keyframes| {
+        crate::calibration::focal::radial_from_keyframes(keyframes, camera, &args.pipeline)
     }) {
         Ok((e, elapsed_ms)) => {
             let applied = e.applied();

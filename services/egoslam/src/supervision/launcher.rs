@@ -1,5 +1,7 @@
 //! `egoslam run`: checks the input, starts the services, supervises them, reports.
 
+use crate::calibration::focal::FOCAL_FRAMES;
+use crate::calibration::readout::FirstKeyframes;
 use crate::cli::{PipelineArgs, RunArgs};
 use crate::output::camera_yaml;
 use crate::stats::ServiceStats;
@@ -62,25 +64,34 @@ fn resolve_readout(
     first: Frame,
     source: &mut dyn FrameSource,
     camera: PinholeRadtan,
-) -> serde_json::Value {
-    use crate::calibration::readout::{estimate_from_source, Readout};
+) -> (serde_json::Value, Option<FirstKeyframes>) {
+    use crate::calibration::readout::{estimate_and_track, Readout};
     let given = args.pipeline.rolling_shutter_ms;
     if let Readout::Millis(ms) = given {
-        return json!({ "setting": given.to_string(), "readout_ms": ms });
+        return (
+            json!({ "setting": given.to_string(), "readout_ms": ms }),
+            None,
+        );
     }
     if matches!(layout, Layout::Camera { .. }) {
         // A live camera cannot be read ahead: the frontend estimates it from its first
         // frames (readout.rs) and logs the value.
-        return json!({ "setting": "auto", "estimated_by": "the frontend, online" });
+        let report = json!({ "setting": "auto", "estimated_by": "the frontend, online" });
+        return (report, None);
     }
     let started = Instant::now();
-    let frames = args.pipeline.readout_frames as usize;
-    let estimate = crate::supervision::progress::reading_frames(
+    // Tracked on for the focal and radial self-calibrations, when one of them will run:
+    // with no readout found they take these keyframes instead of tracking again.
+    let self_calibrates =
+        args.pipeline.calibrate_focal || args.pipeline.calibrate_radial.applies_to(&camera);
+    let keyframe_frames = if self_calibrates { FOCAL_FRAMES } else { 0 };
+    let frames = (args.pipeline.readout_frames as usize).max(keyframe_frames);
+    let (estimate, first_keyframes) = crate::supervision::progress::reading_frames(
         "rolling-shutter readout",
         source,
         frames,
         1,
-        |source| estimate_from_source(first, source, camera, &args.pipeline),
+        |source| estimate_and_track(first, source, camera, &args.pipeline, keyframe_frames),
     );
     let (readout_ms, details) = match estimate {
         Ok(e) => (
@@ -102,12 +113,13 @@ fn resolve_readout(
         }
     };
     args.pipeline.rolling_shutter_ms = Readout::Millis(readout_ms);
-    json!({
+    let report = json!({
         "setting": "auto",
         "readout_ms": readout_ms,
         "estimate": details,
         "estimation_ms": started.elapsed().as_secs_f64() * 1e3,
-    })
+    });
+    (report, first_keyframes)
 }
 
 /// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
@@ -228,12 +240,23 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     // An output folder that cannot be made fails before the readout pre-pass, not after.
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let readout_report = resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
+    let (readout_report, tracked) =
+        resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
     drop(source);
-    let (camera, focal_report) =
-        crate::calibration::self_calibration::resolve_focal(&args, &input, &layout, camera);
-    let (camera, radial_report) =
-        crate::calibration::self_calibration::resolve_radial(&args, &input, &layout, camera);
+    let recording = (input.as_path(), &layout);
+    let (camera, focal_report) = crate::calibration::self_calibration::resolve_focal(
+        &args,
+        recording,
+        camera,
+        tracked.as_ref(),
+    );
+    let (camera, radial_report) = crate::calibration::self_calibration::resolve_radial(
+        &args,
+        recording,
+        camera,
+        tracked.as_ref(),
+    );
+    drop(tracked);
     // The pre-passes tracked and solved hundreds of frames in this process, which then
     // waits for the services for the rest of the run.
     let returned = crate::supervision::memory::return_freed_memory();
