@@ -245,13 +245,18 @@ pub(crate) fn relocalize_consistently(
             vocabulary.bag_of_words(&descriptors)
         })
     };
+    // Each query's features and bag, read once for the candidate search and the
+    // relocalization below.
+    let described: Vec<(u64, StampedPose, Vec<MapFeature>, BowVector)> = queries
+        .iter()
+        .filter_map(|&(id, in_new)| {
+            let query = features.features(id)?;
+            let bow = bag_of(id, &query);
+            Some((id, in_new, query, bow))
+        })
+        .collect();
     let mut chosen = BTreeSet::new();
-    let mut query_bags = HashMap::new();
-    for (id, _) in queries {
-        let Some(query) = features.features(*id) else {
-            continue;
-        };
-        let bow = query_bags.entry(*id).or_insert_with(|| bag_of(*id, &query));
+    for (_, _, _, bow) in &described {
         let candidates = database.query_where(
             bow,
             options.relocalizer.candidates,
@@ -304,13 +309,7 @@ pub(crate) fn relocalize_consistently(
         candidate_bags,
     );
     let mut found: Vec<Relocalized> = Vec::new();
-    for &(id, in_new) in queries {
-        let Some(kf_features) = features.features(id) else {
-            continue;
-        };
-        let bow = query_bags
-            .remove(&id)
-            .unwrap_or_else(|| bag_of(id, &kf_features));
+    for (id, in_new, kf_features, bow) in described {
         let query = query_of(&kf_features);
         let Ok(r) = relocalizer.relocalize_bag(&query, &bow, &options.relocalizer) else {
             continue;

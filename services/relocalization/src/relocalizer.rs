@@ -468,9 +468,6 @@ impl Relocalizer {
         query: &QueryFeatures,
         options: &RelocalizerOptions,
     ) -> Result<Relocalization, RelocalizationError> {
-        if query.descriptors.is_empty() {
-            return Err(RelocalizationError::NoFeatures);
-        }
         let bow = self.vocabulary.bag_of_words(&query.descriptors);
         self.relocalize_bag(query, &bow, options)
     }

@@ -238,7 +238,10 @@ pub fn estimate_and_track(
                 tracks: tracker.sample_tracks(usize::MAX),
             });
         }
-        keyframes.push(&tracker, outcome, frame.timestamp);
+        // Exactly the frames the self-calibrations would track themselves.
+        if k < keyframe_frames {
+            keyframes.push(&tracker, outcome, frame.timestamp);
+        }
     }
     let keyframes = (complete && keyframe_frames > 0).then(|| FirstKeyframes {
         camera,

@@ -16,8 +16,8 @@ use std::time::Instant;
 
 /// Runs `estimate` on the input's first keyframes (`tracked`, when they were tracked with
 /// this camera and the run's readout is 0; else tracked again from the input's start with
-/// the run's readout), and times it; `Err` is the report of why nothing was estimated (`setting` off, a live
-/// camera, or the estimate's error).
+/// the run's readout), and times it; `Err` is the report of why nothing was estimated
+/// (`setting` off, a live camera, or the estimate's error).
 fn read_ahead<T>(
     args: &RunArgs,
     (input, layout, camera): (&Path, &Layout, PinholeRadtan),
