@@ -1,7 +1,7 @@
 //! Window bundle adjustment: Levenberg-Marquardt over camera rotations, centres and points,
 //! points eliminated by the Schur complement, Huber loss, camera 0 fixed (gauge), optional
 //! refinement of a focal scale and one radial term (the paper's 7-parameter camera plus
-//! distortion, section 4).
+//! distortion, section 4; through a fisheye on its raw image, `projection.rs`).
 //!
 //! Triggs et al., "Bundle Adjustment — A Modern Synthesis", 2000; Lourakis and Argyros, SBA,
 //! 2009 (the damped Schur-complement scheme); Huber, "Robust Estimation of a Location
@@ -17,12 +17,15 @@
 //! Adjustment", CVPR 2012; Albl et al., "R6P", CVPR 2015), with a weak prior towards no
 //! turn for cameras whose rows cannot tell it.
 
+mod projection;
+
 use crate::huber;
 use crate::normal_equations::NormalEquations;
 use crate::sparse_schur::SymbolicCache;
 use crate::triangulation::CameraPose;
 use egoslam_geometry::PinholeRadtan;
-use nalgebra::{Matrix2x3, Matrix3, Point2, Rotation3, Vector2, Vector3};
+use nalgebra::{Matrix3, Point2, Rotation3, Vector2, Vector3};
+use projection::Projection;
 
 /// One observation of point `point` in camera `camera` at an undistorted pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -179,57 +182,34 @@ struct SeenPoint {
     turned: Vector3<f64>,
 }
 
-/// Projection with the refinable intrinsics; also returns d(pixel)/d(camera point) and
-/// d(pixel)/d(focal_scale, k).
-fn project(
-    camera: &PinholeRadtan,
-    s: f64,
-    k: f64,
-    pc: &Vector3<f64>,
-) -> Option<(Vector2<f64>, Matrix2x3<f64>, nalgebra::Matrix2<f64>)> {
-    if pc.z <= 1e-9 {
-        return None;
+/// The observations with what each is compared with ([`Projection::target`]).
+struct Problem<'a> {
+    camera: &'a PinholeRadtan,
+    projection: Projection<'a>,
+    observations: &'a [Observation],
+    targets: Vec<Vector2<f64>>,
+}
+
+impl Problem<'_> {
+    fn measured(&self) -> impl Iterator<Item = (&Observation, Vector2<f64>)> {
+        self.observations.iter().zip(self.targets.iter().copied())
     }
-    let (xn, yn) = (pc.x / pc.z, pc.y / pc.z);
-    let r2 = xn * xn + yn * yn;
-    let d = 1.0 + k * r2;
-    let (fx, fy) = (camera.fx * s, camera.fy * s);
-    let pixel = Vector2::new(fx * d * xn + camera.cx, fy * d * yn + camera.cy);
-    // d pixel / d (xn, yn)
-    let j_n = nalgebra::Matrix2::new(
-        fx * (d + 2.0 * k * xn * xn),
-        fx * 2.0 * k * xn * yn,
-        fy * 2.0 * k * xn * yn,
-        fy * (d + 2.0 * k * yn * yn),
-    );
-    let iz = 1.0 / pc.z;
-    let j_pc = Matrix2x3::new(iz, 0.0, -xn * iz, 0.0, iz, -yn * iz);
-    let j_intr = nalgebra::Matrix2::new(
-        camera.fx * d * xn,
-        fx * r2 * xn,
-        camera.fy * d * yn,
-        fy * r2 * yn,
-    );
-    Some((pixel, j_n * j_pc, j_intr))
 }
 
 /// Robust cost; observations behind a camera count as a large constant.
-fn cost(
-    camera: &PinholeRadtan,
-    st: &State,
-    obs: &[Observation],
-    active: &[bool],
-    options: &BundleAdjustmentOptions,
-) -> f64 {
+fn cost(problem: &Problem, st: &State, active: &[bool], options: &BundleAdjustmentOptions) -> f64 {
     let delta = options.huber_px;
-    let observations: f64 = obs
-        .iter()
+    let observations: f64 = problem
+        .measured()
         .zip(active)
         .filter(|(_, a)| **a)
-        .map(|(o, _)| {
-            let seen = st.seen(camera, options.readout_s, o);
-            match project(camera, st.focal_scale, st.radial_k, &seen.turned) {
-                Some((p, _, _)) => huber::cost((p - o.pixel.coords).norm(), delta),
+        .map(|((o, target), _)| {
+            let seen = st.seen(problem.camera, options.readout_s, o);
+            match problem
+                .projection
+                .project(st.focal_scale, st.radial_k, &seen.turned)
+            {
+                Some((p, _, _)) => huber::cost((p - target).norm(), delta),
                 None => huber::cost(1e3, delta),
             }
         })
@@ -256,9 +236,8 @@ fn mean_turn_prior(turns: &[Vector3<f64>], options: &BundleAdjustmentOptions) ->
 
 /// LM iterations; returns (converged, iterations).
 fn levenberg_marquardt(
-    camera: &PinholeRadtan,
+    problem: &Problem,
     st: &mut State,
-    obs: &[Observation],
     active: &[bool],
     options: &BundleAdjustmentOptions,
 ) -> (bool, usize) {
@@ -287,7 +266,7 @@ fn levenberg_marquardt(
     let prior_sqrt = 1.0 / options.turn_prior_rad_s;
     let mut lambda = 1e-4;
     let mut symbolic = SymbolicCache::default();
-    let mut current = cost(camera, st, obs, active, options);
+    let mut current = cost(problem, st, active, options);
     let mut sys = NormalEquations::new(reduced, globals, st.points.len());
     let mut idx = Vec::with_capacity(8);
     let mut cols: Vec<Vector2<f64>> = Vec::with_capacity(8);
@@ -295,14 +274,16 @@ fn levenberg_marquardt(
         if iteration > 0 {
             sys.reset(reduced, st.points.len());
         }
-        for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
-            let seen = st.seen(camera, options.readout_s, o);
+        for ((o, target), _) in problem.measured().zip(active).filter(|(_, a)| **a) {
+            let seen = st.seen(problem.camera, options.readout_s, o);
             let Some((p, j_turned, j_intr)) =
-                project(camera, st.focal_scale, st.radial_k, &seen.turned)
+                problem
+                    .projection
+                    .project(st.focal_scale, st.radial_k, &seen.turned)
             else {
                 continue;
             };
-            let r = p - o.pixel.coords;
+            let r = p - target;
             let w = huber::weight(r.norm(), options.huber_px);
             let r_mat = st.poses[o.camera].rotation.matrix();
             // turned = (I + tau [turn]x) pc; d pc / d rotation (left perturbation): -[pc]x;
@@ -403,7 +384,7 @@ fn levenberg_marquardt(
             for (x, dx) in trial.points.iter_mut().zip(&step.points) {
                 *x += dx;
             }
-            let new_cost = cost(camera, &trial, obs, active, options);
+            let new_cost = cost(problem, &trial, active, options);
             if new_cost < current {
                 let decrease = (current - new_cost) / current.max(1e-18);
                 *st = trial;
@@ -477,35 +458,59 @@ pub fn bundle_adjust(
         radial_k: 0.0,
         turns: vec![Vector3::zeros(); poses.len()],
     };
-    let mut active = vec![true; observations.len()];
-    let (_, first_iterations) =
-        levenberg_marquardt(camera, &mut st, observations, &active, options);
+    let projection = Projection::new(camera, options.refine_intrinsics);
+    // An observation the lens has no image of cannot be measured: an outlier from the start.
     let mut outliers = Vec::new();
+    let targets: Vec<Vector2<f64>> = observations
+        .iter()
+        .enumerate()
+        .map(|(n, o)| {
+            projection.target(o).unwrap_or_else(|| {
+                outliers.push(n);
+                o.pixel.coords
+            })
+        })
+        .collect();
+    let problem = Problem {
+        camera,
+        projection,
+        observations,
+        targets,
+    };
+    let mut active = vec![true; observations.len()];
+    for &n in &outliers {
+        active[n] = false;
+    }
+    let unmeasured = outliers.len();
+    let (_, first_iterations) = levenberg_marquardt(&problem, &mut st, &active, options);
     let in_camera: Vec<Vector3<f64>> = observations
         .iter()
         .map(|o| st.seen(camera, options.readout_s, o).turned)
         .collect();
     let fraction = options.min_depth_fraction;
     let collapsed = collapsed_points(st.points.len(), observations, &in_camera, fraction);
-    for (n, (o, pc)) in observations.iter().zip(&in_camera).enumerate() {
+    for (n, ((o, target), pc)) in problem.measured().zip(&in_camera).enumerate() {
         let bad = collapsed[o.point]
-            || project(camera, st.focal_scale, st.radial_k, pc)
-                .is_none_or(|(p, _, _)| (p - o.pixel.coords).norm() > options.outlier_px);
-        if bad {
+            || problem
+                .projection
+                .project(st.focal_scale, st.radial_k, pc)
+                .is_none_or(|(p, _, _)| (p - target).norm() > options.outlier_px);
+        if bad && active[n] {
             active[n] = false;
             outliers.push(n);
         }
     }
-    let (converged, iterations) = if outliers.is_empty() {
+    outliers.sort_unstable();
+    let (converged, iterations) = if outliers.len() == unmeasured {
         (true, 0)
     } else {
-        levenberg_marquardt(camera, &mut st, observations, &active, options)
+        levenberg_marquardt(&problem, &mut st, &active, options)
     };
     let (mut sum, mut count) = (0.0, 0usize);
-    for (o, _) in observations.iter().zip(&active).filter(|(_, a)| **a) {
+    for ((o, target), _) in problem.measured().zip(&active).filter(|(_, a)| **a) {
         let pc = st.seen(camera, options.readout_s, o).turned;
-        if let Some((p, _, _)) = project(camera, st.focal_scale, st.radial_k, &pc) {
-            sum += (p - o.pixel.coords).norm_squared();
+        if let Some((p, _, _)) = problem.projection.project(st.focal_scale, st.radial_k, &pc) {
+            sum += (p - target).norm_squared();
             count += 1;
         }
     }

@@ -36,8 +36,9 @@ pub fn scaled(camera: &PinholeRadtan, scale: f64) -> PinholeRadtan {
     }
 }
 
-/// `camera` with `k` added to its first radial coefficient: to first order the residual
-/// distortion `(1 + k r^2)` the radial self-calibration measures on its undistorted points.
+/// `camera` with `k` added to its first distortion coefficient: what the radial
+/// self-calibration measures (on a pinhole, to first order the residual `(1 + k r^2)` of
+/// its undistorted points; through a fisheye, the model's own first term).
 pub fn with_radial(camera: &PinholeRadtan, k: f64) -> PinholeRadtan {
     let mut distortion = camera.distortion;
     distortion[0] += k;

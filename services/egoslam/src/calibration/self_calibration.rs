@@ -150,14 +150,9 @@ pub enum RadialSetting {
 }
 
 impl RadialSetting {
-    /// Whether to estimate for `camera`. The estimate is a residual `(1 + k r^2)` on the
-    /// pinhole plane, the first term of radial-tangential; a fisheye lens's first term acts
-    /// on the ray's angle, which this estimate does not measure, so it is never applied
-    /// to one.
+    /// Whether to estimate for `camera`: the first term of its lens model (radial-tangential
+    /// k1, equidistant k1, double sphere xi), a fisheye's measured on its own image.
     pub fn applies_to(self, camera: &PinholeRadtan) -> bool {
-        if camera.lens.is_fisheye() {
-            return false;
-        }
         match self {
             RadialSetting::Auto => camera.distortion.iter().all(|d| *d == 0.0),
             RadialSetting::On => true,
@@ -222,6 +217,16 @@ mod tests {
         assert!(!RadialSetting::Auto.applies_to(&lens));
         assert!(RadialSetting::On.applies_to(&lens));
         assert!(!RadialSetting::Off.applies_to(&pinhole));
+        // A fisheye as well: its first term when nominal, trusted when calibrated.
+        let nominal_fisheye = pinhole
+            .with_lens(egoslam_geometry::LensModel::Equidistant)
+            .expect("camera");
+        assert!(RadialSetting::Auto.applies_to(&nominal_fisheye));
+        let calibrated_fisheye = PinholeRadtan {
+            distortion: [0.02, -0.003, 0.0, 0.0, 0.0],
+            ..nominal_fisheye
+        };
+        assert!(!RadialSetting::Auto.applies_to(&calibrated_fisheye));
         for (text, setting) in [
             ("auto", RadialSetting::Auto),
             ("TRUE", RadialSetting::On),
