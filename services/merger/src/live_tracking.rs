@@ -14,6 +14,8 @@ use egoslam_relocalization::absolute_pose::PnpOptions;
 use nalgebra::{Point2, UnitQuaternion, Vector3};
 use std::collections::{HashMap, VecDeque};
 
+mod walked_on;
+
 /// Defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LiveTrackerOptions {
@@ -49,6 +51,15 @@ pub struct LiveTrackerOptions {
     /// arrives 0.5-2 s after its newest keyframe in a real-time run; the frames since that
     /// keyframe are re-tracked on each new map).
     pub history_s: f64,
+    /// A frame posed by rotation is moved on at the map's walking pace (walked_on.rs) when
+    /// its tracks' rays and those of a posed frame up to `walk_anchor_s` before miss their
+    /// best rotation by `min_walk_parallax_px` in the median, pixels at the focal length
+    /// (defaults 1 s, over which most tracks of a turning head are gone; and 3 px, 1.5x
+    /// the window solver's test for a translation edge, `RelativePoseOptions::
+    /// min_parallax_px`, so that the windows of a turn the solver solves rotation-only are
+    /// not walked on).
+    pub walk_anchor_s: f64,
+    pub min_walk_parallax_px: f64,
 }
 
 impl Default for LiveTrackerOptions {
@@ -67,6 +78,8 @@ impl Default for LiveTrackerOptions {
             min_triangulation_angle_deg: 1.0,
             max_triangulation_error_px: 2.0,
             history_s: 3.0,
+            walk_anchor_s: 1.0,
+            min_walk_parallax_px: 3.0,
             rotation_threshold_px: 5.0,
             rotation_min_inliers: 20,
             rotation_min_inlier_share: 0.5,
@@ -82,7 +95,9 @@ pub enum TrackingState {
     /// No map point in view: the orientation from the tracks' rays (a turn in place), the
     /// position held.
     Rotation,
-    /// No PnP: the last tracked pose moved on at constant velocity.
+    /// No PnP: moved on from the last tracked pose by a motion prior (at constant
+    /// velocity, or, with no point in view while walking, along the direction the tracks'
+    /// rays give at the map's walking pace; walked_on.rs).
     Predicted,
     /// No PnP for longer than a prediction is worth: the last tracked pose.
     Lost,
@@ -108,6 +123,8 @@ pub struct MapView {
     pub segment: u32,
     pub points: HashMap<u64, Vector3<f64>>,
     pub newest_keyframe: Option<StampedPose>,
+    /// The segment's recent walking pace, map units per second (`MapBuilder::recent_walking_pace`).
+    pub pace: Option<f64>,
 }
 
 /// A frame's tracks: `(track id, undistorted pixel)`.
@@ -136,6 +153,8 @@ pub struct LiveTracker {
     /// The last frame posed from its tracks (PnP or rotation): its pose and its tracks'
     /// rays in the camera frame.
     previous: Option<(StampedPose, HashMap<u64, Vector3<f64>>)>,
+    /// The frames posed from their tracks over the last `walk_anchor_s`, oldest first.
+    recent: VecDeque<(StampedPose, HashMap<u64, Vector3<f64>>)>,
 }
 
 impl LiveTracker {
@@ -158,6 +177,7 @@ impl LiveTracker {
         self.last = None;
         self.before_last = None;
         self.previous = None;
+        self.recent.clear();
         self.map = map;
         let Some(keyframe) = self.map.newest_keyframe else {
             return;
@@ -177,6 +197,7 @@ impl LiveTracker {
             .iter()
             .find(|(t, _)| (t - keyframe.timestamp).abs() <= tolerance)
             .and_then(|(_, tracks)| Some((keyframe, rays(&self.map.camera?, tracks))));
+        self.recent.extend(self.previous.clone());
         let history = std::mem::take(&mut self.history);
         for (timestamp, tracks) in history
             .iter()
@@ -275,7 +296,7 @@ impl LiveTracker {
                 };
                 self.before_last = self.last.replace(pose);
                 self.triangulate(&camera, &pose, tracks);
-                self.previous = Some((pose, rays_now));
+                self.remember(pose, rays_now);
                 LivePose {
                     pose,
                     segment: self.map.segment,
@@ -284,18 +305,33 @@ impl LiveTracker {
                 }
             }
             Err(e) => match self.turned(&camera, timestamp, &rays_now) {
-                Some((pose, inliers)) => {
-                    // The velocity restarts here: a turn in place has none to extrapolate.
-                    self.before_last = None;
-                    self.last = Some(pose);
-                    self.previous = Some((pose, rays_now));
-                    LivePose {
-                        pose,
-                        segment: self.map.segment,
-                        state: TrackingState::Rotation,
-                        inliers,
+                Some((pose, inliers)) => match self.walked(&camera, &pose, &rays_now) {
+                    Some(walked) => {
+                        // Moving on at the pace: the velocity from the frame it was measured from.
+                        self.local_points.extend(walked.points);
+                        self.before_last = Some(walked.anchor);
+                        self.last = Some(walked.pose);
+                        self.remember(walked.pose, rays_now);
+                        LivePose {
+                            pose: walked.pose,
+                            segment: self.map.segment,
+                            state: TrackingState::Predicted,
+                            inliers: walked.inliers,
+                        }
                     }
-                }
+                    None => {
+                        // The velocity restarts here: a turn in place has none to extrapolate.
+                        self.before_last = None;
+                        self.last = Some(pose);
+                        self.remember(pose, rays_now);
+                        LivePose {
+                            pose,
+                            segment: self.map.segment,
+                            state: TrackingState::Rotation,
+                            inliers,
+                        }
+                    }
+                },
                 None => {
                     tracing::debug!(
                         error = %e,
@@ -307,11 +343,25 @@ impl LiveTracker {
                 }
             },
         };
+        while self
+            .recent
+            .front()
+            .is_some_and(|(p, _)| p.timestamp < timestamp - self.options.walk_anchor_s)
+        {
+            self.recent.pop_front();
+        }
         // Tracks end for good (ids are never reused): forget those not in this frame.
         let alive: std::collections::HashSet<u64> = tracks.iter().map(|(t, _)| *t).collect();
         self.local_points.retain(|t, _| alive.contains(t));
         self.sightings.retain(|t, _| alive.contains(t));
         Some(live)
+    }
+
+    /// The frame posed from its tracks last: the rotation's reference for the next frame,
+    /// and a walk's anchor for the next `walk_anchor_s`.
+    fn remember(&mut self, pose: StampedPose, rays: HashMap<u64, Vector3<f64>>) {
+        self.recent.push_back((pose, rays.clone()));
+        self.previous = Some((pose, rays));
     }
 
     /// A frame neither PnP nor a rotation places: the prior while the last tracked pose is
@@ -356,6 +406,36 @@ impl LiveTracker {
             };
             (pose, inliers)
         })
+    }
+
+    /// [`walked_on::walked_on`] from the newest recent posed frame whose shared tracks'
+    /// rays differ by the walk's parallax (the oldest such frame would take a stop before
+    /// the walk for walking), when the map has a pace.
+    fn walked(
+        &self,
+        camera: &PinholeRadtan,
+        turned: &StampedPose,
+        rays_now: &HashMap<u64, Vector3<f64>>,
+    ) -> Option<walked_on::Walked> {
+        let pace = self.map.pace?;
+        let o = &self.options;
+        let check = walked_on::WalkCheck {
+            min_inliers: o.rotation_min_inliers,
+            min_inlier_share: o.rotation_min_inlier_share,
+            max_triangulation_error_px: o.max_triangulation_error_px,
+        };
+        let min_parallax = o.min_walk_parallax_px / camera.fx;
+        let (anchor, anchor_rays) = self.recent.iter().rev().find(|(_, rays)| {
+            walked_on::rotation_residual(rays, rays_now, o.rotation_min_inliers)
+                .is_some_and(|p| p >= min_parallax)
+        })?;
+        walked_on::walked_on(
+            camera,
+            (anchor, anchor_rays),
+            (turned, rays_now),
+            pace,
+            &check,
+        )
     }
 
     /// Constant velocity from the last two tracked poses; the last tracked pose when there

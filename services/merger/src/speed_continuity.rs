@@ -170,6 +170,16 @@ impl MapBuilder {
         );
         Some(map_pace? / window_pace?)
     }
+
+    /// The segment's walking pace up to and including keyframe `newest` (map units per
+    /// second, as [`Self::speed_continuity_scale`] measures the map's side); `None` while
+    /// it has not clearly moved.
+    pub fn recent_walking_pace(&self, segment: u32, newest: u64) -> Option<f64> {
+        let options = SpeedContinuityOptions::default();
+        let (_, pose) = self.keyframes.get(&newest)?;
+        let floor = options.min_speed_depths_per_s * self.recent_scene_depth(segment)?;
+        self.recent_pace(segment, (newest + 1, pose), floor, &options)
+    }
 }
 
 #[cfg(test)]

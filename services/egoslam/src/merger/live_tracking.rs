@@ -82,10 +82,12 @@ impl LiveTracking {
             segment,
             points: map.points_seen_since(*first, segment),
             newest_keyframe: Some(*newest),
+            pace: map.recent_walking_pace(segment, *last),
         };
         tracing::debug!(
             segment,
             points = view.points.len(),
+            pace = ?view.pace,
             "map for the live tracker"
         );
         // A tracker that ended (its error comes out at `finish`) no longer takes maps.

@@ -60,6 +60,7 @@ fn map_of(points: &[Vector3<f64>], ids: std::ops::Range<usize>, newest: StampedP
         segment: 3,
         points: ids.map(|i| (i as u64, points[i])).collect(),
         newest_keyframe: Some(newest),
+        pace: None,
     }
 }
 
@@ -199,4 +200,51 @@ fn the_rotation_from_rays_ignores_tracks_that_moved_on_their_own() {
     let (rotation, inliers) = rotation_between(&before, &now, 3.0 / 500.0).expect("fit");
     assert!(rotation.angle_to(&turn).to_degrees() < 1e-6);
     assert_eq!(inliers, points.len() - points.len().div_ceil(3));
+}
+
+#[test]
+fn walking_on_with_no_map_point_in_view_moves_at_the_maps_pace() {
+    let points = scene();
+    // The map's newest keyframe is frame 0, with none of its points in view (as after a
+    // turn in place, whose windows bring none); the wearer walks on at the map's 1 m/s.
+    let walk = |pace: Option<f64>| {
+        let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+        tracker.track(0.0, &observe(&points, &pose_at(0)));
+        tracker.set_map(MapView {
+            pace,
+            ..map_of(&points, 0..0, pose_at(0))
+        });
+        (1..=30)
+            .map(|frame| {
+                let truth = pose_at(frame);
+                let live = tracker
+                    .track(truth.timestamp, &observe(&points, &truth))
+                    .expect("map");
+                (live.state, error(&live.pose, &truth).0)
+            })
+            .collect::<Vec<_>>()
+    };
+    let walked = walk(Some(1.0));
+    // By rotation until the rays show the walk (3 px of parallax; sideways before a wall
+    // is nearly a turn, so 8 frames here), then on.
+    let first_moved = walked
+        .iter()
+        .position(|(s, _)| *s == TrackingState::Predicted)
+        .expect("moved on");
+    assert!(first_moved <= 10, "{walked:?}");
+    assert!(
+        walked[first_moved + 1..]
+            .iter()
+            .all(|(s, _)| *s == TrackingState::Tracking),
+        "{walked:?}"
+    );
+    let (_, last) = walked[29];
+    assert!(last < 0.05, "1 m walked, {last} m off: {walked:?}");
+    // Without a pace the position is held: a metre behind after the second.
+    let held = walk(None);
+    assert!(
+        held.iter().all(|(s, _)| *s == TrackingState::Rotation),
+        "{held:?}"
+    );
+    assert!(held[29].1 > 0.9, "{held:?}");
 }
