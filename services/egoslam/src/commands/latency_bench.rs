@@ -7,8 +7,9 @@
 //! frame's capture (the replay's send) to the publication of its live pose
 //! (`latency_ms.live_published`), and, as ../shared/checks/latency_listen.py measures it,
 //! the arrival of each frame's first pose (revision 0) minus its timestamp, above the
-//! fastest frame's (the replay's start offset cancels). Three runs per sequence; the table
-//! gives the median of each figure over them.
+//! fastest frame's (the replay's start offset cancels). Beside them the ATE of the live
+//! trajectory as published (revision 0, `accuracy.live`) and of the refined one. Three runs
+//! per sequence; the table gives the median of each figure over them.
 
 use crate::commands::bench::{ensure_rendered, run_of, write_section, BenchArgs, Section};
 use crate::latency::LatencyHistogram;
@@ -44,15 +45,28 @@ fn sequences(args: &BenchArgs) -> Vec<Sequence> {
         input: PathBuf::from("tests/data/tum_fr1_rpy_120"),
         synth: None,
     }];
-    out.push(Sequence {
-        name: "synth_walker_300 (30 fps)",
-        input: args.data.join("synth_walker_300"),
-        synth: Some(
-            ["--path", "walker", "--frames", "300"]
-                .map(String::from)
-                .to_vec(),
+    for (name, dir, extra) in [
+        ("synth_walker_300 (30 fps)", "synth_walker_300", &[][..]),
+        (
+            "synth_walker_300_fisheye (30 fps)",
+            "synth_walker_300_fisheye",
+            &["--lens", "equidistant", "--focal", "260"][..],
         ),
-    });
+        // Half a minute of the walk: its turns in place, a 90 deg turn while walking, a stop.
+        ("synth_walker_900 (30 fps)", "synth_walker_900", &[]),
+    ] {
+        let frames = if dir.ends_with("900") { "900" } else { "300" };
+        let synth = ["--path", "walker", "--frames", frames]
+            .iter()
+            .chain(extra)
+            .map(|a| a.to_string())
+            .collect();
+        out.push(Sequence {
+            name,
+            input: args.data.join(dir),
+            synth: Some(synth),
+        });
+    }
     for (name, dir) in [
         ("euroc_v1_01 (20 fps)", "euroc_v1_01"),
         ("kitti_odometry_00 (10 fps)", "kitti_odometry_00"),
@@ -163,6 +177,8 @@ fn measure(input: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
         "capture_p95_ms": live["p95_ms"],
         "capture_max_ms": live["max_ms"],
         "tracking": report["live_poses"]["tracking"],
+        "live_ate_m": report["accuracy"]["live"]["ate_rmse_m"],
+        "refined_ate_m": report["accuracy"]["trajectory"]["ate_rmse_m"],
     }))
 }
 
@@ -175,7 +191,7 @@ fn median_of(runs: &[serde_json::Value], key: &str) -> Option<f64> {
 
 pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     let mut table = String::from(
-        "| sequence | frames (at the client) | capture -> live pose published, p50 / p95 / max | first pose at the client above the fastest frame, p50 / p95 / max | frames TRACKING |\n|---|---|---|---|---|\n",
+        "| sequence | frames (at the client) | capture -> live pose published, p50 / p95 / max | first pose at the client above the fastest frame, p50 / p95 / max | frames TRACKING | ATE live / refined (m) |\n|---|---|---|---|---|---|\n",
     );
     let mut all = serde_json::Map::new();
     for sequence in sequences(args) {
@@ -199,14 +215,17 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
                 m(&format!("{prefix}_max_ms"))
             )
         };
+        let metres = |key: &str| median_of(&runs, key).map_or("-".into(), |v| format!("{v:.3}"));
         table.push_str(&format!(
-            "| {} | {} ({}) | {} | {} | {} |\n",
+            "| {} | {} ({}) | {} | {} | {} | {} / {} |\n",
             sequence.name,
             m("frames"),
             m("frames_at_client"),
             ms("capture"),
             ms("client"),
             m("tracking"),
+            metres("live_ate_m"),
+            metres("refined_ate_m"),
         ));
         all.insert(sequence.name.into(), json!(runs));
     }
