@@ -274,7 +274,7 @@ impl MapBuilder {
                 self.current_segment = Some(seg);
                 (
                     seg,
-                    Similarity::identity(),
+                    crate::speed_continuity::new_segment_gauge(window),
                     WindowOutcome::NewSegment { segment: seg },
                 )
             }

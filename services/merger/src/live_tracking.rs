@@ -209,8 +209,9 @@ impl LiveTracker {
     }
 
     /// The first frame of a new map's stream, before any window: the map's frame is its
-    /// first keyframe's camera (this frame, identity at the origin), so the frames until
-    /// the first window can be posed by rotation from it (position held at the origin).
+    /// first keyframe's camera (this frame, identity at the origin) and its scale one unit
+    /// per second of walking (`speed_continuity::NEW_SEGMENT_PACE`), so the frames until
+    /// the first window can be posed by rotation from it and walked on at that pace.
     pub fn begin_at_origin(
         &mut self,
         camera: PinholeRadtan,
@@ -228,6 +229,8 @@ impl LiveTracker {
             map: MapView {
                 camera: Some(camera),
                 segment,
+                // The new segment's gauge, which its first window will be put in.
+                pace: Some(crate::speed_continuity::NEW_SEGMENT_PACE),
                 ..MapView::default()
             },
             previous: Some((origin, rays(&camera, tracks))),

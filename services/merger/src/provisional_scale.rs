@@ -205,6 +205,7 @@ impl MapBuilder {
 mod tests {
     use super::*;
     use crate::chaining::WindowInput;
+    use crate::speed_continuity::NEW_SEGMENT_PACE;
     use egoslam_geometry::StampedPose;
     use nalgebra::{UnitQuaternion, Vector3};
 
@@ -235,17 +236,17 @@ mod tests {
         WindowInput::seeing_all(poses, points, blind)
     }
 
-    /// A map that walked at 1.2 units/s until t = 1.5 s (keyframe 30) and then stood, with
+    /// A map that walked at a new segment's pace (1 unit/s) until t = 1.5 s (keyframe 30) and then stood, with
     /// the stop chained weakly: the keyframes it shares with the map see nothing in its
     /// window, no point is shared and nothing moves, so nothing measures its scale.
     fn stopped_after_a_walk() -> MapBuilder {
         let mut map = MapBuilder::new();
-        let walk = |t: f64| 1.2 * t.min(1.5);
+        let walk = |t: f64| NEW_SEGMENT_PACE * t.min(1.5);
         map.add_window(&window(0..35, walk, 1000, 0));
         map.add_window(&window(30..50, walk, 2000, 5));
         let p = map.provisional_scale().expect("weakly chained");
         assert_eq!(p.first_keyframe, 35);
-        assert!((p.pace_before - 1.2).abs() < 1e-9, "{p:?}");
+        assert!((p.pace_before - NEW_SEGMENT_PACE).abs() < 1e-9, "{p:?}");
         map
     }
 
@@ -256,10 +257,10 @@ mod tests {
         // Walking again from t = 2.5 s (keyframe 50); this window's frame is 3x the
         // stop's, but it shares the stop window's points, so it takes that frame's
         // (unmeasured) scale.
-        let restart = |t: f64| 1.8 + 3.6 * (t - 2.5).max(0.0);
+        let restart = |t: f64| 1.5 + 3.0 * (t - 2.5).max(0.0);
         let mut walking = window(45..80, restart, 2000, 0);
         for (_, x) in &mut walking.points {
-            x.x = 1.8 + (x.x - 1.8) * 3.0;
+            x.x = 1.5 + (x.x - 1.5) * 3.0;
         }
         map.add_window(&walking);
         let settled = map.settle_provisional_scale().expect("walks now");
@@ -271,7 +272,7 @@ mod tests {
             map.keyframe(70).expect("kf").1,
         );
         let pace = (b.position - a.position).norm() / (b.timestamp - a.timestamp);
-        assert!((pace - 1.2).abs() < 0.05, "pace {pace}");
+        assert!((pace - NEW_SEGMENT_PACE).abs() < 0.05, "pace {pace}");
         assert!(map.provisional_scale().is_none());
     }
 
@@ -280,7 +281,7 @@ mod tests {
         let mut map = stopped_after_a_walk();
         // After the stop the stretch creeps at a quarter of the pace with the scene as deep
         // as before: a slower wearer, not a scale error.
-        let creep = |t: f64| 1.8 + 0.3 * (t - 2.5).max(0.0);
+        let creep = |t: f64| 1.5 + 0.25 * (t - 2.5).max(0.0);
         map.add_window(&window(45..80, creep, 2000, 0));
         let before = map.keyframe(79).expect("posed").1.position;
         let settled = map.settle_provisional_scale().expect("settled");

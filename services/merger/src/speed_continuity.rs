@@ -22,7 +22,15 @@
 
 use crate::chaining::{MapBuilder, WindowInput};
 use crate::scene_depth::window_scene_depth;
-use egoslam_geometry::StampedPose;
+use egoslam_geometry::{Similarity, StampedPose};
+use nalgebra::Rotation3;
+
+/// A new segment's walking pace, map units per second: its scale is set so that its first
+/// window walks one unit per second ([`new_segment_gauge`]). A monocular map's scale is a
+/// free choice; this one is known before the first window is solved, so the live tracker
+/// walks a new stream's first frames in the map's units
+/// (`LiveTracker::begin_at_origin`), and a map unit is about a metre of walking.
+pub const NEW_SEGMENT_PACE: f64 = 1.0;
 
 /// When and how the pace is measured; defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -119,6 +127,28 @@ pub(crate) fn well_seen_pace(
         .take(options.keyframes)
         .collect();
     walking_pace(&poses, min_speed, options)
+}
+
+/// The transform that puts a window starting a new segment into the segment's gauge: its
+/// first keyframe where the window has it, scaled about it so that the window walks at
+/// [`NEW_SEGMENT_PACE`]; the identity when the window does not clearly walk (its scale is
+/// then the solver's).
+pub(crate) fn new_segment_gauge(window: &WindowInput) -> Similarity {
+    let options = SpeedContinuityOptions::default();
+    let pace = window_scene_depth(window)
+        .and_then(|depth| window_pace(window, options.min_speed_depths_per_s * depth, &options));
+    let (Some(pace), Some((_, first))) = (pace, window.poses.first()) else {
+        return Similarity::identity();
+    };
+    let scale = NEW_SEGMENT_PACE / pace;
+    if !(scale.is_finite() && scale > 0.0) {
+        return Similarity::identity();
+    }
+    Similarity {
+        scale,
+        rotation: Rotation3::identity(),
+        translation: first.position * (1.0 - scale),
+    }
 }
 
 impl MapBuilder {
@@ -237,11 +267,12 @@ mod tests {
     #[test]
     fn across_a_blind_turn_the_window_gets_the_pace_of_the_map() {
         let mut map = MapBuilder::new();
-        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
-        // After the turn, in a frame 4x smaller: the same 1.2 m/s is 0.3 units/s. The five
+        map.add_window(&walk(0..30, NEW_SEGMENT_PACE, 3.0, 1000, 0));
+        // A new segment walks one unit per second. After the turn, in a frame 4x smaller:
+        // the same pace is 0.25 units/s. The five
         // keyframes shared with the map saw nothing (in the map too they would be noise),
         // and no point is shared.
-        let after = walk(25..45, 0.3, 0.75, 5000, 5);
+        let after = walk(25..45, 0.25, 0.75, 5000, 5);
         let (scale, source) = chained(map.add_window(&after));
         assert_eq!(source, ScaleSource::WalkingPace);
         assert!((scale - 4.0).abs() < 1e-9, "{scale}");
@@ -250,18 +281,18 @@ mod tests {
     #[test]
     fn points_shared_through_keyframes_one_side_barely_sees_do_not_give_the_scale() {
         let mut map = MapBuilder::new();
-        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        map.add_window(&walk(0..30, NEW_SEGMENT_PACE, 3.0, 1000, 0));
         // The window shares all 60 of the map's points, but triangulated them from the
         // shared keyframes it hardly sees: their positions say half the true scale (the
         // points at 1.5 where 0.75 is right). The pace says 4.
-        let mut after = walk(25..45, 0.3, 1.5, 1000, 5);
+        let mut after = walk(25..45, 0.25, 1.5, 1000, 5);
         after.poses[..5]
             .iter_mut()
             .enumerate()
             .for_each(|(i, (id, p))| {
                 *p = pose(
                     *id as f64 * 0.05,
-                    0.3 * *id as f64 * 0.05 + 0.001 * i as f64,
+                    0.25 * *id as f64 * 0.05 + 0.001 * i as f64,
                 )
             });
         assert!(map.lacks_shared_points(&after));
@@ -270,8 +301,8 @@ mod tests {
         assert!((scale - 4.0).abs() < 1e-9, "{scale}");
         // Seen well on both sides, the same points do give it.
         let mut map = MapBuilder::new();
-        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
-        let firm = walk(25..45, 0.3, 0.75, 1000, 0);
+        map.add_window(&walk(0..30, NEW_SEGMENT_PACE, 3.0, 1000, 0));
+        let firm = walk(25..45, 0.25, 0.75, 1000, 0);
         assert!(!map.lacks_shared_points(&firm));
         assert_eq!(chained(map.add_window(&firm)).1, ScaleSource::SharedPoints);
     }
@@ -282,7 +313,7 @@ mod tests {
         // its points 10x towards the shared keyframes: their scale says ~40 where the pace
         // says 4. Such a window is broken; the pace is the wearer's.
         let pulled = |factor: f64| {
-            let mut w = walk(25..45, 0.3, 0.75, 1000, 0);
+            let mut w = walk(25..45, 0.25, 0.75, 1000, 0);
             let centre = w.poses[..5]
                 .iter()
                 .map(|(_, p)| p.position)
@@ -294,7 +325,7 @@ mod tests {
             w
         };
         let mut map = MapBuilder::new();
-        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        map.add_window(&walk(0..30, NEW_SEGMENT_PACE, 3.0, 1000, 0));
         let broken = pulled(0.1);
         assert!(!map.lacks_shared_points(&broken));
         let (scale, source) = chained(map.add_window(&broken));
@@ -302,7 +333,7 @@ mod tests {
         assert!((scale - 4.0).abs() < 1e-9, "{scale}");
         // Pulled by half, within what a pace may change: the points decide.
         let mut map = MapBuilder::new();
-        map.add_window(&walk(0..30, 1.2, 3.0, 1000, 0));
+        map.add_window(&walk(0..30, NEW_SEGMENT_PACE, 3.0, 1000, 0));
         let (scale, source) = chained(map.add_window(&pulled(0.5)));
         assert_eq!(source, ScaleSource::SharedPoints);
         assert!(scale > 6.0, "{scale}");
@@ -331,11 +362,32 @@ mod tests {
     fn a_standing_map_gives_no_pace_and_the_window_keeps_the_weaker_evidence() {
         let mut map = MapBuilder::new();
         map.add_window(&walk(0..30, 0.0, 3.0, 1000, 0));
-        let after = walk(25..45, 0.3, 0.75, 5000, 5);
+        let after = walk(25..45, 0.25, 0.75, 5000, 5);
         assert_eq!(
             map.speed_continuity_scale(0, &after, &SpeedContinuityOptions::default()),
             None
         );
         assert_eq!(chained(map.add_window(&after)).1, ScaleSource::Weak);
+    }
+
+    #[test]
+    fn a_new_segment_walks_one_unit_per_second_from_its_first_keyframe() {
+        // The solver's frame: 0.3 units/s, the first keyframe off the origin.
+        let mut first = walk(0..30, 0.3, 0.9, 1000, 0);
+        for (_, p) in &mut first.poses {
+            p.position += Vector3::new(0.5, 0.0, 0.0);
+        }
+        let mut map = MapBuilder::new();
+        assert!(matches!(
+            map.add_window(&first),
+            WindowOutcome::NewSegment { segment: 0 }
+        ));
+        let at = |id: u64| map.keyframe(id).expect("posed").1;
+        assert!((at(0).position - first.poses[0].1.position).norm() < 1e-12);
+        let pace = (at(20).position - at(0).position).norm() / (at(20).timestamp - at(0).timestamp);
+        assert!((pace - NEW_SEGMENT_PACE).abs() < 1e-9, "{pace}");
+        // A window standing in place has no pace: its scale stays the solver's.
+        let standing = walk(0..30, 0.0, 0.9, 1000, 0);
+        assert_eq!(new_segment_gauge(&standing), Similarity::identity());
     }
 }
