@@ -80,9 +80,15 @@ impl Relocalizer {
         let refined = solve_pnp(camera, &projected_pairs, Some(&solution.pose), &refine);
         // A refinement that left its start is not a refinement of it: a RANSAC from the
         // pose can settle on another that counts mirrored points behind the camera.
-        let refined = refined
-            .ok()
-            .filter(|r| stays_near(options, solution, r, &projected_pairs));
+        let refined = refined.ok().filter(|r| {
+            stays_near(
+                options,
+                &solution.pose,
+                solution.inliers.len(),
+                r,
+                &projected_pairs,
+            )
+        });
         let needed = tentative.map_or(solution.inliers.len(), |t| t.min_confirmed_inliers);
         let (pose, inliers) = match refined {
             Some(s) if s.inliers.len() >= needed => (
@@ -119,12 +125,13 @@ impl Relocalizer {
     }
 }
 
-/// Whether `refined`, the pose the search by projection from `start` led to (on `pairs`),
-/// stayed near it ([`RelocalizerOptions::max_refinement_turn_deg`] and
+/// Whether `refined`, the pose a refinement from `start` (a pose of `start_inliers`) led to
+/// on `pairs`, stayed near it ([`RelocalizerOptions::max_refinement_turn_deg`] and
 /// [`RelocalizerOptions::max_refinement_shift_of_depth`]).
-fn stays_near(
+pub(super) fn stays_near(
     options: &RelocalizerOptions,
-    start: &PnpSolution,
+    start: &StampedPose,
+    start_inliers: usize,
     refined: &PnpSolution,
     pairs: &[(Vector3<f64>, Point2<f64>)],
 ) -> bool {
@@ -136,18 +143,14 @@ fn stays_near(
             .map(|&i| (r_cw * (pairs[i].0 - refined.pose.position)).z)
             .collect(),
     );
-    let shift = (refined.pose.position - start.pose.position).norm();
-    let turn = refined
-        .pose
-        .rotation
-        .angle_to(&start.pose.rotation)
-        .to_degrees();
+    let shift = (refined.pose.position - start.position).norm();
+    let turn = refined.pose.rotation.angle_to(&start.rotation).to_degrees();
     let near = turn <= options.max_refinement_turn_deg
         && depth > 0.0
         && shift <= options.max_refinement_shift_of_depth * depth;
     if !near {
         tracing::debug!(
-            appearance = start.inliers.len(),
+            appearance = start_inliers,
             projected = refined.inliers.len(),
             turn_deg = turn,
             shift_of_depth = shift / depth,

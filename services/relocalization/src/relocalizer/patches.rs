@@ -63,8 +63,20 @@ impl Relocalizer {
             ransac_threshold_px: options.aligned_threshold_px,
             ..options.pnp
         };
-        match solve_pnp(camera, &aligned, Some(&found.pose), &refine) {
-            Ok(solution) => Relocalization {
+        // As the refinement by projection: a RANSAC from the pose may settle on another.
+        let refined = solve_pnp(camera, &aligned, Some(&found.pose), &refine)
+            .ok()
+            .filter(|r| {
+                super::confirmation::stays_near(
+                    options,
+                    &found.pose,
+                    found.inliers.len(),
+                    r,
+                    &aligned,
+                )
+            });
+        match refined {
+            Some(solution) => Relocalization {
                 pose: StampedPose {
                     timestamp: found.pose.timestamp,
                     ..self.unrolled(
@@ -76,7 +88,7 @@ impl Relocalizer {
                 inliers: solution.inliers.iter().map(|&i| tracks[i]).collect(),
                 ..found
             },
-            Err(_) => found,
+            None => found,
         }
     }
 }
