@@ -279,6 +279,21 @@ fn the_endurance_benchmark_samples_a_looped_walk() {
         .contains("egoslam bench endurance: begin"));
 }
 
+/// Writes a Kalibr camchain `cam0` at `path` for a 640x480 equidistant lens of `focal`
+/// px/rad with first term `k1`, as users have their calibration; returns the path.
+fn equidistant_camchain(path: &Path, focal: f64, k1: f64) -> String {
+    std::fs::write(
+        path,
+        format!(
+            "cam0:\n  camera_model: pinhole\n  distortion_model: equidistant\n  \
+             distortion_coeffs: [{k1:?}, 0.0, 0.0, 0.0]\n  \
+             intrinsics: [{focal:?}, {focal:?}, 320.0, 240.0]\n  resolution: [640, 480]\n"
+        ),
+    )
+    .expect("camchain written");
+    path.to_string_lossy().into_owned()
+}
+
 #[test]
 fn a_fisheye_walk_is_posed_as_well_as_through_a_pinhole() {
     // The walker seen through an ideal equidistant fisheye (260 px/rad: 141 deg across the
@@ -295,15 +310,7 @@ fn a_fisheye_walk_is_posed_as_well_as_through_a_pinhole() {
     );
     synth(&pinhole, "walker", 150);
     std::fs::remove_file(fisheye.join("camera.yaml")).expect("own camera.yaml removed");
-    let camchain = dir.path().join("camchain.yaml");
-    std::fs::write(
-        &camchain,
-        "cam0:\n  camera_model: pinhole\n  distortion_model: equidistant\n  \
-         distortion_coeffs: [0.0, 0.0, 0.0, 0.0]\n  intrinsics: [260.0, 260.0, 320.0, 240.0]\n  \
-         resolution: [640, 480]\n",
-    )
-    .expect("camchain written");
-    let calib = camchain.to_string_lossy().into_owned();
+    let calib = equidistant_camchain(&dir.path().join("camchain.yaml"), 260.0, 0.0);
     let (report, ate, path) = run_with(&fisheye, &dir.path().join("a"), &["--calib", &calib]);
     assert_eq!(report["posed_frames"], 150, "{report}");
     assert_eq!(report["segments"], 1, "{report}");
@@ -319,15 +326,7 @@ fn a_fisheye_walk_is_posed_as_well_as_through_a_pinhole() {
 
     // A nominal calibration of the make (focal 270 px/rad, 4 % long; k1 0.03 where the
     // lens has none), self-calibrated: both found on the fisheye's own image.
-    let nominal = dir.path().join("nominal.yaml");
-    std::fs::write(
-        &nominal,
-        "cam0:\n  camera_model: pinhole\n  distortion_model: equidistant\n  \
-         distortion_coeffs: [0.03, 0.0, 0.0, 0.0]\n  intrinsics: [270.0, 270.0, 320.0, 240.0]\n  \
-         resolution: [640, 480]\n",
-    )
-    .expect("nominal written");
-    let nominal = nominal.to_string_lossy().into_owned();
+    let nominal = equidistant_camchain(&dir.path().join("nominal.yaml"), 270.0, 0.03);
     let self_calibrated = [
         "--calib",
         &nominal,
