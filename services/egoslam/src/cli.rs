@@ -102,7 +102,8 @@ pub struct PipelineArgs {
     /// first windows of a recorded input with one radial term free (the focal held) and
     /// adds it to the calibration's k1 when they agree on a clear one (docs/config.md; a
     /// live camera runs with the calibration as given). `auto` (the default): only for a
-    /// calibration without distortion terms (rectified images, a datasheet's pinhole);
+    /// calibration without distortion terms (rectified images, a datasheet's pinhole, a
+    /// fisheye's nominal lens, whose first term is measured on its own image);
     /// kitti_odometry_00 0.479 -> 0.246 m.
     #[arg(long, default_value_t = crate::calibration::self_calibration::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
     pub calibrate_radial: crate::calibration::self_calibration::RadialSetting,
