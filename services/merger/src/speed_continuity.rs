@@ -129,14 +129,20 @@ pub(crate) fn well_seen_pace(
     walking_pace(&poses, min_speed, options)
 }
 
+/// [`window_pace`] with steps counted as moving from
+/// [`SpeedContinuityOptions::min_speed_depths_per_s`] of the window's scene depth; `None`
+/// without a depth or a clear walk.
+fn window_walking_pace(window: &WindowInput, options: &SpeedContinuityOptions) -> Option<f64> {
+    let depth = window_scene_depth(window)?;
+    window_pace(window, options.min_speed_depths_per_s * depth, options)
+}
+
 /// The transform that puts a window starting a new segment into the segment's gauge: its
 /// first keyframe where the window has it, scaled about it so that the window walks at
 /// [`NEW_SEGMENT_PACE`]; the identity when the window does not clearly walk (its scale is
 /// then the solver's).
 pub(crate) fn new_segment_gauge(window: &WindowInput) -> Similarity {
-    let options = SpeedContinuityOptions::default();
-    let pace = window_scene_depth(window)
-        .and_then(|depth| window_pace(window, options.min_speed_depths_per_s * depth, &options));
+    let pace = window_walking_pace(window, &SpeedContinuityOptions::default());
     let (Some(pace), Some((_, first))) = (pace, window.poses.first()) else {
         return Similarity::identity();
     };
@@ -186,29 +192,40 @@ impl MapBuilder {
         options: &SpeedContinuityOptions,
     ) -> Option<f64> {
         let (first_id, first) = window.poses.first()?;
-        let map_depth = self.recent_scene_depth(segment)?;
-        let window_depth = window_scene_depth(window)?;
-        let floor = options.min_speed_depths_per_s;
-        let map_pace = self.recent_pace(segment, (*first_id, first), floor * map_depth, options);
-        let window_pace = window_pace(window, floor * window_depth, options);
-        tracing::debug!(
-            ?map_pace,
-            ?window_pace,
-            map_depth,
-            window_depth,
-            "speed continuity"
-        );
+        let map_pace = self.segment_walking_pace(segment, (*first_id, first), options);
+        let window_pace = window_walking_pace(window, options);
+        tracing::debug!(?map_pace, ?window_pace, "speed continuity");
         Some(map_pace? / window_pace?)
+    }
+
+    /// [`Self::recent_pace`] with steps counted as moving from
+    /// [`SpeedContinuityOptions::min_speed_depths_per_s`] of the segment's recent scene
+    /// depth; `None` without a depth or a clear walk.
+    fn segment_walking_pace(
+        &self,
+        segment: u32,
+        before: (u64, &StampedPose),
+        options: &SpeedContinuityOptions,
+    ) -> Option<f64> {
+        let depth = self.recent_scene_depth(segment)?;
+        self.recent_pace(
+            segment,
+            before,
+            options.min_speed_depths_per_s * depth,
+            options,
+        )
     }
 
     /// The segment's walking pace up to and including keyframe `newest` (map units per
     /// second, as [`Self::speed_continuity_scale`] measures the map's side); `None` while
     /// it has not clearly moved.
     pub fn recent_walking_pace(&self, segment: u32, newest: u64) -> Option<f64> {
-        let options = SpeedContinuityOptions::default();
         let (_, pose) = self.keyframes.get(&newest)?;
-        let floor = options.min_speed_depths_per_s * self.recent_scene_depth(segment)?;
-        self.recent_pace(segment, (newest + 1, pose), floor, &options)
+        self.segment_walking_pace(
+            segment,
+            (newest + 1, pose),
+            &SpeedContinuityOptions::default(),
+        )
     }
 }
 
