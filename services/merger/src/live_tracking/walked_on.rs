@@ -19,7 +19,7 @@
 use super::{closest_point, Sighting};
 use egoslam_geometry::{rotation_aligning, PinholeRadtan, StampedPose};
 use egoslam_solver::relative_pose::{estimate_relative_pose, RelativePoseOptions};
-use nalgebra::{Point2, UnitQuaternion, Vector3};
+use nalgebra::{UnitQuaternion, Vector3};
 use std::collections::HashMap;
 
 /// A posed frame: its pose and its tracks' rays in its camera frame.
@@ -125,8 +125,7 @@ pub(super) fn walked_on(
             };
             let x = closest_point(&first, centre, rotation * b)?;
             let seen = camera.project_undistorted(&(r_cw * (x - centre)))?;
-            let (u, v) = normalised(b);
-            let observed = Point2::new(camera.fx * u + camera.cx, camera.fy * v + camera.cy);
+            let observed = camera.project_undistorted(b)?;
             ((seen - observed).norm() <= check.max_triangulation_error_px).then_some((*t, x))
         })
         .collect();
