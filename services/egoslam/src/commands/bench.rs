@@ -95,7 +95,7 @@ const FISHEYE_SECTION: Section = Section {
 
 /// The `egoslam synth` options of the fisheye suite's lens: equidistant (Kannala-Brandt
 /// with no higher terms), 260 px/rad, as the walks suite's fisheye walk.
-const FISHEYE_LENS: [&str; 4] = ["--lens", "equidistant", "--focal", "260"];
+pub(crate) const FISHEYE_LENS: [&str; 4] = ["--lens", "equidistant", "--focal", "260"];
 
 const WALKS_SECTION: Section = Section {
     begin:

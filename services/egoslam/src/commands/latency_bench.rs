@@ -11,7 +11,9 @@
 //! trajectory as published (revision 0, `accuracy.live`) and of the refined one. Three runs
 //! per sequence; the table gives the median of each figure over them.
 
-use crate::commands::bench::{ensure_rendered, run_of, write_section, BenchArgs, Section};
+use crate::commands::bench::{
+    ensure_rendered, run_of, write_section, BenchArgs, Section, FISHEYE_LENS,
+};
 use crate::latency::LatencyHistogram;
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;
@@ -45,17 +47,22 @@ fn sequences(args: &BenchArgs) -> Vec<Sequence> {
         input: PathBuf::from("tests/data/tum_fr1_rpy_120"),
         synth: None,
     }];
-    for (name, dir, extra) in [
-        ("synth_walker_300 (30 fps)", "synth_walker_300", &[][..]),
+    for (name, dir, frames, extra) in [
+        (
+            "synth_walker_300 (30 fps)",
+            "synth_walker_300",
+            "300",
+            &[][..],
+        ),
         (
             "synth_walker_300_fisheye (30 fps)",
             "synth_walker_300_fisheye",
-            &["--lens", "equidistant", "--focal", "260"][..],
+            "300",
+            &FISHEYE_LENS[..],
         ),
         // Half a minute of the walk: its turns in place, a 90 deg turn while walking, a stop.
-        ("synth_walker_900 (30 fps)", "synth_walker_900", &[]),
+        ("synth_walker_900 (30 fps)", "synth_walker_900", "900", &[]),
     ] {
-        let frames = if dir.ends_with("900") { "900" } else { "300" };
         let synth = ["--path", "walker", "--frames", frames]
             .iter()
             .chain(extra)
