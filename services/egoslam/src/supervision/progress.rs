@@ -5,7 +5,7 @@
 //! terminal (a log file, journald) nothing is drawn and the services' log lines report
 //! progress instead.
 
-use egoslam_sources::{Frame, FrameSource, Layout, SourceError};
+use egoslam_sources::{with_read_ahead, Frame, FrameSource, Layout, SourceError};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::{IsTerminal, Write};
 use std::sync::OnceLock;
@@ -61,7 +61,9 @@ pub fn frames_bar(step: &str, total: Option<u64>) -> ProgressBar {
 
 /// Runs `read` on `source` under a bar labelled `step` that counts the frames it reads, of
 /// the `frames` it reads at most (fewer when the sequence is shorter); `already` were read
-/// before (a first frame taken out to check the input).
+/// before (a first frame taken out to check the input). The frames are decoded a few
+/// ahead on a second thread (`with_read_ahead`), so that `read` does not wait for the
+/// decoder; `source` is read no further than `frames - already`.
 pub fn reading_frames<T>(
     step: &str,
     source: &mut dyn FrameSource,
@@ -69,12 +71,18 @@ pub fn reading_frames<T>(
     already: u64,
     read: impl FnOnce(&mut dyn FrameSource) -> T,
 ) -> T {
+    /// Frames decoded ahead: enough to absorb one slow file, few enough to hold (640x480
+    /// grey: 0.3 MB each).
+    const DECODED_AHEAD: usize = 4;
     let total = source.len_hint().map_or(frames, |n| n.min(frames));
     let bar = frames_bar(step, Some(total as u64));
     bar.inc(already);
-    let result = read(&mut Counted {
-        inner: source,
-        bar: &bar,
+    let to_read = frames.saturating_sub(already as usize);
+    let result = with_read_ahead(source, to_read, DECODED_AHEAD, |ahead| {
+        read(&mut Counted {
+            inner: ahead,
+            bar: &bar,
+        })
     });
     bar.finish_and_clear();
     result
