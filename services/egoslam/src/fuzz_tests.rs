@@ -163,7 +163,7 @@ fn wire_messages_and_their_conversions() {
         let Ok(k) = internal::Keyframe::decode(b) else {
             return false;
         };
-        let mut stats = crate::stats::ServiceStats::new("solver");
+        let mut stats = egoslam_runtime::ServiceStats::new("solver");
         let _ = crate::solver::observations(&k, &mut stats);
         true
     });

@@ -10,14 +10,12 @@ mod config;
 mod frontend;
 #[cfg(test)]
 mod fuzz_tests;
-mod latency;
 mod map_file;
 mod merger;
 mod option_checks;
 mod output;
 mod replay;
 mod solver;
-mod stats;
 mod supervision;
 
 use clap::{CommandFactory, FromArgMatches};
@@ -68,7 +66,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Solver(args) => solver::run(args),
         cli::Command::Merger(args) => merger::run(args),
     };
-    supervision::systemd::notify("STOPPING=1");
+    egoslam_runtime::systemd::notify("STOPPING=1");
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => match e.downcast_ref::<supervision::launcher::Interrupted>() {

@@ -1,9 +1,9 @@
 //! The replay service: reads a sequence and publishes its frames on the bus.
 
 use crate::cli::ReplayArgs;
-use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, Delivery, FrameMeta, FramePublisher};
+use egoslam_runtime::ServiceStats;
 use egoslam_sources::{calibration::read_calibration_file, open_source, FrameSource};
 use opencv::prelude::*;
 use std::time::{Duration, Instant};
@@ -69,7 +69,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             .with_context(|| format!("{}: pixel access", frame.source))?;
         if publisher.is_none() {
             publisher = Some(FramePublisher::create(&bus, pixels.len(), delivery)?);
-            crate::supervision::systemd::ready("camera");
+            egoslam_runtime::systemd::ready("camera");
         }
         let Some(publisher) = publisher.as_mut() else {
             bail!("frame publisher missing")
@@ -125,7 +125,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     }
     let Some(mut publisher) = publisher else {
         if interrupted {
-            return stats.write(&args.service.out);
+            return Ok(stats.write(&args.service.out)?);
         }
         bail!("{}: no frames", input.display())
     };
@@ -139,5 +139,5 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         dropped = publisher.dropped(),
         "replay finished"
     );
-    stats.write(&args.service.out)
+    Ok(stats.write(&args.service.out)?)
 }

@@ -203,7 +203,7 @@ impl Sample {
 
 fn take_sample(root: u32, out: &Path, started: Instant) -> Sample {
     let merger: serde_json::Value =
-        std::fs::read_to_string(crate::stats::ServiceStats::path(out, "merger"))
+        std::fs::read_to_string(egoslam_runtime::ServiceStats::path(out, "merger"))
             .ok()
             .and_then(|t| serde_json::from_str(&t).ok())
             .unwrap_or_default();

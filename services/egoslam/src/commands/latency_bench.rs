@@ -14,9 +14,9 @@
 use crate::commands::bench::{
     ensure_rendered, run_of, write_section, BenchArgs, Section, FISHEYE_LENS,
 };
-use crate::latency::LatencyHistogram;
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;
+use egoslam_runtime::LatencyHistogram;
 use prost::Message;
 use serde_json::json;
 use std::collections::BTreeMap;

@@ -3,7 +3,6 @@
 mod resume;
 
 use crate::cli::ServiceArgs;
-use crate::stats::ServiceStats;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
 use egoslam_durability::log_compaction;
@@ -14,6 +13,7 @@ use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
 use egoslam_relocalization::patch_alignment::extract_patch;
+use egoslam_runtime::ServiceStats;
 use egoslam_sources::calibration::read_calibration_file;
 use opencv::core::{Mat, ToInputArray};
 use opencv::prelude::*;
@@ -365,7 +365,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let frames = FrameSubscriber::create(&bus)?;
     let mut keyframes = MessagePublisher::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut live_frames = MessagePublisher::<internal::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
-    crate::supervision::systemd::ready("frontend");
+    egoslam_runtime::systemd::ready("frontend");
     let mut skipped: Vec<internal::FrameStamp> = Vec::new();
     let mut last_stamp: Option<internal::FrameStamp> = None;
     // With a rolling shutter a keyframe waits for the next frame, which centres its

@@ -4,7 +4,6 @@
 //! The merger's main loop hands it the map after each window.
 
 use crate::merger::map_state::Revisions;
-use crate::stats::ServiceStats;
 use anyhow::Context;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, LIVE_FRAMES};
 use egoslam_egress::Egress;
@@ -13,6 +12,7 @@ use egoslam_merger::{
 };
 use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
+use egoslam_runtime::ServiceStats;
 use nalgebra::Point2;
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -11,7 +11,6 @@ pub(crate) mod map_state;
 mod outputs;
 mod saved_map;
 use crate::cli::ServiceArgs;
-use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_durability::checkpoint::{self, Checkpoint};
@@ -25,6 +24,7 @@ use egoslam_merger::{
 use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
+use egoslam_runtime::ServiceStats;
 pub use live_tracking::LIVE_TRAJECTORY_FILE;
 use map_state::{MapState, Revisions};
 use outputs::Outputs;
@@ -205,7 +205,7 @@ impl Merger {
         );
         self.stats.count("checkpoints", 1);
         // The serialization buffer and anything a folded refinement freed since.
-        crate::supervision::memory::return_freed_memory();
+        egoslam_runtime::memory::return_freed_memory();
         Ok(())
     }
 
@@ -366,7 +366,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<internal::WindowSolution>::create(&bus, WINDOWS)?;
-    crate::supervision::systemd::ready("merger");
+    egoslam_runtime::systemd::ready("merger");
     let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
     let (features_log, descriptions) = FeaturesLog::open(&state_dir)?;
     let options = SessionOptions {

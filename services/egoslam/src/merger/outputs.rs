@@ -2,12 +2,12 @@
 //! enabled) zenoh, all from one snapshot of the map.
 
 use crate::merger::map_state::{self, MapState, Revisions};
-use crate::stats::ServiceStats;
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
+use egoslam_runtime::ServiceStats;
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::{Arc, Mutex};

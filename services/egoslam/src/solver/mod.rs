@@ -4,7 +4,6 @@
 mod resume;
 
 use crate::cli::ServiceArgs;
-use crate::stats::ServiceStats;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
 use egoslam_durability::log_compaction;
@@ -14,6 +13,7 @@ use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::patch_alignment::PATCH_SIDE;
 use egoslam_relocalization::wire::{pose_to_pb, vec3_to_pb};
+use egoslam_runtime::ServiceStats;
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions, WindowStatus};
 use egoslam_solver::windowing::Window;
@@ -379,7 +379,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let mut keyframes = MessageSubscriber::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut windows = MessagePublisher::<internal::WindowSolution>::create(&bus, WINDOWS)?
         .continue_at(next_sequence);
-    crate::supervision::systemd::ready("solver");
+    egoslam_runtime::systemd::ready("solver");
     // Journal first, then send: a message the merger may have received is always in the
     // journal, so a restarted merger can recover it.
     let (merger_mark, solver_mark) = (

@@ -4,11 +4,11 @@ use crate::calibration::focal::FOCAL_FRAMES;
 use crate::calibration::readout::FirstKeyframes;
 use crate::cli::{PipelineArgs, RunArgs};
 use crate::output::camera_yaml;
-use crate::stats::ServiceStats;
 use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
 use anyhow::Context;
 use egoslam_durability::write_atomically;
 use egoslam_geometry::PinholeRadtan;
+use egoslam_runtime::ServiceStats;
 use egoslam_sources::ground_truth::GroundTruth;
 use egoslam_sources::{
     detect_layout, load_calibration, load_ground_truth, open_source, Frame, FrameSource, Layout,
@@ -210,7 +210,7 @@ fn per_run_bus_config(dir: &Path) -> anyhow::Result<PathBuf> {
 /// the processes need not peak at the same moment), MiB.
 fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
     let mib = |kib: u64| (kib as f64 / 1024.0 * 10.0).round() / 10.0;
-    let launcher = crate::stats::peak_rss_kib();
+    let launcher = egoslam_runtime::peak_rss_kib();
     let mut m = serde_json::Map::new();
     m.insert("launcher".into(), json!(mib(launcher)));
     for s in stats {
@@ -259,7 +259,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     drop(tracked);
     // The pre-passes tracked and solved hundreds of frames in this process, which then
     // waits for the services for the rest of the run.
-    let returned = crate::supervision::memory::return_freed_memory();
+    let returned = egoslam_runtime::memory::return_freed_memory();
     tracing::debug!(mib = returned >> 20, "pre-pass memory returned");
     let mut origin = calibration.origin.display().to_string();
     if let Some(scale) = focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
@@ -394,7 +394,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             }
             read => read,
         })
-        .collect::<anyhow::Result<_>>()?;
+        .collect::<Result<_, _>>()?;
     let (replay, frontend, solver, merger) = (&stats[0], &stats[1], &stats[2], &stats[3]);
     let mut timings = serde_json::Map::new();
     for s in &stats {

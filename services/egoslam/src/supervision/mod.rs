@@ -3,7 +3,5 @@
 
 pub mod launcher;
 pub mod live_view;
-pub mod memory;
 pub mod progress;
 pub mod supervisor;
-pub mod systemd;

@@ -50,7 +50,7 @@ mod tests {
             let status = std::process::Command::new(std::env::current_exe().expect("test binary"))
                 .args([
                     "--exact",
-                    "supervision::memory::tests::a_freed_working_set_leaves_the_resident_set",
+                    "memory::tests::a_freed_working_set_leaves_the_resident_set",
                     "--test-threads=1",
                 ])
                 .env(CHILD, "1")

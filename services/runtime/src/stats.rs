@@ -1,7 +1,6 @@
 //! Per-service statistics, written to `OUT/stats/<service>.json` when a service ends (and
 //! periodically), and gathered by the launcher into `report.json`.
 
-use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -112,17 +111,40 @@ impl ServiceStats {
     }
 
     /// Writes atomically (temp file + rename): a crash never leaves half a file.
-    pub fn write(&mut self, out: &Path) -> anyhow::Result<()> {
+    pub fn write(&mut self, out: &Path) -> Result<(), StatsError> {
         self.peak_rss_kib = peak_rss_kib();
         let path = Self::path(out, &self.service);
-        egoslam_durability::write_atomically(&path, serde_json::to_string_pretty(self)?.as_bytes())
-            .map_err(Into::into)
+        let text = serde_json::to_string_pretty(self).map_err(|source| StatsError::Format {
+            path: path.clone(),
+            source,
+        })?;
+        egoslam_durability::write_atomically(&path, text.as_bytes())?;
+        Ok(())
     }
 
-    pub fn read(out: &Path, service: &str) -> anyhow::Result<Self> {
+    pub fn read(out: &Path, service: &str) -> Result<Self, StatsError> {
         let path = Self::path(out, service);
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("reading {}", path.display()))?;
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+        let text = std::fs::read_to_string(&path).map_err(|source| StatsError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|source| StatsError::Format { path, source })
     }
+}
+
+/// Why a statistics file could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum StatsError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Write(#[from] egoslam_durability::DurabilityError),
+    #[error("{path}: not a statistics file: {source}")]
+    Format {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
 }

@@ -1,0 +1,12 @@
+//! What every egoslam service process (replay, frontend, solver, merger) shares, apart from
+//! the bus: [`stats`], the statistics file each writes and the launcher gathers into
+//! report.json, with [`latency`] histograms per hop; [`systemd`] readiness and watchdog
+//! notifications (kept only while the bus is active); [`memory`], handing freed heap back to the system.
+
+pub mod latency;
+pub mod memory;
+pub mod stats;
+pub mod systemd;
+
+pub use latency::LatencyHistogram;
+pub use stats::{peak_rss_kib, ServiceStats, StatsError};
