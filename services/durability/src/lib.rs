@@ -1,12 +1,14 @@
 //! What survives a crash (docs/durability.md): the solver's window journal, the merger's
-//! checkpoint, the append-only record logs (the frontend's keyframes, the merger's keyframe
+//! checkpoint, the saved map a later run relocalizes in or extends, the append-only record logs (the frontend's keyframes, the merger's keyframe
 //! descriptors), the marks by which each service tells the others what they may drop, and
 //! the atomic writes they all rest on. Every file here is written so that a process killed
 //! at any moment leaves either the old or the new complete state.
 
 pub mod checkpoint;
+pub mod estimated_readout;
 pub mod features_log;
 pub mod log_compaction;
+pub mod map_file;
 pub mod record_log;
 pub mod window_journal;
 

@@ -396,6 +396,43 @@ pub struct ServiceArgs {
     pub map: MapArgs,
 }
 
+impl ServiceArgs {
+    /// The merger service's options from these flags.
+    pub fn merger_options(&self) -> egoslam_merger_service::MergerServiceOptions {
+        let pipeline = &self.pipeline;
+        let publishes = !self.egress.zenoh_listen.iter().any(|e| e == "none");
+        egoslam_merger_service::MergerServiceOptions {
+            namespace: self.namespace.clone(),
+            out: self.out.clone(),
+            map_in: self.map.map_in.clone(),
+            map_out: self.map.map_out.clone(),
+            vocabulary: self.map.vocabulary.clone(),
+            egress: publishes.then(|| egoslam_egress::EgressOptions {
+                device: self.egress.device.clone(),
+                network: self.egress.network(),
+            }),
+            session: egoslam_merger::SessionOptions {
+                global_ba_px: pipeline.global_ba_px,
+                refine_keyframes: pipeline.refine_keyframes,
+                refinement_lag: pipeline.refinement_lag,
+                loop_closure: pipeline.loop_closure,
+                cull_keyframes: pipeline.cull_keyframes,
+                max_map_keyframes: pipeline.max_map_keyframes,
+                patch_retention_s: match pipeline.patch_retention_min {
+                    m if m > 0.0 => 60.0 * m,
+                    _ => f64::INFINITY,
+                },
+            },
+            max_point_std: pipeline.max_point_std,
+            map_all_points: pipeline.map_all_points,
+            rolling_shutter_ms: match pipeline.rolling_shutter_ms {
+                crate::calibration::readout::Readout::Millis(ms) => Some(ms),
+                crate::calibration::readout::Readout::Auto => None,
+            },
+        }
+    }
+}
+
 /// docs/config.md's table of `egoslam run`'s options is generated from the definitions
 /// above, so that it cannot drift from them: the test fails while the file's table differs,
 /// and `EGOSLAM_WRITE_DOCS=1 cargo test -p egoslam run_options_table` rewrites it (and

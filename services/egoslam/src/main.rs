@@ -10,10 +10,7 @@ mod config;
 mod frontend;
 #[cfg(test)]
 mod fuzz_tests;
-mod map_file;
-mod merger;
 mod option_checks;
-mod output;
 mod replay;
 mod solver;
 mod supervision;
@@ -64,7 +61,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => frontend::run(args),
         cli::Command::Solver(args) => solver::run(args),
-        cli::Command::Merger(args) => merger::run(args),
+        cli::Command::Merger(args) => egoslam_merger_service::run(args.merger_options()),
     };
     egoslam_runtime::systemd::notify("STOPPING=1");
     match result {

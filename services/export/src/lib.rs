@@ -1,12 +1,15 @@
-//! egoslam's map in the formats of the tools users reconstruct with (docs/export.md):
+//! egoslam's results in the formats of the tools users read them with (docs/export.md):
 //! [`colmap`] text models (cameras.txt, images.txt, points3D.txt) and [`nerfstudio`]'s
 //! transforms.json, both from one [`ExportModel`] built from the map's keyframes,
-//! observations and points.
+//! observations and points; the map's points as PLY ([`map_ply`]); trajectories as TUM
+//! text ([`tum`]); the calibration as egoslam's YAML ([`camera_yaml`]).
 
+pub mod camera_yaml;
 pub mod colmap;
 pub mod map_ply;
 pub mod model;
 pub mod nerfstudio;
+pub mod tum;
 
 pub use model::{ExportImage, ExportModel, ExportPoint, Keypoint, MapView};
 

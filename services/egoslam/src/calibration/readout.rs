@@ -16,8 +16,7 @@ use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, Frame
 use opencv::prelude::*;
 use std::path::{Path, PathBuf};
 
-/// Longest readout that can be given, ms (a frame interval at 10 fps).
-pub const MAX_READOUT_MS: f64 = 100.0;
+pub use egoslam_durability::estimated_readout::MAX_READOUT_MS;
 
 /// Frames `auto` tracks before the run (150: 5 s at 30 fps, ~1.3 s of tracking, which is
 /// most of the pre-pass). 300 gave the same estimates on every sequence here (rendered
@@ -25,29 +24,16 @@ pub const MAX_READOUT_MS: f64 = 100.0;
 /// global-shutter ones) at twice the cost.
 pub const AUTO_FRAMES: u32 = 150;
 
-/// File (in the output folder) with the readout a frontend estimated online, so that a
-/// restarted one goes on with it instead of estimating again.
-pub const READOUT_STATE_FILE: &str = "frontend.readout";
-
 /// Attempts of the online estimation (`readout_frames` each) before a global shutter is
 /// assumed: at the default 150, 20 s of a still or blind start at 30 fps.
 const ONLINE_ATTEMPTS: u32 = 4;
-
-/// The readout (ms) a frontend service of this run estimated online and saved in `out`,
-/// if any.
-fn saved_readout_ms(out: &Path) -> Option<f64> {
-    std::fs::read_to_string(egoslam_durability::state_dir(out).join(READOUT_STATE_FILE))
-        .ok()
-        .and_then(|t| t.trim().parse::<f64>().ok())
-        .filter(|ms| (0.0..=MAX_READOUT_MS).contains(ms))
-}
 
 /// The readout (ms) this run uses as far as is known now: the one given, or under `auto`
 /// the one a frontend of this run estimated and saved (`None`: not yet, or it gave up).
 pub fn known_readout_ms(pipeline: &PipelineArgs, out: &Path) -> Option<f64> {
     match pipeline.rolling_shutter_ms {
         Readout::Millis(ms) => Some(ms),
-        Readout::Auto => saved_readout_ms(out),
+        Readout::Auto => egoslam_durability::estimated_readout::read(out),
     }
 }
 
@@ -109,10 +95,7 @@ pub fn observe_online(
         }
     };
     tracker.set_rolling_shutter_s(readout_s);
-    egoslam_durability::write_atomically(
-        &egoslam_durability::state_dir(out).join(READOUT_STATE_FILE),
-        format!("{:.3}\n", readout_s * 1e3).as_bytes(),
-    )?;
+    egoslam_durability::estimated_readout::write(out, readout_s * 1e3)?;
     Ok(true)
 }
 
@@ -355,23 +338,6 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The readout a frontend saved is what the merger records in a saved map, and what a
-    /// restarted frontend resumes with; a damaged or impossible value is not used.
-    #[test]
-    fn a_saved_readout_is_read_back_and_a_bad_one_ignored() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        assert_eq!(saved_readout_ms(dir.path()), None);
-        let file = egoslam_durability::create_state_dir(dir.path())
-            .expect("state folder")
-            .join(READOUT_STATE_FILE);
-        std::fs::write(&file, "21.000\n").expect("write");
-        assert_eq!(saved_readout_ms(dir.path()), Some(21.0));
-        for bad in ["", "fast", "-3", "500", "NaN"] {
-            std::fs::write(&file, bad).expect("write");
-            assert_eq!(saved_readout_ms(dir.path()), None, "{bad:?}");
-        }
-    }
 
     #[test]
     fn parses_times_and_auto_and_refuses_the_rest() {

@@ -200,7 +200,7 @@ pub fn accuracy(
     for (key, file) in [
         ("trajectory", "trajectory.tum"),
         ("keyframes", "keyframes.tum"),
-        ("live", crate::merger::LIVE_TRAJECTORY_FILE),
+        ("live", egoslam_merger_service::LIVE_TRAJECTORY_FILE),
     ] {
         let path = out.join(file);
         if key == "live" && !path.exists() {

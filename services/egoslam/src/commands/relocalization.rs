@@ -1,8 +1,8 @@
 //! `egoslam vocab train` and `egoslam localize` (docs/relocalization.md).
 
-use crate::map_file::{load_vocabulary, read_map};
 use anyhow::{bail, Context};
 use clap::Args;
+use egoslam_durability::map_file::{load_vocabulary, read_map};
 use egoslam_durability::write_atomically;
 use egoslam_geometry::{
     absolute_trajectory_error, alignment_from_poses, associate, PinholeRadtan, StampedPose,
@@ -221,7 +221,7 @@ fn relocalization_error(
 fn write_trajectory(out: &Path, localized: &BTreeMap<u32, Vec<StampedPose>>) -> anyhow::Result<()> {
     let mut text = String::new();
     for poses in localized.values() {
-        text.push_str(&crate::output::tum_text(poses));
+        text.push_str(&egoslam_export::tum::tum_text(poses));
     }
     write_atomically(&out.join("trajectory.tum"), text.as_bytes())?;
     Ok(())

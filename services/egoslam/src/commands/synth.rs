@@ -2,10 +2,11 @@
 //! depth/, depth.txt, groundtruth.txt, camera.yaml), which `egoslam run` reads like any
 //! TUM folder. Scenes, paths and image formation: `egoslam_synth`; docs/synth.md.
 
-use crate::output::{camera_yaml, tum_text};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use egoslam_durability::write_atomically;
+use egoslam_export::camera_yaml::camera_yaml;
+use egoslam_export::tum::tum_text;
 use egoslam_geometry::{LensModel, PinholeRadtan};
 use egoslam_synth::paths::aria_head_trajectory;
 use egoslam_synth::placement::place_in_free_space;

@@ -349,7 +349,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         stats.count("restarts", 1);
     } else if let Some(path) = &args.map.map_in {
         // The run extends a saved map: its ids start above the map's, which are older.
-        let first = crate::map_file::next_free_id(path)?;
+        let first = egoslam_durability::map_file::next_free_id(path)?;
         tracing::info!(first_id = first, map = %path.display(), "extending a saved map");
         tracker.resume_ids(first, first);
     }

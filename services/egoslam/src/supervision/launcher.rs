@@ -3,10 +3,10 @@
 use crate::calibration::focal::FOCAL_FRAMES;
 use crate::calibration::readout::FirstKeyframes;
 use crate::cli::{PipelineArgs, RunArgs};
-use crate::output::camera_yaml;
 use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
 use anyhow::Context;
 use egoslam_durability::write_atomically;
+use egoslam_export::camera_yaml::camera_yaml;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_runtime::ServiceStats;
 use egoslam_sources::ground_truth::GroundTruth;
@@ -337,8 +337,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.map.map_in {
         // Read once here, so that a map this egoslam cannot use stops the run before it
         // starts, with the reason.
-        let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-        crate::map_file::read_map(path, &vocabulary)?;
+        let vocabulary =
+            egoslam_durability::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
+        egoslam_durability::map_file::read_map(path, &vocabulary)?;
         merger_args.push(format!("--map-in={}", path.display()));
         frontend_args.push(format!("--map-in={}", path.display()));
     }

@@ -128,7 +128,7 @@ impl MergerSession {
     /// features (their pixels), in the features log: a patch is kept only in the keyframe
     /// that first described its track, and relocalization's patch alignment
     /// (docs/relocalization.md) warps it from that keyframe's pose, which its frame keeps
-    /// (egoslam's `map_file::relocalization_map`). Without them, the rendered walks' relocalization
+    /// (`egoslam_durability::map_file::relocalization_map`). Without them, the rendered walks' relocalization
     /// error rose by a quarter to a half.
     fn keep_patches_of(&mut self, keyframe: u64) {
         let map = &self.state.map;

@@ -1,4 +1,6 @@
 //! The merger service: window solutions from the bus -> one map -> result files and zenoh.
+//! A thin loop around egoslam_merger's [`MergerSession`]: receive a window (or read it back
+//! from the solver's journal), apply it, publish, persist.
 //!
 //! After every window the state is checkpointed and the files rewritten (atomically); a
 //! killed merger restarts from its checkpoint and recovers the windows it had not applied
@@ -7,10 +9,9 @@
 
 mod journal_recovery;
 mod live_tracking;
-pub(crate) mod map_state;
+mod map_state;
 mod outputs;
 mod saved_map;
-use crate::cli::ServiceArgs;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_durability::checkpoint::{self, Checkpoint};
@@ -29,10 +30,37 @@ pub use live_tracking::LIVE_TRAJECTORY_FILE;
 use map_state::{MapState, Revisions};
 use outputs::Outputs;
 use std::collections::VecDeque;
+use std::path::PathBuf;
+
+/// What a merger service is told (the launcher's `egoslam merger` flags, docs/config.md).
+#[derive(Debug, Clone)]
+pub struct MergerServiceOptions {
+    /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
+    pub namespace: String,
+    /// Output folder: result files, statistics, and the state folder (checkpoint, journal).
+    pub out: PathBuf,
+    /// A saved map this run extends.
+    pub map_in: Option<PathBuf>,
+    /// Where the map is saved at the end of the stream, for relocalization.
+    pub map_out: Option<PathBuf>,
+    /// Vocabulary file (None: the built-in one).
+    pub vocabulary: Option<PathBuf>,
+    /// How results go out over zenoh (None: not at all).
+    pub egress: Option<EgressOptions>,
+    /// The map's refinement, loop closure and culling.
+    pub session: SessionOptions,
+    /// Points published and written only below this relative standard deviation.
+    pub max_point_std: f64,
+    /// Also write every point, however uncertain (map_all.ply).
+    pub map_all_points: bool,
+    /// The rolling-shutter readout the frames were corrected for, saved with the map: given
+    /// (ms), or None when the frontend estimates it online (read from its state file).
+    pub rolling_shutter_ms: Option<f64>,
+}
 
 /// The merger at work: its durable state, where it writes, what it publishes.
 struct Merger {
-    args: ServiceArgs,
+    options: MergerServiceOptions,
     /// The map and everything about it (egoslam_merger::session).
     session: MergerSession,
     outputs: Outputs,
@@ -77,7 +105,7 @@ fn positive_from_env<T: std::str::FromStr + PartialOrd + Default>(name: &str) ->
 
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
-        egoslam_durability::state_dir(&self.args.out).join(checkpoint::FILE_NAME)
+        egoslam_durability::state_dir(&self.options.out).join(checkpoint::FILE_NAME)
     }
 
     /// Makes `stream_id` the current solver stream (`MergerSession::begin_stream`); a new
@@ -85,7 +113,7 @@ impl Merger {
     fn begin_stream(&mut self, stream_id: u64) -> anyhow::Result<()> {
         if self.session.begin_stream(stream_id) == StreamStart::NewMap {
             self.features_log.truncate()?;
-            if let Some(path) = self.args.map.map_in.clone() {
+            if let Some(path) = self.options.map_in.clone() {
                 self.extend_saved_map(&path)?;
             }
         }
@@ -190,7 +218,7 @@ impl Merger {
         // The solver may now drop the journal's records before the next one.
         if let Some(stream) = self.session.state.stream_id {
             log_compaction::write_mark(
-                &egoslam_durability::state_dir(&self.args.out).join(log_compaction::MERGER_MARK),
+                &egoslam_durability::state_dir(&self.options.out).join(log_compaction::MERGER_MARK),
                 stream,
                 self.session.state.next_sequence(),
             )?;
@@ -223,7 +251,7 @@ impl Merger {
             self.session.state.unsolved_windows,
         );
         self.outputs.emit(
-            &self.args.out,
+            &self.options.out,
             &self.session.state,
             self.session.camera(),
             changed,
@@ -304,15 +332,12 @@ impl Backlog {
     }
 }
 
-fn open_egress(args: &ServiceArgs) -> anyhow::Result<Option<Egress>> {
-    if args.egress.zenoh_listen.iter().any(|e| e == "none") {
+fn open_egress(options: Option<&EgressOptions>) -> anyhow::Result<Option<Egress>> {
+    let Some(options) = options else {
         return Ok(None);
-    }
-    let e = Egress::open(&EgressOptions {
-        device: args.egress.device.clone(),
-        network: args.egress.network(),
-    })?;
-    tracing::info!(prefix = e.prefix(), listen = ?args.egress.zenoh_listen, "publishing over zenoh");
+    };
+    let e = Egress::open(options)?;
+    tracing::info!(prefix = e.prefix(), listen = ?options.network.listen, "publishing over zenoh");
     Ok(Some(e))
 }
 
@@ -340,50 +365,40 @@ fn run_id(namespace: &str) -> String {
     })
 }
 
-pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
-    std::fs::create_dir_all(&args.out)?;
-    let state_dir = egoslam_durability::create_state_dir(&args.out)?;
+/// Runs the merger service until the stream's end (or a signal: an error).
+pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&options.out)?;
+    let state_dir = egoslam_durability::create_state_dir(&options.out)?;
     let checkpoint_path = state_dir.join(checkpoint::FILE_NAME);
     let resumed = MergerState::load(&checkpoint_path)?;
     let bus = Bus::open(
         "merger",
         BusOptions {
-            namespace: args.namespace.clone(),
+            namespace: options.namespace.clone(),
             ..BusOptions::default()
         },
     )?;
     let outputs = Outputs {
-        egress: open_egress(&args)?.map(std::sync::Arc::new),
+        egress: open_egress(options.egress.as_ref())?.map(std::sync::Arc::new),
         revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::default())),
         point_confidence: PointConfidenceOptions {
-            max_relative_std: args.pipeline.max_point_std,
+            max_relative_std: options.max_point_std,
             ..PointConfidenceOptions::default()
         },
         confidence: None,
-        run_id: run_id(&args.namespace),
-        all_points: args.pipeline.map_all_points,
+        run_id: run_id(&options.namespace),
+        all_points: options.map_all_points,
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
     let mut windows = MessageSubscriber::<internal::WindowSolution>::create(&bus, WINDOWS)?;
     egoslam_runtime::systemd::ready("merger");
-    let vocabulary = crate::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
+    let vocabulary = egoslam_durability::map_file::load_vocabulary(options.vocabulary.as_deref())?;
     let (features_log, descriptions) = FeaturesLog::open(&state_dir)?;
-    let options = SessionOptions {
-        global_ba_px: args.pipeline.global_ba_px,
-        refine_keyframes: args.pipeline.refine_keyframes,
-        refinement_lag: args.pipeline.refinement_lag,
-        loop_closure: args.pipeline.loop_closure,
-        cull_keyframes: args.pipeline.cull_keyframes,
-        max_map_keyframes: args.pipeline.max_map_keyframes,
-        patch_retention_s: match args.pipeline.patch_retention_min {
-            m if m > 0.0 => 60.0 * m,
-            _ => f64::INFINITY,
-        },
-    };
+    let session = MergerSession::new(options.session, vocabulary);
     let mut merger = Merger {
-        args,
-        session: MergerSession::new(options, vocabulary),
+        options,
+        session,
         outputs,
         stats: ServiceStats::new("merger"),
         last_persist: None,
@@ -392,15 +407,15 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         live: None,
     };
     merger.live = Some(live_tracking::LiveTracking::start(
-        &merger.args.namespace,
-        &merger.args.out,
+        &merger.options.namespace,
+        &merger.options.out,
         resumed.is_none(),
         live_tracking::Publication {
             egress: merger.outputs.egress.clone(),
             revisions: merger.outputs.revisions.clone(),
             // A saved map to extend puts the new stream in a later segment, known once it
             // is loaded; a restarted merger's stream began long ago.
-            origin_segment: (resumed.is_none() && merger.args.map.map_in.is_none()).then_some(0),
+            origin_segment: (resumed.is_none() && merger.options.map_in.is_none()).then_some(0),
         },
     ));
     let fault = if resumed.is_none() {
@@ -476,7 +491,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         // Windows left in the journal while the backlog was full come first, one at a
         // time, so that the bus keeps being read in between.
         if let Some(stream) = from_journal {
-            let path = egoslam_durability::state_dir(&merger.args.out)
+            let path = egoslam_durability::state_dir(&merger.options.out)
                 .join(egoslam_durability::window_journal::FILE_NAME);
             let Some(w) = egoslam_durability::window_journal::read_one(&path, stream, expected)?
             else {
@@ -514,29 +529,31 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         merger.stats.absorb(live.finish()?);
     }
     merger.emit(&[], pb::ServiceState::Finished, true)?;
-    if let Some(path) = &merger.args.map.map_out {
+    if let Some(path) = &merger.options.map_out {
         let Some(camera) = merger.session.camera() else {
             bail!("no window was received: there is no map to save")
         };
         // `egoslam run` hands the services the readout it estimated; a frontend left to
         // estimate it online (`auto` under systemd) saves it in the shared output folder
         // (0 until it has, or if it gave up).
-        let readout_ms =
-            crate::calibration::readout::known_readout_ms(&merger.args.pipeline, &merger.args.out)
-                .unwrap_or(0.0);
+        let readout_ms = merger
+            .options
+            .rolling_shutter_ms
+            .or_else(|| egoslam_durability::estimated_readout::read(&merger.options.out))
+            .unwrap_or(0.0);
         let readout_s = readout_ms / 1000.0;
         let patches = merger
             .features_log
             .patches(merger.session.state.patched_tracks.keys().copied())?;
-        let map = crate::map_file::relocalization_map(
+        let map = egoslam_durability::map_file::relocalization_map(
             &merger.session.state,
             &merger.features_log,
             &patches,
             camera,
             readout_s,
         );
-        let source = merger.args.out.display().to_string();
-        crate::map_file::write_map(path, &map, merger.session.vocabulary(), &source)?;
+        let source = merger.options.out.display().to_string();
+        egoslam_durability::map_file::write_map(path, &map, merger.session.vocabulary(), &source)?;
     }
     tracing::info!(
         windows = merger.session.state.windows,

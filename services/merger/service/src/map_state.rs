@@ -2,10 +2,10 @@
 //! keyframe_segments.txt, map.ply) and published over zenoh, from the same
 //! `egoslam_merger::session::publication::MapState`.
 
-use crate::output::tum_text;
 use egoslam_durability::write_atomically;
 use egoslam_egress::Egress;
 use egoslam_export::map_ply::{self, MapPlyPoint};
+use egoslam_export::tum::tum_text;
 use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::session::publication::Publication;
 pub use egoslam_merger::session::publication::{MapState, Revisions};

@@ -10,7 +10,7 @@ impl Merger {
     /// `until` (all of them when `None`). With `until` set, the journal must hold them: a
     /// gap that cannot be filled is an error, never a silent loss.
     pub(super) fn catch_up(&mut self, until: Option<(u64, u64)>) -> anyhow::Result<()> {
-        let path = egoslam_durability::state_dir(&self.args.out).join(window_journal::FILE_NAME);
+        let path = egoslam_durability::state_dir(&self.options.out).join(window_journal::FILE_NAME);
         let journal = match window_journal::read(&path) {
             Ok(j) => Some(j),
             Err(e) if until.is_none() => {

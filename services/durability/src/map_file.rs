@@ -1,8 +1,7 @@
 //! Reading and writing saved maps and vocabularies (the file side of
 //! egoslam_relocalization::saved_map; format in docs/relocalization.md).
 
-use anyhow::{bail, Context};
-use egoslam_durability::write_atomically;
+use crate::write_atomically;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::KeyframeFeatureSource;
 use egoslam_merger::MergerState;
@@ -11,36 +10,92 @@ use egoslam_relocalization::MapFeature;
 use egoslam_relocalization::{
     decode_map, default_vocabulary, encode_map, MapKeyframe, RelocalizationMap, Vocabulary,
 };
+use egoslam_relocalization::{SavedMapError, VocabularyError};
 use std::collections::{BTreeMap, HashMap};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why a map or vocabulary file could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum MapFileError {
+    #[error("{what} {}: cannot be read", path.display())]
+    Read {
+        what: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{what} {}: not a file", path.display())]
+    NotAFile { what: &'static str, path: PathBuf },
+    #[error("{what} {}: {bytes} bytes, more than the {MAX_FILE_BYTES} accepted", path.display())]
+    TooLarge {
+        what: &'static str,
+        path: PathBuf,
+        bytes: u64,
+    },
+    #[error("vocabulary {}", path.display())]
+    Vocabulary {
+        path: PathBuf,
+        #[source]
+        source: VocabularyError,
+    },
+    #[error("the built-in vocabulary")]
+    BuiltInVocabulary(#[source] VocabularyError),
+    #[error("map {}", path.display())]
+    Map {
+        path: PathBuf,
+        #[source]
+        source: SavedMapError,
+    },
+    #[error(
+        "map {} was built for vocabulary {map:016x}, not {given:016x} (pass the same --vocabulary as the run that saved it)",
+        path.display()
+    )]
+    OtherVocabulary { path: PathBuf, map: u64, given: u64 },
+    #[error("map {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: crate::DurabilityError,
+    },
+}
 
 /// Largest map or vocabulary file read (a bound on what is read from outside: 4 GiB holds
 /// ~100,000 keyframes with their descriptors).
 const MAX_FILE_BYTES: u64 = 4 << 30;
 
-fn read_bounded(path: &Path, what: &str) -> anyhow::Result<Vec<u8>> {
-    let meta = std::fs::metadata(path)
-        .with_context(|| format!("{what} {}: cannot be read", path.display()))?;
+fn read_bounded(path: &Path, what: &'static str) -> Result<Vec<u8>, MapFileError> {
+    let read = |source| MapFileError::Read {
+        what,
+        path: path.to_path_buf(),
+        source,
+    };
+    let meta = std::fs::metadata(path).map_err(read)?;
     if !meta.is_file() {
-        bail!("{what} {}: not a file", path.display());
+        return Err(MapFileError::NotAFile {
+            what,
+            path: path.to_path_buf(),
+        });
     }
     if meta.len() > MAX_FILE_BYTES {
-        bail!(
-            "{what} {}: {} bytes, more than the {} accepted",
-            path.display(),
-            meta.len(),
-            MAX_FILE_BYTES
-        );
+        return Err(MapFileError::TooLarge {
+            what,
+            path: path.to_path_buf(),
+            bytes: meta.len(),
+        });
     }
-    std::fs::read(path).with_context(|| format!("{what} {}: cannot be read", path.display()))
+    std::fs::read(path).map_err(read)
 }
 
 /// The vocabulary at `path`, or the built-in one.
-pub fn load_vocabulary(path: Option<&Path>) -> anyhow::Result<Vocabulary> {
+pub fn load_vocabulary(path: Option<&Path>) -> Result<Vocabulary, MapFileError> {
     match path {
-        Some(p) => Vocabulary::from_bytes(&read_bounded(p, "vocabulary")?)
-            .with_context(|| format!("vocabulary {}", p.display())),
-        None => default_vocabulary().context("the built-in vocabulary"),
+        Some(p) => Vocabulary::from_bytes(&read_bounded(p, "vocabulary")?).map_err(|source| {
+            MapFileError::Vocabulary {
+                path: p.to_path_buf(),
+                source,
+            }
+        }),
+        None => default_vocabulary().map_err(MapFileError::BuiltInVocabulary),
     }
 }
 
@@ -127,9 +182,12 @@ pub fn write_map(
     map: &RelocalizationMap,
     vocabulary: &Vocabulary,
     source: &str,
-) -> anyhow::Result<()> {
+) -> Result<(), MapFileError> {
     let bytes = encode_map(map, vocabulary.id(), source);
-    write_atomically(path, &bytes).with_context(|| format!("map {}", path.display()))?;
+    write_atomically(path, &bytes).map_err(|source| MapFileError::Write {
+        path: path.to_path_buf(),
+        source,
+    })?;
     tracing::info!(
         path = %path.display(),
         keyframes = map.keyframes.len(),
@@ -142,9 +200,8 @@ pub fn write_map(
 
 /// The first keyframe and track id free above those of the map file at `path` (the file's
 /// vocabulary is not checked: the merger reads it with its own).
-pub fn next_free_id(path: &Path) -> anyhow::Result<u64> {
-    let bytes = read_bounded(path, "map")?;
-    let (map, _) = decode_map(&bytes).with_context(|| format!("map {}", path.display()))?;
+pub fn next_free_id(path: &Path) -> Result<u64, MapFileError> {
+    let (map, _) = decode(path)?;
     Ok(egoslam_merger::next_free_id(&map))
 }
 
@@ -156,25 +213,31 @@ pub fn extend_state(state: &mut MergerState, map: RelocalizationMap) -> Vec<MapK
     state.culling_checked_before = egoslam_merger::next_free_id(&map);
     for k in &map.keyframes {
         if !k.patches.is_empty() {
-            let tracks = egoslam_durability::features_log::patched_tracks(&k.patches);
+            let tracks = crate::features_log::patched_tracks(&k.patches);
             state.patched_tracks.insert(k.keyframe_id, tracks);
         }
     }
     map.keyframes
 }
 
-/// Reads a map file and checks that it was made for `vocabulary`.
-pub fn read_map(path: &Path, vocabulary: &Vocabulary) -> anyhow::Result<RelocalizationMap> {
+/// The map in the file at `path` and the id of the vocabulary it was made for.
+fn decode(path: &Path) -> Result<(RelocalizationMap, u64), MapFileError> {
     let bytes = read_bounded(path, "map")?;
-    let (map, vocabulary_id) =
-        decode_map(&bytes).with_context(|| format!("map {}", path.display()))?;
+    decode_map(&bytes).map_err(|source| MapFileError::Map {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Reads a map file and checks that it was made for `vocabulary`.
+pub fn read_map(path: &Path, vocabulary: &Vocabulary) -> Result<RelocalizationMap, MapFileError> {
+    let (map, vocabulary_id) = decode(path)?;
     if vocabulary_id != vocabulary.id() {
-        bail!(
-            "map {} was built for vocabulary {vocabulary_id:016x}, not {:016x} (pass the \
-             same --vocabulary as the run that saved it)",
-            path.display(),
-            vocabulary.id()
-        );
+        return Err(MapFileError::OtherVocabulary {
+            path: path.to_path_buf(),
+            map: vocabulary_id,
+            given: vocabulary.id(),
+        });
     }
     Ok(map)
 }

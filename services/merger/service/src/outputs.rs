@@ -1,7 +1,7 @@
 //! What the merger writes and publishes after a window: result files, stats and (when
 //! enabled) zenoh, all from one snapshot of the map.
 
-use crate::merger::map_state::{self, MapState, Revisions};
+use crate::map_state::{self, MapState, Revisions};
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::MergerState;

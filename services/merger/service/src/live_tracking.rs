@@ -3,7 +3,7 @@
 //! as the frame's revision 0 over zenoh; the window's pose comes later as a higher revision.
 //! The merger's main loop hands it the map after each window.
 
-use crate::merger::map_state::Revisions;
+use crate::map_state::Revisions;
 use anyhow::Context;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, LIVE_FRAMES};
 use egoslam_egress::Egress;

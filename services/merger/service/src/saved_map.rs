@@ -8,9 +8,9 @@ impl Merger {
     /// keyframes' descriptors go into the features log and the linking index like the
     /// run's own, so that a restarted merger and segment linking have them.
     pub(super) fn extend_saved_map(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
-        let map = crate::map_file::read_map(path, self.session.vocabulary())?;
+        let map = egoslam_durability::map_file::read_map(path, self.session.vocabulary())?;
         let (keyframes, points) = (map.keyframes.len(), map.points.len());
-        for k in crate::map_file::extend_state(&mut self.session.state, map) {
+        for k in egoslam_durability::map_file::extend_state(&mut self.session.state, map) {
             self.features_log
                 .append(&features_to_pb(k.keyframe_id, &k.features, &k.patches))?;
             self.session.index_keyframe(k.keyframe_id, &k.features);
