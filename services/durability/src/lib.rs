@@ -13,6 +13,12 @@ pub mod record_log;
 pub mod window_journal;
 
 use std::io::Write;
+
+/// The frontend's log of every keyframe message it sent, in order (length-delimited, in the
+/// state folder): a restarted solver replays the ones its predecessor had not turned into
+/// windows (docs/durability.md).
+pub const KEYFRAME_LOG: &str = "keyframes.log";
+
 use std::path::{Path, PathBuf};
 
 /// Why a durable file could not be written or read back.

@@ -397,6 +397,20 @@ pub struct ServiceArgs {
 }
 
 impl ServiceArgs {
+    /// The solver service's options from these flags.
+    pub fn solver_options(&self) -> egoslam_solver_service::SolverServiceOptions {
+        egoslam_solver_service::SolverServiceOptions {
+            namespace: self.namespace.clone(),
+            out: self.out.clone(),
+            windows: egoslam_solver::WindowOptions {
+                size: usize::from(self.pipeline.window),
+                overlap: self.pipeline.overlap,
+                ..egoslam_solver::WindowOptions::default()
+            },
+            loop_closure_span: usize::from(self.pipeline.loop_closures),
+        }
+    }
+
     /// The merger service's options from these flags.
     pub fn merger_options(&self) -> egoslam_merger_service::MergerServiceOptions {
         let pipeline = &self.pipeline;

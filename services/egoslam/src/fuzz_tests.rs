@@ -164,7 +164,7 @@ fn wire_messages_and_their_conversions() {
             return false;
         };
         let mut stats = egoslam_runtime::ServiceStats::new("solver");
-        let _ = crate::solver::observations(&k, &mut stats);
+        let _ = egoslam_solver_service::observations(&k, &mut stats);
         true
     });
 }

@@ -12,7 +12,6 @@ mod frontend;
 mod fuzz_tests;
 mod option_checks;
 mod replay;
-mod solver;
 mod supervision;
 
 use clap::{CommandFactory, FromArgMatches};
@@ -60,7 +59,7 @@ fn main() -> std::process::ExitCode {
         }
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => frontend::run(args),
-        cli::Command::Solver(args) => solver::run(args),
+        cli::Command::Solver(args) => egoslam_solver_service::run(args.solver_options()),
         cli::Command::Merger(args) => egoslam_merger_service::run(args.merger_options()),
     };
     egoslam_runtime::systemd::notify("STOPPING=1");

@@ -30,9 +30,7 @@ fn reason(r: KeyframeReason) -> internal::KeyframeReason {
     }
 }
 
-/// Every keyframe message sent, in order (length-delimited): a restarted solver replays the
-/// ones its predecessor had not turned into windows (docs/durability.md).
-pub const KEYFRAME_LOG: &str = "keyframes.log";
+use egoslam_durability::KEYFRAME_LOG;
 
 /// Logs a keyframe message, then sends it: whatever the solver may have received is in the
 /// log. Flushed to the kernel (not synced): the threat is a killed process, and the page

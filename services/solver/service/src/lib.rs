@@ -1,9 +1,9 @@
 //! The window solver service: keyframes from the bus -> windows -> solutions on the bus.
-//! The geometry is `egoslam_solver::window_solver`; this file only converts and publishes.
+//! The geometry is `egoslam_solver::window_solver`; this crate only converts, journals and
+//! publishes.
 
 mod resume;
 
-use crate::cli::ServiceArgs;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessagePublisher, MessageSubscriber, KEYFRAMES, WINDOWS};
 use egoslam_durability::log_compaction;
@@ -19,6 +19,20 @@ use egoslam_solver::window_solver::{solve_window, WindowSolverOptions, WindowSta
 use egoslam_solver::windowing::Window;
 use egoslam_solver::{WindowBuilder, WindowOptions};
 use nalgebra::{Point2, UnitQuaternion};
+use std::path::PathBuf;
+
+/// What a solver service is told (the launcher's `egoslam solver` flags, docs/config.md).
+#[derive(Debug, Clone)]
+pub struct SolverServiceOptions {
+    /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
+    pub namespace: String,
+    /// Output folder: statistics, and the state folder (journal, compaction marks).
+    pub out: PathBuf,
+    /// Keyframes per window and the overlap between successive windows.
+    pub windows: WindowOptions,
+    /// Keyframes apart that local loop-closure edges may span.
+    pub loop_closure_span: usize,
+}
 
 /// Timing facts of a keyframe, for the merger's per-frame trajectory.
 fn stamp(k: &internal::Keyframe) -> internal::KeyframeStamp {
@@ -73,10 +87,10 @@ fn overlap_strength(overlap: &[internal::Keyframe]) -> usize {
         .count()
 }
 
-pub(crate) fn observations(
-    k: &internal::Keyframe,
-    stats: &mut ServiceStats,
-) -> KeyframeObservations {
+/// A keyframe message as the window solver takes it: its tracks' undistorted positions,
+/// without those that are not finite or lie far outside the image (counted in `stats` as
+/// `invalid_tracks`): they come from another process, and one NaN would spoil a window.
+pub fn observations(k: &internal::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
     let limit = k
         .intrinsics
         .as_ref()
@@ -322,15 +336,12 @@ fn new_stream_id() -> u64 {
     (nanos ^ (u64::from(std::process::id()) << 40)) | 1
 }
 
-pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
+/// Runs the solver service until the stream's end (or a signal: an error).
+pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("solver");
-    let window_options = WindowOptions {
-        size: usize::from(args.pipeline.window),
-        overlap: args.pipeline.overlap,
-        ..WindowOptions::default()
-    };
+    let window_options = args.windows;
     let mut options = WindowSolverOptions::default();
-    options.view_graph.loop_closure_span = usize::from(args.pipeline.loop_closures);
+    options.view_graph.loop_closure_span = args.loop_closure_span;
     let mut cache = EdgeCache::new();
     let bus = Bus::open(
         "solver",
@@ -343,7 +354,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     let state_dir = egoslam_durability::create_state_dir(&args.out)?;
     let journal_path = state_dir.join(window_journal::FILE_NAME);
     // A restarted solver continues its predecessor's stream (docs/durability.md).
-    let resume = resume::find(&args.out, args.pipeline.overlap)?;
+    let resume = resume::find(&args.out, args.windows.overlap)?;
     let (stream_id, mut journal, mut builder, next_sequence, replay, skip_up_to) = match resume {
         Some(r) => {
             tracing::warn!(
@@ -386,7 +397,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         state_dir.join(log_compaction::MERGER_MARK),
         state_dir.join(log_compaction::SOLVER_MARK),
     );
-    let overlap = args.pipeline.overlap;
+    let overlap = args.windows.overlap;
     let mut schedule = log_compaction::CompactionSchedule::from_env();
     let mut publish = |message: internal::WindowSolution| -> anyhow::Result<()> {
         let message = internal::WindowSolution {

@@ -8,9 +8,9 @@
 //! replays the logged keyframes after that window, then goes on with the live channel,
 //! skipping the keyframes it has already replayed.
 
-use crate::frontend::KEYFRAME_LOG;
 use egoslam_durability::record_log::read_records;
 use egoslam_durability::window_journal::{self, Journal};
+use egoslam_durability::KEYFRAME_LOG;
 use egoslam_messages::internal::v1 as internal;
 use std::path::Path;
 
