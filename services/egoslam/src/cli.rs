@@ -397,6 +397,19 @@ pub struct ServiceArgs {
 }
 
 impl ServiceArgs {
+    /// The frontend service's options from these flags.
+    pub fn frontend_options(&self) -> egoslam_frontend_service::FrontendServiceOptions {
+        egoslam_frontend_service::FrontendServiceOptions {
+            namespace: self.namespace.clone(),
+            out: self.out.clone(),
+            camera: self.camera.clone(),
+            tracker: crate::calibration::readout::tracker_options(&self.pipeline, 0.0),
+            rolling_shutter_ms: self.pipeline.rolling_shutter_ms.given_ms(),
+            readout_frames: self.pipeline.readout_frames,
+            map_in: self.map.map_in.clone(),
+        }
+    }
+
     /// The solver service's options from these flags.
     pub fn solver_options(&self) -> egoslam_solver_service::SolverServiceOptions {
         egoslam_solver_service::SolverServiceOptions {
@@ -439,10 +452,7 @@ impl ServiceArgs {
             },
             max_point_std: pipeline.max_point_std,
             map_all_points: pipeline.map_all_points,
-            rolling_shutter_ms: match pipeline.rolling_shutter_ms {
-                crate::calibration::readout::Readout::Millis(ms) => Some(ms),
-                crate::calibration::readout::Readout::Auto => None,
-            },
+            rolling_shutter_ms: pipeline.rolling_shutter_ms.given_ms(),
         }
     }
 }

@@ -7,7 +7,6 @@ mod calibration;
 mod cli;
 mod commands;
 mod config;
-mod frontend;
 #[cfg(test)]
 mod fuzz_tests;
 mod option_checks;
@@ -58,7 +57,7 @@ fn main() -> std::process::ExitCode {
             commands::relocalization::vocab_train(args)
         }
         cli::Command::Replay(args) => replay::run(args),
-        cli::Command::Frontend(args) => frontend::run(args),
+        cli::Command::Frontend(args) => egoslam_frontend_service::run(args.frontend_options()),
         cli::Command::Solver(args) => egoslam_solver_service::run(args.solver_options()),
         cli::Command::Merger(args) => egoslam_merger_service::run(args.merger_options()),
     };

@@ -3,18 +3,18 @@
 //! (`egoslam_frontend::readout_estimation`). `egoslam run` resolves it before the services
 //! start by tracking the first frames of a recorded input; a frontend service given `auto`
 //! (a live stream, which cannot be read ahead) estimates it from its first frames and
-//! corrects from then on. `egoslam calibrate-readout` prints the estimate for a recording.
+//! corrects from then on (`egoslam_frontend_service::online_readout`). `egoslam calibrate-readout` prints the estimate for a recording.
 
 use crate::cli::PipelineArgs;
 use anyhow::{bail, Context};
 use egoslam_frontend::{
-    estimate_readout, FrameTracks, KeyframePolicy, OnlineReadout, OnlineReadoutEstimator,
-    ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions, Tracker, TrackerOptions,
+    estimate_readout, FrameTracks, KeyframePolicy, ReadoutEstimate, ReadoutEstimationError,
+    ReadoutEstimationOptions, Tracker, TrackerOptions,
 };
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, FrameSource, Layout};
 use opencv::prelude::*;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 pub use egoslam_durability::estimated_readout::MAX_READOUT_MS;
 
@@ -24,81 +24,6 @@ pub use egoslam_durability::estimated_readout::MAX_READOUT_MS;
 /// global-shutter ones) at twice the cost.
 pub const AUTO_FRAMES: u32 = 150;
 
-/// Attempts of the online estimation (`readout_frames` each) before a global shutter is
-/// assumed: at the default 150, 20 s of a still or blind start at 30 fps.
-const ONLINE_ATTEMPTS: u32 = 4;
-
-/// The readout (ms) this run uses as far as is known now: the one given, or under `auto`
-/// the one a frontend of this run estimated and saved (`None`: not yet, or it gave up).
-pub fn known_readout_ms(pipeline: &PipelineArgs, out: &Path) -> Option<f64> {
-    match pipeline.rolling_shutter_ms {
-        Readout::Millis(ms) => Some(ms),
-        Readout::Auto => egoslam_durability::estimated_readout::read(out),
-    }
-}
-
-/// The readout a frontend service starts with, and the online estimator when `auto`
-/// reaches it (a live stream: `egoslam run` resolves it for recorded inputs) and no
-/// earlier estimate of this run is in `out`.
-pub fn service_readout(
-    pipeline: &PipelineArgs,
-    out: &Path,
-) -> (f64, Option<OnlineReadoutEstimator>) {
-    match known_readout_ms(pipeline, out) {
-        Some(ms) => {
-            if matches!(pipeline.rolling_shutter_ms, Readout::Auto) {
-                tracing::info!(
-                    readout_ms = ms,
-                    "rolling-shutter readout of this run, estimated before a restart"
-                );
-            }
-            (ms / 1000.0, None)
-        }
-        None => {
-            tracing::info!(
-                frames = pipeline.readout_frames,
-                "rolling-shutter readout: estimated from the first frames of the stream (uncorrected until then)"
-            );
-            let estimator = OnlineReadoutEstimator::new(
-                ReadoutEstimationOptions::default(),
-                pipeline.readout_frames as usize,
-                ONLINE_ATTEMPTS,
-            );
-            (0.0, Some(estimator))
-        }
-    }
-}
-
-/// Feeds the frame just tracked to the online estimator; once it decides, sets the
-/// tracker's readout, saves it for a restart and returns true.
-pub fn observe_online(
-    online: &mut OnlineReadoutEstimator,
-    tracker: &mut Tracker,
-    timestamp_s: f64,
-    out: &Path,
-) -> anyhow::Result<bool> {
-    let frame = FrameTracks {
-        timestamp_s,
-        tracks: tracker.sample_tracks(usize::MAX),
-    };
-    let readout_s = match online.push(frame, &tracker.camera()) {
-        OnlineReadout::Collecting => return Ok(false),
-        OnlineReadout::Estimated(e) => {
-            log_estimate(&e, "online; corrected from now on");
-            e.readout_s
-        }
-        OnlineReadout::GaveUp(e) => {
-            tracing::warn!(
-                "no rolling-shutter readout estimate ({e}): a global shutter is assumed"
-            );
-            0.0
-        }
-    };
-    tracker.set_rolling_shutter_s(readout_s);
-    egoslam_durability::estimated_readout::write(out, readout_s * 1e3)?;
-    Ok(true)
-}
-
 /// The readout the frontend corrects for.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Readout {
@@ -106,6 +31,16 @@ pub enum Readout {
     Auto,
     /// Given, ms from the first row to the last (0: a global shutter).
     Millis(f64),
+}
+
+impl Readout {
+    /// The readout given, ms (None: `auto`).
+    pub fn given_ms(self) -> Option<f64> {
+        match self {
+            Readout::Millis(ms) => Some(ms),
+            Readout::Auto => None,
+        }
+    }
 }
 
 impl std::str::FromStr for Readout {
@@ -244,28 +179,11 @@ fn estimate_tracked(
         fit_ms = fit_started.elapsed().as_secs_f64() * 1e3,
         "readout fit"
     );
-    log_estimate(&estimate, "from the input's first frames");
-    Ok(estimate)
-}
-
-/// Logs an estimate with the residuals it rests on, and what to do when it found none.
-fn log_estimate(e: &ReadoutEstimate, how: &str) {
-    tracing::info!(
-        readout_ms = e.readout_s * 1e3,
-        best_ms = e.best_s * 1e3,
-        residual_px = e.residual_px,
-        residual_at_zero_px = e.residual_at_zero_px,
-        pairs = e.pairs,
-        "rolling-shutter readout estimated {how}"
+    egoslam_frontend_service::online_readout::log_estimate(
+        &estimate,
+        "from the input's first frames",
     );
-    if !e.significant {
-        // Measured on a rendered walk straight ahead with head turns at a 20 ms readout:
-        // no clear gain (0.8 %), taken as a global shutter, twice the error of told 20 ms
-        // (docs/config.md).
-        tracing::info!(
-            "no clear rolling-shutter readout: taken as a global shutter; walking straight ahead can hide one, so for a rolling-shutter camera measure it on a recording of the head turning while standing still (`egoslam calibrate-readout`) and give --rolling-shutter-ms"
-        );
-    }
+    Ok(estimate)
 }
 
 /// The tracker's options from the pipeline's, with the readout given in seconds.

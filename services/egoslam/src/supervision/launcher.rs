@@ -75,7 +75,7 @@ fn resolve_readout(
     }
     if matches!(layout, Layout::Camera { .. }) {
         // A live camera cannot be read ahead: the frontend estimates it from its first
-        // frames (readout.rs) and logs the value.
+        // frames (egoslam_frontend_service::online_readout) and logs the value.
         let report = json!({ "setting": "auto", "estimated_by": "the frontend, online" });
         return (report, None);
     }

@@ -1,14 +1,17 @@
-//! The frontend service: frames from the bus -> tracker -> keyframes on the bus.
+//! The frontend service: frames from the bus -> tracker (egoslam_frontend) -> keyframes on
+//! the bus, and every frame's tracks to the merger's live tracker.
 
+pub mod online_readout;
 mod resume;
 
-use crate::cli::ServiceArgs;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
 use egoslam_durability::log_compaction;
 use egoslam_durability::record_log::RecordLog;
 use egoslam_frontend::tracker::ResumePoint;
-use egoslam_frontend::{KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError};
+use egoslam_frontend::{
+    KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions,
+};
 use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::descriptors::{DescriberOptions, OrbDescriber};
@@ -18,7 +21,28 @@ use egoslam_sources::calibration::read_calibration_file;
 use opencv::core::{Mat, ToInputArray};
 use opencv::prelude::*;
 use std::collections::HashSet;
+use std::path::PathBuf;
 use std::time::Instant;
+
+/// What a frontend service is told (the launcher's `egoslam frontend` flags,
+/// docs/config.md).
+#[derive(Debug, Clone)]
+pub struct FrontendServiceOptions {
+    /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
+    pub namespace: String,
+    /// Output folder: statistics, and the state folder (keyframe log, ids, readout).
+    pub out: PathBuf,
+    /// Calibration YAML in egoslam's format (the launcher writes OUT/camera.yaml).
+    pub camera: Option<PathBuf>,
+    /// The tracker's options; its readout is set from `rolling_shutter_ms`.
+    pub tracker: TrackerOptions,
+    /// Rolling-shutter readout, ms (None: `auto`, estimated online, `online_readout`).
+    pub rolling_shutter_ms: Option<f64>,
+    /// Frames the online readout estimate is made from.
+    pub readout_frames: u32,
+    /// A saved map the run extends: keyframe and track ids start above its own.
+    pub map_in: Option<PathBuf>,
+}
 
 fn reason(r: KeyframeReason) -> internal::KeyframeReason {
     match r {
@@ -297,7 +321,8 @@ fn send_live_frame(
     stats.add_time("publish_live", started.elapsed().as_secs_f64() * 1e3);
 }
 
-pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
+/// Runs the frontend service until the stream's end (or a signal: an error).
+pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("frontend");
     let calib_path = args
         .camera
@@ -310,11 +335,14 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
     );
     let camera = calib.camera_for(w, h)?;
     let intrinsics = egoslam_relocalization::intrinsics_to_pb(&camera);
-    // The readout is in range: checked where it is parsed (readout.rs). `auto` reaches this
-    // service only for a live stream: it is estimated from the first frames (readout.rs).
+    // The readout is in range: checked where the flag is parsed. `auto` reaches this service
+    // only for a live stream: it is estimated from the first frames (online_readout.rs).
     let (readout_s, mut online_readout) =
-        crate::calibration::readout::service_readout(&args.pipeline, &args.out);
-    let options = crate::calibration::readout::tracker_options(&args.pipeline, readout_s);
+        online_readout::service_readout(args.rolling_shutter_ms, args.readout_frames, &args.out);
+    let options = TrackerOptions {
+        rolling_shutter_s: readout_s,
+        ..args.tracker
+    };
     let mut tracker = Tracker::new(camera, options);
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.
@@ -345,7 +373,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         );
         tracker.resume_ids(kf, track);
         stats.count("restarts", 1);
-    } else if let Some(path) = &args.map.map_in {
+    } else if let Some(path) = &args.map_in {
         // The run extends a saved map: its ids start above the map's, which are older.
         let first = egoslam_durability::map_file::next_free_id(path)?;
         tracing::info!(first_id = first, map = %path.display(), "extending a saved map");
@@ -436,12 +464,7 @@ pub fn run(args: ServiceArgs) -> anyhow::Result<()> {
         drop(frame);
         stats.frames += 1;
         if let Some(online) = &mut online_readout {
-            if crate::calibration::readout::observe_online(
-                online,
-                &mut tracker,
-                meta.timestamp,
-                &args.out,
-            )? {
+            if online_readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)? {
                 online_readout = None;
             }
         }
