@@ -33,7 +33,7 @@ pub enum Command {
     /// Write a finished run's map for COLMAP or nerfstudio (docs/export.md).
     Export(crate::commands::export::ExportArgs),
     /// Run the benchmark suite (real and rendered sequences) and write the table.
-    Bench(crate::commands::bench::BenchArgs),
+    Bench(egoslam_bench::BenchArgs),
     /// Render a synthetic egocentric sequence with ground truth (TUM layout).
     Synth(crate::commands::synth::SynthArgs),
     /// Estimate a camera's rolling-shutter readout from a recording (for

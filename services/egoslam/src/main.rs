@@ -51,7 +51,7 @@ fn main() -> std::process::ExitCode {
         cli::Command::View(args) => supervision::live_view::view(args),
         cli::Command::Synth(args) => commands::synth::run(args),
         cli::Command::CalibrateReadout(args) => calibration::readout::calibrate(args),
-        cli::Command::Bench(args) => commands::bench::run(args, cli.config.as_deref()),
+        cli::Command::Bench(args) => egoslam_bench::run(args, cli.config.as_deref()),
         cli::Command::Localize(args) => commands::relocalization::localize(args),
         cli::Command::Vocab(cli::VocabCommand::Train(args)) => {
             commands::relocalization::vocab_train(args)

@@ -10,7 +10,7 @@
 //! against the peak in the last cycle, the size at both, and the ATE of the whole looped
 //! trajectory against one pass of the same walk.
 
-use crate::commands::bench::{ensure_rendered, run_of, write_section, BenchArgs, Section};
+use crate::{ensure_rendered, run_of, write_section, BenchArgs, Section};
 use anyhow::{bail, Context};
 use serde_json::json;
 use std::collections::BTreeMap;

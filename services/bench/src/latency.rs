@@ -11,9 +11,7 @@
 //! trajectory as published (revision 0, `accuracy.live`) and of the refined one. Three runs
 //! per sequence; the table gives the median of each figure over them.
 
-use crate::commands::bench::{
-    ensure_rendered, run_of, write_section, BenchArgs, Section, FISHEYE_LENS,
-};
+use crate::{ensure_rendered, run_of, write_section, BenchArgs, Section, FISHEYE_LENS};
 use anyhow::{bail, Context};
 use egoslam_messages::v1 as pb;
 use egoslam_runtime::LatencyHistogram;

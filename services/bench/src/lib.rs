@@ -1,7 +1,12 @@
-//! `egoslam bench`: the benchmark suite. Runs `egoslam run` over the real sequences in
-//! ../shared/data and rendered ones (`egoslam synth`, cached), and writes one table
-//! (markdown into docs/benchmarks.md between markers, and JSON) of frames, keyframes,
-//! breaks, ATE, RPE, structure error, time per frame and peak memory.
+//! `egoslam bench`: the benchmark suite. Runs `egoslam run` (the binary that calls [`run`])
+//! over the real sequences in ../shared/data and rendered ones (`egoslam synth`, cached),
+//! and writes one table (markdown into docs/benchmarks.md between markers, and JSON) of
+//! frames, keyframes, breaks, ATE, RPE, structure error, time per frame and peak memory.
+//! The endurance suite ([`endurance`]) loops a walk and samples memory and disk; the
+//! latency suite ([`latency`]) replays in real time and times each pose's hops.
+
+pub mod endurance;
+pub mod latency;
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
@@ -25,11 +30,11 @@ pub enum Suite {
     Walks,
     /// A rendered corridor walk played back and forth (`--cycles`, `--walk-frames`) through
     /// the real processes, sampling each service's memory and the output's size every 2 s
-    /// (docs/benchmarks.md, "Endurance"; endurance_bench.rs).
+    /// (docs/benchmarks.md, "Endurance"; endurance.rs).
     Endurance,
     /// Real-time replays with a zenoh client in the bench: each frame's time from capture
     /// to its live pose, in report.json and at the client (docs/benchmarks.md, "Pose
-    /// latency"; latency_bench.rs).
+    /// latency"; latency.rs).
     Latency,
     /// The quick suite's rendered sequences (profiles, walks, scenes, the robustness cases,
     /// the Aria replay; not its rolling-shutter renders) seen through an equidistant fisheye
@@ -488,10 +493,10 @@ pub(crate) fn write_section(path: &Path, table: &str, section: &Section) -> anyh
 /// suite's own flags for an entry winning over it.
 pub fn run(args: BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     if args.suite == Suite::Endurance {
-        return crate::commands::endurance_bench::run(&args, config);
+        return crate::endurance::run(&args, config);
     }
     if args.suite == Suite::Latency {
-        return crate::commands::latency_bench::run(&args);
+        return crate::latency::run(&args);
     }
     let entries = suite(&args);
     std::fs::create_dir_all(&args.out)?;
