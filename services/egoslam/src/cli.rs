@@ -26,7 +26,7 @@ pub enum Command {
     /// Run the whole pipeline on a sequence (default: the embedded TUM clip) and write results.
     Run(RunArgs),
     /// ATE RMSE of a TUM trajectory against ground truth (TUM, KITTI or EuRoC layout).
-    Eval(EvalArgs),
+    Eval(egoslam_evaluation::EvalArgs),
     /// Follow a running egoslam (a deployed merger) in Foxglove and/or record it into MCAP
     /// (docs/viewer.md).
     View(crate::supervision::live_view::ViewCommandArgs),
@@ -343,25 +343,6 @@ pub struct MapArgs {
     /// Vocabulary tree file (`egoslam vocab train`); default: the one built into egoslam.
     #[arg(long)]
     pub vocabulary: Option<PathBuf>,
-}
-
-#[derive(Args, Debug)]
-pub struct EvalArgs {
-    /// Estimated trajectory, TUM format.
-    pub estimate: PathBuf,
-    /// Ground truth: TUM file, KITTI poses file, EuRoC csv/TUM file, or a dataset folder.
-    pub ground_truth: PathBuf,
-    /// Maximum timestamp difference for association, seconds.
-    #[arg(long, default_value_t = 0.02)]
-    pub max_dt: f64,
-    /// How the estimate is aligned to the ground truth: sim3 (rotation, translation and
-    /// scale: monocular) or se3 (scale kept: judges the scale too).
-    #[arg(long, value_enum, default_value_t = crate::commands::eval_plots::Alignment::Sim3)]
-    pub alignment: crate::commands::eval_plots::Alignment,
-    /// Write eval.json (errors per pose), trajectory.svg (top view, estimate coloured by
-    /// error) and error.svg (error over time) into this folder.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -46,7 +46,7 @@ fn main() -> std::process::ExitCode {
     }
     let result = match cli.command {
         cli::Command::Run(args) => supervision::launcher::run(args),
-        cli::Command::Eval(args) => commands::eval::run(args),
+        cli::Command::Eval(args) => egoslam_evaluation::run(args),
         cli::Command::Export(args) => commands::export::run(args),
         cli::Command::View(args) => supervision::live_view::view(args),
         cli::Command::Synth(args) => commands::synth::run(args),

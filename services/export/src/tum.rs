@@ -3,6 +3,10 @@
 
 use egoslam_geometry::StampedPose;
 
+/// The live (revision 0) poses of a run as they were published, one line per frame (the
+/// merger's live tracker writes it; `egoslam eval` scores it).
+pub const LIVE_TRAJECTORY_FILE: &str = "live_trajectory.tum";
+
 /// TUM trajectory text: `timestamp tx ty tz qx qy qz qw`.
 pub fn tum_text(poses: &[StampedPose]) -> String {
     let mut s = String::from("# timestamp tx ty tz qx qy qz qw (world_from_camera)\n");

@@ -1,8 +1,6 @@
-//! The commands a user runs besides `run`: rendering, evaluation, export, relocalization and
-//! vocabulary training (`egoslam bench` is services/bench).
+//! The commands a user runs besides `run`: rendering, export, relocalization and vocabulary
+//! training (`egoslam bench` is services/bench, `egoslam eval` services/evaluation).
 
-pub mod eval;
-pub mod eval_plots;
 pub mod export;
 pub mod relocalization;
 pub mod synth;

@@ -412,7 +412,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     };
     let mut accuracy = serde_json::Value::Null;
     if let Some(gt) = &ground_truth {
-        accuracy = match crate::commands::eval::accuracy(out, layout.root(), &camera, gt) {
+        accuracy = match egoslam_evaluation::accuracy(out, layout.root(), &camera, gt) {
             Ok(a) => a,
             Err(e) if interrupted => json!({ "error": format!("{e:#}") }),
             Err(e) => return Err(e),

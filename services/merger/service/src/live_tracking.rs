@@ -21,8 +21,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-/// The live poses as they were published, one TUM line per frame.
-pub const LIVE_TRAJECTORY_FILE: &str = "live_trajectory.tum";
+pub use egoslam_export::tum::LIVE_TRAJECTORY_FILE;
 
 /// How long the thread waits for a frame before it looks at its stop flag and the map.
 const POLL: Duration = Duration::from_millis(20);

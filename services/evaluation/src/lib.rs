@@ -2,8 +2,10 @@
 //! 1 s, and structure error of the map against ground-truth depth where the sequence has
 //! depth maps (rendered sequences, docs/synth.md).
 
-use crate::cli::EvalArgs;
+pub mod plots;
+
 use anyhow::Context;
+use clap::Args;
 use egoslam_geometry::{
     absolute_trajectory_error, alignment_from_poses, orientation_error, relative_pose_error,
     structure_error, AteReport, OrientationReport, PinholeRadtan, RpeReport, Similarity,
@@ -14,7 +16,26 @@ use egoslam_sources::load_ground_truth;
 use nalgebra::Vector3;
 use opencv::prelude::*;
 use serde_json::json;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    /// Estimated trajectory, TUM format.
+    pub estimate: PathBuf,
+    /// Ground truth: TUM file, KITTI poses file, EuRoC csv/TUM file, or a dataset folder.
+    pub ground_truth: PathBuf,
+    /// Maximum timestamp difference for association, seconds.
+    #[arg(long, default_value_t = 0.02)]
+    pub max_dt: f64,
+    /// How the estimate is aligned to the ground truth: sim3 (rotation, translation and
+    /// scale: monocular) or se3 (scale kept: judges the scale too).
+    #[arg(long, value_enum, default_value_t = crate::plots::Alignment::Sim3)]
+    pub alignment: crate::plots::Alignment,
+    /// Write eval.json (errors per pose), trajectory.svg (top view, estimate coloured by
+    /// error) and error.svg (error over time) into this folder.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+}
 
 /// ATE with the usual failure cases turned into messages.
 pub fn evaluate(
@@ -200,7 +221,7 @@ pub fn accuracy(
     for (key, file) in [
         ("trajectory", "trajectory.tum"),
         ("keyframes", "keyframes.tum"),
-        ("live", egoslam_merger_service::LIVE_TRAJECTORY_FILE),
+        ("live", egoslam_export::tum::LIVE_TRAJECTORY_FILE),
     ] {
         let path = out.join(file);
         if key == "live" && !path.exists() {
@@ -278,7 +299,7 @@ pub fn accuracy(
 }
 
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
-    use crate::commands::eval_plots::{aligned, Alignment};
+    use crate::plots::{aligned, Alignment};
     let estimate = read_tum_file(&args.estimate)?;
     let gt = load_ground_truth(&args.ground_truth)?;
     if let Some(o) = orientation_error(&estimate, &gt.poses, args.max_dt) {
@@ -292,7 +313,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if args.alignment == Alignment::Se3 {
         println!(
             "ATE RMSE {:.4} m over {} poses, SE(3)-aligned (the estimate's scale kept; Sim(3) would give {:.4} m at scale {:.4})",
-            crate::commands::eval_plots::rmse(&poses),
+            crate::plots::rmse(&poses),
             poses.len(),
             report.rmse,
             report.alignment.scale
@@ -303,7 +324,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     println!("ground truth: {}", gt.description);
     if let Some(dir) = &args.plot {
-        crate::commands::eval_plots::write(dir, args.alignment, &similarity, &poses)?;
+        crate::plots::write(dir, args.alignment, &similarity, &poses)?;
         println!("plots and errors per pose in {}", dir.display());
     }
     Ok(())
