@@ -1,8 +1,12 @@
 //! End to end `egoslam run` (all four processes, lossless replay as fast as the frontend
 //! takes frames): real-time factor = sequence duration / wall time, and peak memory, median
 //! of `EGOSLAM_BENCH_RUNS` (default 3) runs per sequence. zenoh output is off (no
-//! subscriber is measured). Sequences: the in-repo clip and those of ../shared/data present
-//! on the machine. `cargo bench -p egoslam --bench end_to_end`; method in docs/benchmarks.md.
+//! subscriber is measured). Sequences: the in-repo clip, those of ../shared/data present
+//! on the machine, and the rendered 300-frame walk when `egoslam bench` has rendered it
+//! (target/bench-data). The calibration pre-passes (readout, radial and focal estimates
+//! made before the services start) are reported apart: the part of the wall time that
+//! blocks the start. `cargo bench -p egoslam --bench end_to_end`; method in
+//! docs/benchmarks.md.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -44,9 +48,13 @@ fn main() {
         ("tum_fr1_rpy", shared.join("tum_fr1_rpy")),
         ("kitti_odometry_00", shared.join("kitti_odometry_00")),
         ("euroc_v1_01", shared.join("euroc_v1_01")),
+        (
+            "synth_walker_300 (rendered, 640x480)",
+            repo().join("target/bench-data/synth_walker_300"),
+        ),
     ];
-    println!("| sequence | frames | duration s | wall s (median of {runs}) | real-time factor | peak RSS sum MiB (frontend / solver / merger) |");
-    println!("|---|---|---|---|---|---|");
+    println!("| sequence | frames | duration s | wall s (median of {runs}) | of which pre-passes s | real-time factor | peak RSS sum MiB (frontend / solver / merger) |");
+    println!("|---|---|---|---|---|---|---|");
     for (name, input) in sequences {
         if !input.exists() {
             eprintln!("{name}: {} absent, skipped", input.display());
@@ -54,6 +62,7 @@ fn main() {
         }
         let out = std::env::temp_dir().join(format!("egoslam_e2e_{}", std::process::id()));
         let (mut walls, mut rtfs, mut mems) = (Vec::new(), Vec::new(), Vec::new());
+        let mut prepasses = Vec::new();
         let mut last_report = serde_json::Value::Null;
         let mut duration = 0.0;
         for _ in 0..runs {
@@ -78,13 +87,21 @@ fn main() {
             walls.push(wall);
             rtfs.push(duration / wall);
             mems.push(report["peak_rss_mib"]["sum"].as_f64().unwrap_or(0.0));
+            let estimation_ms = |what: &str| report[what]["estimation_ms"].as_f64().unwrap_or(0.0);
+            prepasses.push(
+                (estimation_ms("rolling_shutter")
+                    + estimation_ms("focal_calibration")
+                    + estimation_ms("radial_calibration"))
+                    / 1e3,
+            );
             last_report = report;
         }
         let mem = &last_report["peak_rss_mib"];
         println!(
-            "| {name} | {} | {duration:.1} | {:.2} | {:.2} | {:.0} ({} / {} / {}) |",
+            "| {name} | {} | {duration:.1} | {:.2} | {:.2} | {:.2} | {:.0} ({} / {} / {}) |",
             last_report["frames"],
             median(&mut walls),
+            median(&mut prepasses),
             median(&mut rtfs),
             median(&mut mems),
             mem["frontend"],
