@@ -9,7 +9,7 @@
 //! against the run's own. The run's keyframe and track ids must start above the saved
 //! map's ([`next_free_id`]): ids order keyframes in time, and the saved ones are older.
 
-use crate::chaining::MapParts;
+use crate::map::MapParts;
 use egoslam_relocalization::RelocalizationMap;
 use nalgebra::Point2;
 
@@ -64,7 +64,7 @@ impl MapParts {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::{MapBuilder, WindowInput, WindowOutcome};
+    use crate::map::{MapBuilder, WindowInput, WindowOutcome};
     use egoslam_geometry::{PinholeRadtan, StampedPose};
     use egoslam_relocalization::{MapFeature, MapKeyframe};
     use nalgebra::{Point2, UnitQuaternion, Vector3};

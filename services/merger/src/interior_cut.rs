@@ -21,7 +21,7 @@
 //! which the window's pace changes more than tenfold is rescaled the same way, however many
 //! points cross it.
 
-use crate::chaining::WindowInput;
+use crate::map::WindowInput;
 use crate::scene_depth::window_scene_depth;
 use crate::speed_continuity::{well_seen_pace, SpeedContinuityOptions};
 use std::collections::HashMap;

@@ -7,7 +7,7 @@
 //! visual localization", JFR 2016) keep a fixed budget by dropping what is best covered
 //! elsewhere: the map thins out where it is densest instead of failing where it ends.
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use nalgebra::Vector3;
 use std::collections::BTreeSet;
 
@@ -127,7 +127,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::MapParts;
+    use crate::map::MapParts;
     use egoslam_geometry::StampedPose;
     use nalgebra::{Point2, UnitQuaternion};
 

@@ -10,7 +10,7 @@
 //! one of the earlier pass (`session::keyframe_culling`), so a pass walked over known ground
 //! leaves nothing in the map.
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use egoslam_geometry::StampedPose;
 use nalgebra::Vector3;
 
@@ -94,8 +94,8 @@ impl OlderKeyframes {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::chaining::MapParts;
     use crate::keyframe_culling::KeyframeCullingOptions;
+    use crate::map::MapParts;
     use nalgebra::{Point2, UnitQuaternion};
 
     fn pose(t: f64, x: f64, yaw_deg: f64) -> StampedPose {

@@ -9,7 +9,7 @@
 //! keyframe observes any more. Its frame (and the frames posed against it) are handed to
 //! the caller, who keeps them relative to the keyframes around ([`CulledKeyframe`]).
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use egoslam_geometry::StampedPose;
 use std::collections::{BTreeSet, HashMap};
 
@@ -281,7 +281,7 @@ impl ViewCounts {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::chaining::MapParts;
+    use crate::map::MapParts;
     use nalgebra::{Point2, UnitQuaternion, Vector3};
     use std::collections::BTreeMap;
 

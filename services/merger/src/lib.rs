@@ -12,6 +12,7 @@ pub mod keyframe_coverage;
 pub mod keyframe_culling;
 pub mod live_tracking;
 pub mod loop_closure;
+pub mod map;
 pub mod point_confidence;
 pub mod provisional_scale;
 pub mod refinement;
@@ -26,7 +27,7 @@ pub mod speed_continuity;
 pub mod window_alignment;
 
 pub use base_map::next_free_id;
-pub use chaining::{MapBuilder, MapParts, WindowInput, WindowOutcome};
+pub use map::{MapBuilder, MapParts, ProvisionalScale, ScaleSource, WindowInput, WindowOutcome};
 pub use session::{MergerSession, MergerState, SessionOptions, StreamStart};
 
 /// The median of `values` (the upper one of an even count); `None` when empty. Scales,
@@ -42,7 +43,7 @@ pub use keyframe_culling::{CulledKeyframe, CullingReport, KeyframeCullingOptions
 pub use live_tracking::{LivePose, LiveTracker, LiveTrackerOptions, MapView, TrackingState};
 pub use loop_closure::{find_loop, LoopClosure, LoopNotApplied, LoopOptions, LoopReport};
 pub use point_confidence::{point_confidence, PointConfidence, PointConfidenceOptions};
-pub use provisional_scale::{ProvisionalScale, SettledScale};
+pub use provisional_scale::SettledScale;
 pub use refinement::{RefinementJob, RefinementOptions, RefinementOutcome, RefinementReport};
 pub use relocalized_scale::{relocalized_window_scale, RelocalizedScale, RelocalizedScaleOptions};
 pub use retriangulation::RetriangulationReport;

@@ -27,7 +27,7 @@
 //! shows no such jump, a strong loop takes it as a step after the last loop's keyframes
 //! (`break_since_last_loop`), and any other is refused.
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use crate::refinement_rebase::Moves;
 use crate::scale_break::{
     locate_scale_break, locate_second_break, strongest_pace_jump, ScaleBreak, ScaleBreakOptions,
@@ -498,9 +498,9 @@ mod tests {
     #[test]
     fn a_strong_loop_steps_after_the_last_loop_and_no_other_does() {
         let map = |pinned: Option<(u32, u64)>| {
-            MapBuilder::from_parts(crate::chaining::MapParts {
+            MapBuilder::from_parts(crate::map::MapParts {
                 loop_pinned: pinned,
-                ..crate::chaining::MapParts::default()
+                ..crate::map::MapParts::default()
             })
         };
         let agreement =
@@ -568,7 +568,7 @@ mod tests {
             }
         };
         let mut map = MapBuilder::new();
-        let drifted = |i: u64| crate::chaining::transform_pose(&drift(i), &square_pose(i));
+        let drifted = |i: u64| crate::window_alignment::transform_pose(&drift(i), &square_pose(i));
         map.add_window(&WindowInput {
             poses: (0..n).map(|i| (i, drifted(i))).collect(),
             points: vec![(7, drifted(79).position + Vector3::new(0.0, 0.0, 2.0))],
@@ -759,7 +759,7 @@ mod tests {
         };
         let truth = |i: u64| square_pose(i);
         let mut map = MapBuilder::new();
-        let drifted = |i: u64| crate::chaining::transform_pose(&drift_after(i), &truth(i));
+        let drifted = |i: u64| crate::window_alignment::transform_pose(&drift_after(i), &truth(i));
         map.add_window(&WindowInput {
             poses: (0..=40).map(|i| (i, truth(i))).collect(),
             ..WindowInput::default()

@@ -12,7 +12,7 @@
 //! observations now land pixels away was placed by one window and contradicted by the
 //! next (a track that slid along an occluding edge, a point on the seam of two windows).
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use egoslam_geometry::{PinholeRadtan, PointInformation};
 use std::collections::HashMap;
 
@@ -147,10 +147,10 @@ impl MapBuilder {
     pub(crate) fn better_determined_shared_points(
         &self,
         segment: u32,
-        window: &crate::chaining::WindowInput,
+        window: &crate::map::WindowInput,
         min_points: usize,
-    ) -> Vec<crate::chaining::PointPair> {
-        let shared: Vec<(u64, crate::chaining::PointPair)> =
+    ) -> Vec<crate::map::PointPair> {
+        let shared: Vec<(u64, crate::map::PointPair)> =
             self.shared_points(window, segment).collect();
         let all = || shared.iter().map(|(_, pair)| *pair).collect();
         if shared.len() < 2 * min_points {
@@ -201,7 +201,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::{MapParts, WindowInput};
+    use crate::map::{MapParts, WindowInput};
     use egoslam_geometry::StampedPose;
     use nalgebra::{Point2, UnitQuaternion, Vector2, Vector3};
 

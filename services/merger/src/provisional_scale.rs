@@ -15,28 +15,13 @@
 //! before the stretch. It is the walking-pace prior of a weak join, applied when the pace
 //! after the join can be measured instead of at the join.
 
-use crate::chaining::{MapBuilder, ScaleSource};
+use crate::map::{MapBuilder, ProvisionalScale, ScaleSource};
 use crate::speed_continuity::SpeedContinuityOptions;
 use std::collections::HashSet;
 
 /// Tries after which an unsettled stretch is given up (its scale stays): 5 windows, ~4 s of
 /// keyframes while walking, by which a restart after a stop has long shown its pace.
 const MAX_TRIES: u32 = 5;
-
-/// A stretch of a segment whose scale is not measured yet.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ProvisionalScale {
-    pub segment: u32,
-    /// The first keyframe chained with the unmeasured scale; every later keyframe of the
-    /// segment is chained onto it.
-    pub first_keyframe: u64,
-    /// The segment's walking pace before it, map units per second.
-    pub pace_before: f64,
-    /// The segment's median scene depth before it, map units.
-    pub depth_before: f64,
-    /// Settling tries since (one per window the caller let it try).
-    pub windows_since: u32,
-}
 
 /// What settling a provisional stretch did.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -204,7 +189,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::WindowInput;
+    use crate::map::WindowInput;
     use crate::speed_continuity::NEW_SEGMENT_PACE;
     use egoslam_geometry::StampedPose;
     use nalgebra::{UnitQuaternion, Vector3};

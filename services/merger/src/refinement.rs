@@ -13,9 +13,10 @@
 //! back, carrying keyframes and points added meanwhile along by the similarity that the
 //! refinement applied to the newest refined keyframes.
 
-use crate::chaining::transform_pose;
-use crate::chaining::{align_shared, MapBuilder};
+use crate::map::MapBuilder;
 use crate::refinement_rebase::{conjugated, LoopCorrections};
+use crate::window_alignment::align_shared;
+use crate::window_alignment::transform_pose;
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_solver::bundle_adjustment::{
     bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
@@ -373,7 +374,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::MapParts;
+    use crate::map::MapParts;
     use nalgebra::Rotation3;
 
     fn camera() -> PinholeRadtan {

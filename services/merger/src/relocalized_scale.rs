@@ -2,7 +2,7 @@
 //! relocalizing its keyframes against the map's recent keyframes.
 //!
 //! A window normally takes its scale from the points it shares with the map
-//! ([`crate::chaining::align_shared`]). After a stop or a turn on the spot, no track lives
+//! ([`crate::window_alignment::align_shared`]). After a stop or a turn on the spot, no track lives
 //! through: the head scans while standing, the windows in between are rotation-only (no
 //! points), and the first window that moves again shares no point with the map. Its scale
 //! then came from the ratio of median scene depths before and after
@@ -18,7 +18,7 @@
 //! in both frames; the scale is the median ratio of camera-to-point distances over those
 //! pairs, as for shared points.
 
-use crate::chaining::WindowInput;
+use crate::map::WindowInput;
 use crate::segment_linking::{
     relocalize_consistently, LinkOptions, OlderKeyframes, RelocalizationSources,
 };

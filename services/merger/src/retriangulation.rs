@@ -5,7 +5,7 @@
 //! cheirality and reprojection checks joins the map with its observations (and so the
 //! global refinement).
 
-use crate::chaining::MapBuilder;
+use crate::map::MapBuilder;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_solver::triangulation::{triangulate_track, CameraPose, TriangulationOptions};
 use nalgebra::Point2;
@@ -126,7 +126,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::WindowInput;
+    use crate::map::WindowInput;
     use egoslam_geometry::StampedPose;
     use nalgebra::{UnitQuaternion, Vector3};
 

@@ -12,7 +12,7 @@
 //! keyframes (the normalisation monocular systems use at initialisation, e.g. ORB-SLAM's
 //! median scene depth of 1).
 
-use crate::chaining::{MapBuilder, WindowInput};
+use crate::map::{MapBuilder, WindowInput};
 use crate::median;
 use egoslam_geometry::StampedPose;
 use nalgebra::Vector3;

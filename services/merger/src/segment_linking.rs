@@ -10,7 +10,8 @@
 //! distance ratios), checked against every keyframe, and the new segment is merged into
 //! the old one.
 
-use crate::chaining::{align_shared, transform_pose, MapBuilder};
+use crate::map::MapBuilder;
+use crate::window_alignment::{align_shared, transform_pose};
 use egoslam_geometry::{PinholeRadtan, Similarity, StampedPose};
 use egoslam_relocalization::{
     BowVector, KeyframeDatabase, MapFeature, MapKeyframe, QueryFeatures, RelocalizationMap,

@@ -20,7 +20,7 @@
 //! only when no point and no relocalization measures the scale, and only when both sides
 //! clearly move (a camera standing still on either side has no pace to compare).
 
-use crate::chaining::{MapBuilder, WindowInput};
+use crate::map::{MapBuilder, WindowInput};
 use crate::scene_depth::window_scene_depth;
 use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::Rotation3;
@@ -232,7 +232,7 @@ impl MapBuilder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chaining::ScaleSource;
+    use crate::map::ScaleSource;
     use crate::WindowOutcome;
     use nalgebra::{UnitQuaternion, Vector3};
 

@@ -2,7 +2,7 @@
 //! the keyframes and points they share (paper, section 5: 7-DoF alignment of successive
 //! windows). Kept apart from the map bookkeeping in `chaining.rs`.
 
-use crate::chaining::{MapBuilder, PointPair, WindowInput};
+use crate::map::{MapBuilder, PointPair, ScaleSource, WindowInput};
 use crate::speed_continuity::SpeedContinuityOptions;
 use egoslam_geometry::{nearest_rotation, Similarity, StampedPose};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
@@ -41,24 +41,6 @@ pub(crate) const MIN_JOIN_OBSERVATIONS: usize = 50;
 /// a 20 ms readout one window's points said 0.022 of the pace: they had collapsed the map
 /// 40x at a turn.
 pub(crate) const MAX_PACE_DISAGREEMENT: f64 = 4.0;
-
-/// What gave a chained window its scale, best evidence first (logged per window).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ScaleSource {
-    /// At least [`MIN_CHAINING_POINTS`] points shared with the map, through a keyframe
-    /// well seen on both sides ([`MIN_JOIN_OBSERVATIONS`]).
-    SharedPoints,
-    /// Its keyframes relocalized in the map ([`crate::relocalized_scale`]): on at least
-    /// [`MIN_CHAINING_POINTS`] point pairs before the pace is tried, on fewer after.
-    Relocalized,
-    /// The wearer's pace before and after the boundary ([`crate::speed_continuity`]):
-    /// when nothing else measures the scale, or when the shared points disagree with it
-    /// by more than [`MAX_PACE_DISAGREEMENT`].
-    WalkingPace,
-    /// Whatever was left: the shared points of a weak join (at least 10), the shared
-    /// centres, the scene-depth ratio ([`align_shared_or_by_depth`]), or 1.
-    Weak,
-}
 
 /// Similarity mapping a window onto the map from what they share.
 ///

@@ -1,6 +1,8 @@
-//! Tests of [`super::MapBuilder`]: chaining windows, rotation-only windows, robustness.
+//! Tests of chaining windows ([`crate::map::MapBuilder::add_window`]): rotation-only windows, robustness.
 
 use super::*;
+use egoslam_geometry::Similarity;
+use nalgebra::Vector3;
 
 mod chaining_windows {
     use super::*;
