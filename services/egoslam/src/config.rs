@@ -4,7 +4,8 @@
 //! file, the file wins over built-in defaults. Unknown keys and bad values are rejected at
 //! start with a message naming the key.
 
-use crate::cli::{Command, EgressArgs, PipelineArgs};
+use crate::cli::Command;
+use crate::options::{EgressArgs, PipelineArgs};
 use anyhow::{bail, Context};
 use clap::parser::ValueSource;
 use clap::ArgMatches;
@@ -55,10 +56,10 @@ pub struct FrontendSection {
     pub tracks: Option<usize>,
     pub lk_window: Option<i32>,
     pub predict_motion: Option<bool>,
-    pub rolling_shutter_ms: Option<crate::calibration::readout::Readout>,
+    pub rolling_shutter_ms: Option<crate::calibration::settings::Readout>,
     pub readout_frames: Option<u32>,
     pub calibrate_focal: Option<bool>,
-    pub calibrate_radial: Option<crate::calibration::self_calibration::RadialSetting>,
+    pub calibrate_radial: Option<crate::calibration::settings::RadialSetting>,
 }
 
 /// `[solver]`: temporal windows and the view graph.
@@ -340,7 +341,7 @@ fn fill_egress(c: &Config, m: &ArgMatches, e: &mut EgressArgs) {
     );
 }
 
-fn fill_map(c: &Config, m: &ArgMatches, a: &mut crate::cli::MapArgs) {
+fn fill_map(c: &Config, m: &ArgMatches, a: &mut crate::options::MapArgs) {
     fill_optional(m, "map_in", &mut a.map_in, &c.map.extend);
     fill_optional(m, "map_out", &mut a.map_out, &c.map.save);
 }

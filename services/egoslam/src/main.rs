@@ -10,6 +10,7 @@ mod config;
 #[cfg(test)]
 mod fuzz_tests;
 mod option_checks;
+mod options;
 mod replay;
 mod supervision;
 

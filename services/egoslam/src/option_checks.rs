@@ -3,7 +3,8 @@
 //! range is refused with the option named and exit code 2, never passed on to OpenCV (which
 //! aborts on an LK window of 2) or to an allocation (which aborts on 10^9 tracks).
 
-use crate::cli::{Command, PipelineArgs};
+use crate::cli::Command;
+use crate::options::PipelineArgs;
 
 /// An option value outside its range.
 #[derive(Debug, thiserror::Error)]

@@ -1,6 +1,6 @@
 //! The replay service: reads a sequence and publishes its frames on the bus.
 
-use crate::cli::ReplayArgs;
+use crate::options::ReplayArgs;
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, Delivery, FrameMeta, FramePublisher};
 use egoslam_runtime::ServiceStats;

@@ -8,8 +8,7 @@
 //! use the same camera. A live camera cannot be read ahead: it runs with the calibration
 //! as given.
 
-use crate::calibration::readout::tracker_options;
-use crate::cli::PipelineArgs;
+use crate::options::PipelineArgs;
 use anyhow::Context;
 use egoslam_frontend::{FrameOutcome, KeyframeTracks, Tracker};
 use egoslam_geometry::PinholeRadtan;
@@ -131,7 +130,7 @@ pub fn first_keyframes(
     pipeline: &PipelineArgs,
     readout_s: f64,
 ) -> anyhow::Result<Vec<KeyframeObservations>> {
-    let mut tracker = Tracker::new(camera, tracker_options(pipeline, readout_s));
+    let mut tracker = Tracker::new(camera, pipeline.tracker_options(readout_s));
     let mut keyframes = KeyframeCollector::default();
     for frame in std::iter::from_fn(|| source.next_frame()).take(FOCAL_FRAMES) {
         // Bad frames were skipped by the source (FrameStream), as the run skips them.

@@ -4,3 +4,4 @@
 pub mod focal;
 pub mod readout;
 pub mod self_calibration;
+pub mod settings;

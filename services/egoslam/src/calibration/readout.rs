@@ -5,92 +5,16 @@
 //! (a live stream, which cannot be read ahead) estimates it from its first frames and
 //! corrects from then on (`egoslam_frontend_service::online_readout`). `egoslam calibrate-readout` prints the estimate for a recording.
 
-use crate::cli::PipelineArgs;
+use crate::options::PipelineArgs;
 use anyhow::{bail, Context};
 use egoslam_frontend::{
-    estimate_readout, FrameTracks, KeyframePolicy, ReadoutEstimate, ReadoutEstimationError,
-    ReadoutEstimationOptions, Tracker, TrackerOptions,
+    estimate_readout, FrameTracks, ReadoutEstimate, ReadoutEstimationError,
+    ReadoutEstimationOptions, Tracker,
 };
 use egoslam_geometry::PinholeRadtan;
 use egoslam_sources::{detect_layout, load_calibration, open_source, Frame, FrameSource, Layout};
 use opencv::prelude::*;
 use std::path::PathBuf;
-
-pub use egoslam_durability::estimated_readout::MAX_READOUT_MS;
-
-/// Frames `auto` tracks before the run (150: 5 s at 30 fps, ~1.3 s of tracking, which is
-/// most of the pre-pass). 300 gave the same estimates on every sequence here (rendered
-/// 30 ms walks 29-30 ms, the 15 ms shake 16 ms, tum_fr1_rpy's 120 frames 22 ms, 0 on the
-/// global-shutter ones) at twice the cost.
-pub const AUTO_FRAMES: u32 = 150;
-
-/// The readout the frontend corrects for.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Readout {
-    /// Estimated from the video (recorded inputs; see the module doc).
-    Auto,
-    /// Given, ms from the first row to the last (0: a global shutter).
-    Millis(f64),
-}
-
-impl Readout {
-    /// The readout given, ms (None: `auto`).
-    pub fn given_ms(self) -> Option<f64> {
-        match self {
-            Readout::Millis(ms) => Some(ms),
-            Readout::Auto => None,
-        }
-    }
-}
-
-impl std::str::FromStr for Readout {
-    type Err = String;
-
-    fn from_str(text: &str) -> Result<Self, Self::Err> {
-        if text.eq_ignore_ascii_case("auto") {
-            return Ok(Readout::Auto);
-        }
-        let v: f64 = text
-            .parse()
-            .map_err(|e| format!("{text}: {e} (a time in ms, or auto)"))?;
-        millis(v)
-    }
-}
-
-fn millis(v: f64) -> Result<Readout, String> {
-    if (0.0..=MAX_READOUT_MS).contains(&v) {
-        Ok(Readout::Millis(v))
-    } else {
-        Err(format!(
-            "{v}: must be between 0 and {MAX_READOUT_MS} ms, or auto"
-        ))
-    }
-}
-
-impl std::fmt::Display for Readout {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Readout::Auto => write!(f, "auto"),
-            Readout::Millis(ms) => write!(f, "{ms}"),
-        }
-    }
-}
-
-impl<'de> serde::Deserialize<'de> for Readout {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        #[derive(serde::Deserialize)]
-        #[serde(untagged)]
-        enum Value {
-            Number(f64),
-            Word(String),
-        }
-        match Value::deserialize(d)? {
-            Value::Number(v) => millis(v),
-            Value::Word(w) => w.parse(),
-        }
-        .map_err(|e| serde::de::Error::custom(format!("rolling_shutter_ms = {e}")))
-    }
-}
 
 /// Tracks an input's first `pipeline.readout_frames` frames (`first`, already read, then
 /// the rest of `source`) with no readout correction and estimates the readout from them.
@@ -127,7 +51,7 @@ pub fn estimate_and_track(
     Result<ReadoutEstimate, ReadoutEstimationError>,
     Option<FirstKeyframes>,
 ) {
-    let mut tracker = Tracker::new(camera, tracker_options(pipeline, 0.0));
+    let mut tracker = Tracker::new(camera, pipeline.tracker_options(0.0));
     let mut tracked = Vec::new();
     let mut keyframes = crate::calibration::focal::KeyframeCollector::default();
     let mut complete = true;
@@ -186,22 +110,6 @@ fn estimate_tracked(
     Ok(estimate)
 }
 
-/// The tracker's options from the pipeline's, with the readout given in seconds.
-pub fn tracker_options(pipeline: &PipelineArgs, rolling_shutter_s: f64) -> TrackerOptions {
-    TrackerOptions {
-        target_tracks: pipeline.tracks,
-        lk_window_px: pipeline.lk_window,
-        predict_motion: pipeline.predict_motion,
-        rolling_shutter_s,
-        keyframes: KeyframePolicy {
-            max_frames_between: pipeline.keyframe_every,
-            max_mean_flow_px: pipeline.keyframe_flow_px,
-            ..KeyframePolicy::default()
-        },
-        ..TrackerOptions::default()
-    }
-}
-
 /// `egoslam calibrate-readout`: estimate a recording's readout and print it.
 #[derive(clap::Args, Debug)]
 pub struct CalibrateReadoutArgs {
@@ -251,29 +159,4 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
     );
     println!("[frontend]\nrolling_shutter_ms = {:.0}", e.readout_s * 1e3);
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn parses_times_and_auto_and_refuses_the_rest() {
-        assert_eq!("auto".parse::<Readout>(), Ok(Readout::Auto));
-        assert_eq!("AUTO".parse::<Readout>(), Ok(Readout::Auto));
-        assert_eq!("25".parse::<Readout>(), Ok(Readout::Millis(25.0)));
-        assert!("-1".parse::<Readout>().is_err());
-        assert!("101".parse::<Readout>().is_err());
-        assert!("fast".parse::<Readout>().is_err());
-        assert_eq!(Readout::Millis(12.5).to_string(), "12.5");
-        #[derive(serde::Deserialize)]
-        struct Section {
-            rolling_shutter_ms: Readout,
-        }
-        let s: Section = toml::from_str("rolling_shutter_ms = 20").expect("number");
-        assert_eq!(s.rolling_shutter_ms, Readout::Millis(20.0));
-        let s: Section = toml::from_str("rolling_shutter_ms = \"auto\"").expect("auto");
-        assert_eq!(s.rolling_shutter_ms, Readout::Auto);
-        assert!(toml::from_str::<Section>("rolling_shutter_ms = 500").is_err());
-    }
 }

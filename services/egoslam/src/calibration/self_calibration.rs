@@ -5,8 +5,9 @@
 //! and reports what it did for report.json.
 
 use crate::calibration::focal::{first_keyframes, FOCAL_FRAMES};
-use crate::calibration::readout::{FirstKeyframes, Readout};
-use crate::cli::RunArgs;
+use crate::calibration::readout::FirstKeyframes;
+use crate::calibration::settings::{RadialSetting, Readout};
+use crate::options::RunArgs;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_solver::view_graph::KeyframeObservations;
 use egoslam_sources::{open_source, Layout};
@@ -130,128 +131,5 @@ pub fn resolve_radial(
             )
         }
         Err(report) => (camera, report),
-    }
-}
-
-/// When the radial term is self-calibrated (`--calibrate-radial`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RadialSetting {
-    /// Only for a calibration without distortion terms (rectified images, or a pinhole
-    /// from a datasheet): the residual of a rectification is what one radial term
-    /// captures. A calibration that models its lens is trusted: on tum_fr1_rpy's
-    /// in-repo JPEG clip (five distortion terms given) the windows agreed on k = -0.014,
-    /// which made the map worse (keyframe ATE 1.47 -> 1.64 cm), and the same frames as
-    /// PNG gave -0.008.
-    Auto,
-    /// Always estimated (applied when clear).
-    On,
-    /// Never.
-    Off,
-}
-
-impl RadialSetting {
-    /// Whether to estimate for `camera`: the first term of its lens model (radial-tangential
-    /// k1, equidistant k1, double sphere xi), a fisheye's measured on its own image.
-    pub fn applies_to(self, camera: &PinholeRadtan) -> bool {
-        match self {
-            RadialSetting::Auto => camera.distortion.iter().all(|d| *d == 0.0),
-            RadialSetting::On => true,
-            RadialSetting::Off => false,
-        }
-    }
-}
-
-impl std::str::FromStr for RadialSetting {
-    type Err = String;
-
-    fn from_str(text: &str) -> Result<Self, Self::Err> {
-        match text.to_ascii_lowercase().as_str() {
-            "auto" => Ok(RadialSetting::Auto),
-            "true" => Ok(RadialSetting::On),
-            "false" => Ok(RadialSetting::Off),
-            _ => Err(format!("{text}: auto, true or false")),
-        }
-    }
-}
-
-impl std::fmt::Display for RadialSetting {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            RadialSetting::Auto => "auto",
-            RadialSetting::On => "true",
-            RadialSetting::Off => "false",
-        })
-    }
-}
-
-impl<'de> serde::Deserialize<'de> for RadialSetting {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        #[derive(serde::Deserialize)]
-        #[serde(untagged)]
-        enum Value {
-            Bool(bool),
-            Word(String),
-        }
-        match Value::deserialize(d)? {
-            Value::Bool(true) => Ok(RadialSetting::On),
-            Value::Bool(false) => Ok(RadialSetting::Off),
-            Value::Word(w) => w.parse(),
-        }
-        .map_err(|e| serde::de::Error::custom(format!("calibrate_radial = {e}")))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn auto_estimates_the_radial_term_only_where_the_calibration_models_no_lens() {
-        let pinhole =
-            PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera");
-        let lens = PinholeRadtan {
-            distortion: [0.26, -0.95, 0.0, 0.0, 1.16],
-            ..pinhole
-        };
-        assert!(RadialSetting::Auto.applies_to(&pinhole));
-        assert!(!RadialSetting::Auto.applies_to(&lens));
-        assert!(RadialSetting::On.applies_to(&lens));
-        assert!(!RadialSetting::Off.applies_to(&pinhole));
-        // A fisheye as well: its first term when nominal, trusted when calibrated.
-        let nominal_fisheye = pinhole
-            .with_lens(egoslam_geometry::LensModel::Equidistant)
-            .expect("camera");
-        assert!(RadialSetting::Auto.applies_to(&nominal_fisheye));
-        let calibrated_fisheye = PinholeRadtan {
-            distortion: [0.02, -0.003, 0.0, 0.0, 0.0],
-            ..nominal_fisheye
-        };
-        assert!(!RadialSetting::Auto.applies_to(&calibrated_fisheye));
-        for (text, setting) in [
-            ("auto", RadialSetting::Auto),
-            ("TRUE", RadialSetting::On),
-            ("false", RadialSetting::Off),
-        ] {
-            assert_eq!(text.parse::<RadialSetting>(), Ok(setting));
-            assert_eq!(
-                setting.to_string().parse::<RadialSetting>(),
-                Ok(setting),
-                "round trip"
-            );
-        }
-        assert!("yes".parse::<RadialSetting>().is_err());
-        #[derive(serde::Deserialize)]
-        struct Section {
-            calibrate_radial: RadialSetting,
-        }
-        for (toml_text, setting) in [
-            ("calibrate_radial = \"auto\"", RadialSetting::Auto),
-            ("calibrate_radial = true", RadialSetting::On),
-            ("calibrate_radial = false", RadialSetting::Off),
-        ] {
-            let s: Section = toml::from_str(toml_text).expect("parses");
-            assert_eq!(s.calibrate_radial, setting);
-        }
-        assert!(toml::from_str::<Section>("calibrate_radial = 3").is_err());
     }
 }

@@ -72,10 +72,10 @@ pub struct LocalizeArgs {
     pub rolling_shutter_ms: Option<f64>,
 }
 
-/// A readout in milliseconds, 0 to [`crate::calibration::readout::MAX_READOUT_MS`] (`auto` has no
+/// A readout in milliseconds, 0 to [`crate::calibration::settings::MAX_READOUT_MS`] (`auto` has no
 /// meaning for single query frames).
 fn parse_readout_ms(text: &str) -> Result<f64, String> {
-    use crate::calibration::readout::MAX_READOUT_MS;
+    use crate::calibration::settings::MAX_READOUT_MS;
     let ms: f64 = text
         .parse()
         .map_err(|_| format!("{text}: not a number of milliseconds"))?;

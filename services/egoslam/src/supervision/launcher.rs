@@ -2,7 +2,7 @@
 
 use crate::calibration::focal::FOCAL_FRAMES;
 use crate::calibration::readout::FirstKeyframes;
-use crate::cli::{PipelineArgs, RunArgs};
+use crate::options::{PipelineArgs, RunArgs};
 use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
 use anyhow::Context;
 use egoslam_durability::write_atomically;
@@ -65,7 +65,8 @@ fn resolve_readout(
     source: &mut dyn FrameSource,
     camera: PinholeRadtan,
 ) -> (serde_json::Value, Option<FirstKeyframes>) {
-    use crate::calibration::readout::{estimate_and_track, Readout};
+    use crate::calibration::readout::estimate_and_track;
+    use crate::calibration::settings::Readout;
     let given = args.pipeline.rolling_shutter_ms;
     if let Readout::Millis(ms) = given {
         return (

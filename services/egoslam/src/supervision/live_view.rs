@@ -5,7 +5,7 @@
 //! merger itself listens on. The view starts before anything else in the run, so that a
 //! viewer sees it from its first second.
 
-use crate::cli::{EgressArgs, ViewArgs};
+use crate::options::{EgressArgs, ViewArgs};
 use anyhow::Context;
 use egoslam_egress::NetworkOptions;
 use egoslam_messages::v1 as pb;
