@@ -4,7 +4,7 @@ use crate::error::{data_lines, parse_floats, read_text};
 use crate::frame_stream::FrameStream;
 use crate::layout::is_image;
 use crate::{detect_layout, Layout, SourceError};
-use opencv::core::Mat;
+use opencv::core::{Mat, Scalar, CV_8UC1};
 use opencv::prelude::*;
 use opencv::{imgcodecs, imgproc, videoio};
 use std::path::{Path, PathBuf};
@@ -82,28 +82,30 @@ fn decode_grey_png(bytes: &[u8]) -> Option<Mat> {
     if !bytes.starts_with(b"\x89PNG") {
         return None;
     }
-    let reader = png::Decoder::new(std::io::Cursor::new(bytes))
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
         .read_info()
         .ok()?;
     let info = reader.info();
     let grey = info.color_type == png::ColorType::Grayscale
         && info.bit_depth == png::BitDepth::Eight
         && !info.interlaced;
-    if !grey {
+    let (width, height) = (
+        i32::try_from(info.width).ok()?,
+        i32::try_from(info.height).ok()?,
+    );
+    if !grey || width <= 0 || height <= 0 {
         return None;
     }
-    let (width, height) = (info.width as i32, info.height as i32);
-    let mut reader = reader;
-    let mut pixels = vec![0u8; reader.output_buffer_size()?];
-    let out = reader.next_frame(&mut pixels).ok()?;
-    if out.line_size != width as usize || width <= 0 || height <= 0 {
+    // Inflated straight into the frame's buffer: one row of `width` bytes per image row.
+    let mut image =
+        Mat::new_rows_cols_with_default(height, width, CV_8UC1, Scalar::all(0.0)).ok()?;
+    let buffer = image.data_bytes_mut().ok()?;
+    if reader.output_buffer_size()? != buffer.len() {
         return None;
     }
-    pixels.truncate(out.buffer_size());
-    Mat::new_rows_cols_with_data(height, width, &pixels)
-        .ok()?
-        .try_clone()
-        .ok()
+    let size = buffer.len();
+    let out = reader.next_frame(buffer).ok()?;
+    (out.line_size == width as usize && out.buffer_size() == size).then_some(image)
 }
 
 impl FrameSource for IndexedSource {

@@ -8,6 +8,7 @@ use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
 use egoslam_durability::log_compaction;
 use egoslam_durability::record_log::RecordLog;
+use egoslam_durability::KEYFRAME_LOG;
 use egoslam_frontend::tracker::ResumePoint;
 use egoslam_frontend::{
     KeyframeReason, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions,
@@ -53,8 +54,6 @@ fn reason(r: KeyframeReason) -> internal::KeyframeReason {
         KeyframeReason::Last => internal::KeyframeReason::Last,
     }
 }
-
-use egoslam_durability::KEYFRAME_LOG;
 
 /// Logs a keyframe message, then sends it: whatever the solver may have received is in the
 /// log. Flushed to the kernel (not synced): the threat is a killed process, and the page

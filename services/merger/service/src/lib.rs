@@ -26,7 +26,6 @@ use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_runtime::ServiceStats;
-pub use live_tracking::LIVE_TRAJECTORY_FILE;
 use map_state::{MapState, Revisions};
 use outputs::Outputs;
 use std::collections::VecDeque;

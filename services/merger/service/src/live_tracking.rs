@@ -21,7 +21,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-pub use egoslam_export::tum::LIVE_TRAJECTORY_FILE;
+use egoslam_export::tum::LIVE_TRAJECTORY_FILE;
 
 /// How long the thread waits for a frame before it looks at its stop flag and the map.
 const POLL: Duration = Duration::from_millis(20);
