@@ -26,7 +26,7 @@ use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_runtime::ServiceStats;
-use map_state::{MapState, Revisions};
+use map_state::{MapState, PublishedPoints, Revisions};
 use outputs::Outputs;
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -164,7 +164,6 @@ impl Merger {
         }
         // Publish first, then checkpoint (with the revisions just published): a kill in
         // between re-applies this window from the journal, which publishes the same again.
-        let changed: Vec<u64> = w.points.iter().map(|p| p.track_id).collect();
         let write_start = std::time::Instant::now();
         let state = if self.session.state.finished {
             pb::ServiceState::Finished
@@ -172,7 +171,7 @@ impl Merger {
             pb::ServiceState::Running
         };
         let persist = self.persist_due();
-        let result_bytes = self.emit(&changed, state, persist)?;
+        let result_bytes = self.emit(state, persist)?;
         self.stats
             .add_time("write", write_start.elapsed().as_secs_f64() * 1e3);
         if persist {
@@ -238,12 +237,7 @@ impl Merger {
 
     /// Publishes over zenoh; with `persist`, also rewrites the result files (returns the
     /// bytes written).
-    fn emit(
-        &mut self,
-        changed: &[u64],
-        state: pb::ServiceState,
-        persist: bool,
-    ) -> anyhow::Result<u64> {
+    fn emit(&mut self, state: pb::ServiceState, persist: bool) -> anyhow::Result<u64> {
         self.stats.windows = self.session.state.windows;
         self.stats.counters.insert(
             "unsolved_windows".into(),
@@ -253,7 +247,6 @@ impl Merger {
             &self.options.out,
             &self.session.state,
             self.session.camera(),
-            changed,
             state,
             &mut self.stats,
             persist,
@@ -380,6 +373,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
     let outputs = Outputs {
         egress: open_egress(options.egress.as_ref())?.map(std::sync::Arc::new),
         revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::default())),
+        published_points: PublishedPoints::default(),
         point_confidence: PointConfidenceOptions {
             max_relative_std: options.max_point_std,
             ..PointConfidenceOptions::default()
@@ -527,7 +521,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
     if let Some(live) = merger.live.take() {
         merger.stats.absorb(live.finish()?);
     }
-    merger.emit(&[], pb::ServiceState::Finished, true)?;
+    merger.emit(pb::ServiceState::Finished, true)?;
     if let Some(path) = &merger.options.map_out {
         let Some(camera) = merger.session.camera() else {
             bail!("no window was received: there is no map to save")

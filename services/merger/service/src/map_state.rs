@@ -8,7 +8,7 @@ use egoslam_export::map_ply::{self, MapPlyPoint};
 use egoslam_export::tum::tum_text;
 use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::session::publication::Publication;
-pub use egoslam_merger::session::publication::{MapState, Revisions};
+pub use egoslam_merger::session::publication::{MapState, PublishedPoints, Revisions};
 use egoslam_merger::PointConfidenceOptions;
 use egoslam_messages::v1 as pb;
 use std::path::Path;

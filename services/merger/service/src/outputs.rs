@@ -1,7 +1,7 @@
 //! What the merger writes and publishes after a window: result files, stats and (when
 //! enabled) zenoh, all from one snapshot of the map.
 
-use crate::map_state::{self, MapState, Revisions};
+use crate::map_state::{self, MapState, PublishedPoints, Revisions};
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::MergerState;
@@ -17,6 +17,8 @@ pub(super) struct Outputs {
     /// Shared with the live tracker (`live_tracking.rs`), which publishes revision 0.
     pub(super) egress: Option<Arc<Egress>>,
     pub(super) revisions: Arc<Mutex<Revisions>>,
+    /// Where each map point was last published (a new or moved point goes out again).
+    pub(super) published_points: PublishedPoints,
     /// Which map points map.ply holds (zenoh carries all, with their confidence).
     pub(super) point_confidence: PointConfidenceOptions,
     /// The last scores of the map's points (recomputed when the files are written).
@@ -40,7 +42,6 @@ impl Outputs {
         out: &Path,
         merger: &MergerState,
         camera: Option<&PinholeRadtan>,
-        changed_points: &[u64],
         state: pb::ServiceState,
         stats: &mut ServiceStats,
         persist: bool,
@@ -117,7 +118,7 @@ impl Outputs {
                 .revisions
                 .lock()
                 .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
-            let publication = snapshot.publication(&mut revisions, changed_points);
+            let publication = snapshot.publication(&mut revisions, &mut self.published_points);
             map_state::publish(egress, publication, &status)?;
         }
         Ok(written_bytes)

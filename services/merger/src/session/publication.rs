@@ -1,7 +1,7 @@
 //! What the merger publishes after a window, as messages of the client contract: every
 //! frame's pose with its revision (a pose that moves is published again with the next
-//! revision), the keyframe trajectory, the points the window changed and the whole map for
-//! late joiners' snapshot. The service hands them to `egoslam_egress` and writes the same
+//! revision), the keyframe trajectory, the points new or moved since last published and
+//! the whole map for late joiners' snapshot. The service hands them to `egoslam_egress` and writes the same
 //! [`MapState`] to its result files.
 
 use super::frames::{posed_frames, posed_keyframes, FrameIndex, PosedFrame};
@@ -43,9 +43,13 @@ impl MapState {
     }
 
     /// The messages of this state: poses new or moved since `revisions` last saw them
-    /// (recorded there), and the rest at their current revisions; `changed_points` are the
-    /// tracks the window brought.
-    pub fn publication(&self, revisions: &mut Revisions, changed_points: &[u64]) -> Publication {
+    /// (recorded there), and the rest at their current revisions; likewise the points new or
+    /// moved since `published_points` last saw them.
+    pub fn publication(
+        &self,
+        revisions: &mut Revisions,
+        published_points: &mut PublishedPoints,
+    ) -> Publication {
         let poses = revisions.changed(&self.frames);
         let trajectory = |v: &[PosedFrame]| pb::Trajectory {
             poses: v
@@ -53,7 +57,6 @@ impl MapState {
                 .map(|f| message(f, revisions.revision(f.frame_id)))
                 .collect(),
         };
-        let all: BTreeMap<u64, Vector3<f64>> = self.points.iter().copied().collect();
         let point = |track: u64, x: &Vector3<f64>| {
             let confidence = self.confidence.as_ref().and_then(|c| c.get(&track));
             pb::MapPoint {
@@ -70,9 +73,10 @@ impl MapState {
             poses,
             keyframes: trajectory(&self.keyframes),
             frames: trajectory(&self.frames),
-            changed_points: changed_points
-                .iter()
-                .filter_map(|t| all.get(t).map(|x| point(*t, x)))
+            changed_points: published_points
+                .changed(&self.points)
+                .into_iter()
+                .map(|(t, x)| point(t, &x))
                 .collect(),
             map: pb::MapPoints {
                 points: self.points.iter().map(|(t, x)| point(*t, x)).collect(),
@@ -89,10 +93,40 @@ pub struct Publication {
     pub keyframes: pb::Trajectory,
     /// Every frame at its current revision (the snapshot's).
     pub frames: pb::Trajectory,
-    /// The points the window brought, as the map now has them.
+    /// The points new or moved since the last publication.
     pub changed_points: Vec<pb::MapPoint>,
     /// Every point (the snapshot's).
     pub map: pb::MapPoints,
+}
+
+/// Which map points were published where: a point is published again when the map moves it
+/// (a window's bundle adjustment, a merge, global BA) and when it first enters the map,
+/// whichever window brought it, so a client that applies every `map` message holds the
+/// map's points where the map has them.
+#[derive(Default)]
+pub struct PublishedPoints {
+    published: HashMap<u64, Vector3<f64>>,
+}
+
+impl PublishedPoints {
+    /// The points of `points` new or moved (by more than 1e-9) since the last call; points
+    /// no longer in the map are forgotten (a client keeps them, as culled).
+    pub fn changed(&mut self, points: &[(u64, Vector3<f64>)]) -> Vec<(u64, Vector3<f64>)> {
+        let mut changed = Vec::new();
+        let mut now = HashMap::with_capacity(points.len());
+        for &(track, x) in points {
+            if self
+                .published
+                .get(&track)
+                .is_none_or(|old| (old - x).norm() > 1e-9)
+            {
+                changed.push((track, x));
+            }
+            now.insert(track, x);
+        }
+        self.published = now;
+        changed
+    }
 }
 
 /// Revision bookkeeping: which frame poses are new or changed since last published.
@@ -199,5 +233,29 @@ mod tests {
         let moved = after.changed(&[frame(1, 0.7), frame(2, 0.1), frame(3, 0.0)]);
         let revisions: Vec<(u64, u32)> = moved.iter().map(|p| (p.frame_id, p.revision)).collect();
         assert_eq!(revisions, vec![(1, 2), (2, 1), (3, 0)]);
+    }
+
+    #[test]
+    fn a_point_goes_out_when_it_enters_the_map_and_whenever_it_moves() {
+        let mut published = PublishedPoints::default();
+        let at = |x: f64| Vector3::new(x, 1.0, 2.0);
+        let tracks =
+            |v: Vec<(u64, Vector3<f64>)>| v.into_iter().map(|(t, _)| t).collect::<Vec<_>>();
+        assert_eq!(
+            tracks(published.changed(&[(1, at(0.0)), (2, at(0.0))])),
+            vec![1, 2]
+        );
+        // A later window adds point 3 (brought by an earlier window, say) and its BA moves 1.
+        let changed = published.changed(&[(1, at(0.25)), (2, at(0.0)), (3, at(5.0))]);
+        assert_eq!(changed, vec![(1, at(0.25)), (3, at(5.0))]);
+        assert!(
+            published.changed(&[(1, at(0.25)), (3, at(5.0))]).is_empty(),
+            "2 culled"
+        );
+        // A culled point that comes back is new again.
+        assert_eq!(
+            tracks(published.changed(&[(2, at(0.0)), (3, at(5.0))])),
+            vec![2]
+        );
     }
 }
