@@ -1,440 +1,262 @@
 //! The one configuration file (TOML) that every egoslam process reads: `--config FILE` or
-//! `EGOSLAM_CONFIG`; schema and defaults in docs/config.md, an example in
-//! deploy/egoslam.toml. Command-line flags (and their environment variables) win over the
-//! file, the file wins over built-in defaults. Unknown keys and bad values are rejected at
-//! start with a message naming the key.
+//! `EGOSLAM_CONFIG`; an example in deploy/egoslam.toml, the keys in docs/config.md (generated
+//! from the same definitions). Command-line flags (and their environment variables) win over
+//! the file, the file wins over built-in defaults.
+//!
+//! The file has no schema of its own: a key is an option's clap definition (options.rs),
+//! named by its help heading and id (`[solver] window` is `--window`, heading "solver", id
+//! "window"). Its value goes through the option's own value parser, so the file, the flag
+//! and the environment variable are checked by the same code, and becomes the option's
+//! default value before the command line is parsed, which gives the precedence above.
+//! Unknown keys and bad values are refused at start with a message naming the key.
 
-use crate::cli::Command;
-use crate::options::{EgressArgs, PipelineArgs};
 use anyhow::{bail, Context};
-use clap::parser::ValueSource;
-use clap::ArgMatches;
-use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-/// `[input]`: the sequence or camera.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct InputSection {
-    pub path: Option<PathBuf>,
-    pub calibration: Option<PathBuf>,
-    pub fps: Option<f64>,
-    pub realtime: Option<bool>,
-}
-
-/// `[output]`: results, checkpoint and journal folder.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct OutputSection {
-    pub dir: Option<PathBuf>,
-}
-
-/// `[map]`: saved maps (docs/relocalization.md).
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MapSection {
-    /// A saved map the run extends (`--map-in`).
-    pub extend: Option<PathBuf>,
-    /// Where the map is saved at the end of the stream (`--map-out`).
-    pub save: Option<PathBuf>,
-}
-
-/// `[view]`: the live view and recording of `egoslam run` (docs/viewer.md).
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ViewSection {
-    pub foxglove: Option<String>,
-    pub record: Option<PathBuf>,
-}
-
-/// `[frontend]`: tracking and the paper's keyframe rule.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FrontendSection {
-    pub keyframe_every: Option<u32>,
-    pub keyframe_flow_px: Option<f64>,
-    pub tracks: Option<usize>,
-    pub lk_window: Option<i32>,
-    pub predict_motion: Option<bool>,
-    pub rolling_shutter_ms: Option<crate::calibration::settings::Readout>,
-    pub readout_frames: Option<u32>,
-    pub calibrate_focal: Option<bool>,
-    pub calibrate_radial: Option<crate::calibration::settings::RadialSetting>,
-}
-
-/// `[solver]`: temporal windows and the view graph.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SolverSection {
-    pub window: Option<u16>,
-    pub overlap: Option<usize>,
-    pub loop_closures: Option<u16>,
-}
-
-/// `[merger]`: background refinement.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MergerSection {
-    pub global_ba_px: Option<f64>,
-    pub refine_keyframes: Option<usize>,
-    pub refinement_lag: Option<u32>,
-    pub loop_closure: Option<bool>,
-    pub cull_keyframes: Option<bool>,
-    pub max_map_keyframes: Option<usize>,
-    pub max_point_std: Option<f64>,
-    pub map_all_points: Option<bool>,
-    pub patch_retention_min: Option<f64>,
-}
-
-/// `[zenoh]`: where results are published.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ZenohSection {
-    pub device: Option<String>,
-    pub listen: Option<Vec<String>>,
-    pub connect: Option<Vec<String>>,
-    pub remote_read_only: Option<bool>,
-    #[serde(default)]
-    pub tls: ZenohTlsSection,
-}
-
-/// `[zenoh.tls]`: certificates for tls/ endpoints (docs/egress.md).
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ZenohTlsSection {
-    pub root_ca: Option<PathBuf>,
-    pub certificate: Option<PathBuf>,
-    pub private_key: Option<PathBuf>,
-    pub mutual: Option<bool>,
-    pub allowed_common_names: Option<Vec<String>>,
-}
-
-/// `[bus]`: iceoryx2 service names.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BusSection {
-    pub namespace: Option<String>,
-}
-
-/// The whole file; every section and key is optional.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Config {
-    #[serde(default)]
-    pub input: InputSection,
-    #[serde(default)]
-    pub output: OutputSection,
-    #[serde(default)]
-    pub frontend: FrontendSection,
-    #[serde(default)]
-    pub solver: SolverSection,
-    #[serde(default)]
-    pub merger: MergerSection,
-    #[serde(default)]
-    pub zenoh: ZenohSection,
-    #[serde(default)]
-    pub bus: BusSection,
-    #[serde(default)]
-    pub view: ViewSection,
-    #[serde(default)]
-    pub map: MapSection,
-}
-
-impl Config {
-    /// Reads and validates a file.
-    pub fn load(path: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading the config file {}", path.display()))?;
-        let config: Config =
-            toml::from_str(&text).with_context(|| format!("config file {}", path.display()))?;
-        config
-            .validate()
-            .with_context(|| format!("config file {}", path.display()))?;
-        Ok(config)
+/// The file key of an option: `section.key` (its help heading and id); options without a
+/// heading are not in the file.
+pub fn file_key(arg: &clap::Arg) -> String {
+    match arg.get_help_heading() {
+        Some(section) => format!("{section}.{}", arg.get_id()),
+        None => arg.get_id().to_string(),
     }
+}
 
-    /// What only the file can get wrong; value ranges are checked once, on the merged
-    /// options (option_checks.rs), whatever their source.
-    fn validate(&self) -> anyhow::Result<()> {
-        for e in self
-            .zenoh
-            .listen
-            .iter()
-            .chain(&self.zenoh.connect)
-            .flatten()
-        {
-            if e != "none" && !e.contains('/') {
-                bail!("zenoh endpoint {e:?}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447");
+/// Every option the file can set, in every subcommand: (key, subcommand, option).
+pub fn file_options(command: &clap::Command) -> Vec<(String, &clap::Command, &clap::Arg)> {
+    let mut options = Vec::new();
+    for sub in command.get_subcommands() {
+        for arg in sub.get_arguments() {
+            if arg.get_help_heading().is_some() && arg.get_long().is_some() {
+                options.push((file_key(arg), sub, arg));
             }
         }
-        Ok(())
+    }
+    options
+}
+
+/// One key of the file with its values (several for a list).
+#[derive(Debug, Clone, PartialEq)]
+struct Setting {
+    key: String,
+    values: Vec<String>,
+}
+
+/// A read and checked configuration file.
+#[derive(Debug)]
+pub struct ConfigFile {
+    settings: Vec<Setting>,
+}
+
+/// A scalar of the file as the text a flag would carry.
+fn scalar_text(value: &toml::Value) -> Option<String> {
+    match value {
+        toml::Value::String(s) => Some(s.clone()),
+        toml::Value::Integer(i) => Some(i.to_string()),
+        toml::Value::Float(f) => Some(f.to_string()),
+        toml::Value::Boolean(b) => Some(b.to_string()),
+        toml::Value::Datetime(_) | toml::Value::Array(_) | toml::Value::Table(_) => None,
     }
 }
 
-/// Whether `id` was given explicitly (flag or environment variable).
-fn explicit(m: &ArgMatches, id: &str) -> bool {
-    matches!(
-        m.value_source(id),
-        Some(ValueSource::CommandLine | ValueSource::EnvVariable)
-    )
-}
-
-/// Sets `target` from the file unless the command line set it.
-fn fill<T: Clone>(m: &ArgMatches, id: &str, target: &mut T, value: &Option<T>) {
-    if let (Some(v), false) = (value, explicit(m, id)) {
-        *target = v.clone();
+/// The leaves of `table` as `section.key` (sections nest: `[zenoh.tls]`).
+fn leaves(table: &toml::Table, section: &str, out: &mut Vec<(String, toml::Value)>) {
+    for (name, value) in table {
+        let key = if section.is_empty() {
+            name.clone()
+        } else {
+            format!("{section}.{name}")
+        };
+        match value {
+            toml::Value::Table(inner) => leaves(inner, &key, out),
+            _ => out.push((key, value.clone())),
+        }
     }
 }
 
-/// Sets an optional `target` from the file unless the command line set it.
-fn fill_optional<T: Clone>(m: &ArgMatches, id: &str, target: &mut Option<T>, value: &Option<T>) {
-    if value.is_some() && !explicit(m, id) {
-        target.clone_from(value);
+/// Whether `value` is one the option takes, checked by its own value parser (through a
+/// command that holds only the option; clap does not expose the parser's check).
+fn check_value(arg: &clap::Arg, value: &str) -> Result<(), String> {
+    if !arg.get_action().takes_values() {
+        // An on/off flag: the file says which.
+        return value
+            .parse::<bool>()
+            .map(drop)
+            .map_err(|_| "expected true or false".to_string());
+    }
+    let long = arg.get_long().unwrap_or_default();
+    let alone = arg.clone().env(None::<&str>).required(false);
+    clap::Command::new("egoslam")
+        .no_binary_name(true)
+        .arg(alone)
+        .try_get_matches_from([format!("--{long}={value}")])
+        .map(drop)
+        .map_err(|e| {
+            let message = e.to_string();
+            let first = message.lines().next().unwrap_or_default();
+            first.trim_start_matches("error: ").to_string()
+        })
+}
+
+impl ConfigFile {
+    /// Reads `path` and checks every key and value against `command`'s options.
+    pub fn load(path: &Path, command: &clap::Command) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the config file {}", path.display()))?;
+        Self::parse(&text, command).with_context(|| format!("config file {}", path.display()))
+    }
+
+    fn parse(text: &str, command: &clap::Command) -> anyhow::Result<Self> {
+        let table: toml::Table = toml::from_str(text)?;
+        let mut found = Vec::new();
+        leaves(&table, "", &mut found);
+        let options = file_options(command);
+        let mut settings = Vec::new();
+        for (key, value) in found {
+            let Some((_, _, arg)) = options.iter().find(|(k, _, _)| *k == key) else {
+                let section = key.rsplit_once('.').map_or("", |(s, _)| s);
+                let mut known: Vec<&str> = options
+                    .iter()
+                    .filter_map(|(k, _, _)| k.strip_prefix(section)?.strip_prefix('.'))
+                    .filter(|k| !k.contains('.'))
+                    .collect();
+                known.sort_unstable();
+                known.dedup();
+                if known.is_empty() {
+                    bail!("unknown key {key}: no section [{section}]");
+                }
+                bail!("unknown key {key}; [{section}] has {}", known.join(", "));
+            };
+            let list = matches!(arg.get_action(), clap::ArgAction::Append);
+            let values = match (&value, list) {
+                (toml::Value::Array(items), true) => items.iter().map(scalar_text).collect(),
+                (toml::Value::Array(_), false) => None,
+                (v, _) => scalar_text(v).map(|t| vec![t]),
+            };
+            let Some(values) = values else {
+                let expected = if list {
+                    "a list of values"
+                } else {
+                    "one value"
+                };
+                bail!("{key} = {value}: expected {expected}");
+            };
+            for v in &values {
+                check_value(arg, v).map_err(|e| anyhow::anyhow!("{key} = {v}: {e}"))?;
+            }
+            settings.push(Setting { key, values });
+        }
+        Ok(Self { settings })
+    }
+
+    /// `command` with the file's values as the defaults of the options they set, in every
+    /// subcommand that has them.
+    pub fn apply(&self, mut command: clap::Command) -> clap::Command {
+        let targets: Vec<(String, String, &Setting)> = file_options(&command)
+            .into_iter()
+            .filter_map(|(key, sub, arg)| {
+                let setting = self.settings.iter().find(|s| s.key == key)?;
+                Some((
+                    sub.get_name().to_string(),
+                    arg.get_id().to_string(),
+                    setting,
+                ))
+            })
+            .collect();
+        for (sub, id, setting) in targets {
+            command = command.mut_subcommand(sub, |s| {
+                s.mut_arg(id, |a| a.default_values(setting.values.clone()))
+            });
+        }
+        command
     }
 }
 
-fn fill_pipeline(c: &Config, m: &ArgMatches, p: &mut PipelineArgs) {
-    fill(
-        m,
-        "keyframe_every",
-        &mut p.keyframe_every,
-        &c.frontend.keyframe_every,
-    );
-    fill(
-        m,
-        "keyframe_flow_px",
-        &mut p.keyframe_flow_px,
-        &c.frontend.keyframe_flow_px,
-    );
-    fill(m, "tracks", &mut p.tracks, &c.frontend.tracks);
-    fill(m, "lk_window", &mut p.lk_window, &c.frontend.lk_window);
-    fill(
-        m,
-        "predict_motion",
-        &mut p.predict_motion,
-        &c.frontend.predict_motion,
-    );
-    fill(
-        m,
-        "rolling_shutter_ms",
-        &mut p.rolling_shutter_ms,
-        &c.frontend.rolling_shutter_ms,
-    );
-    fill(
-        m,
-        "readout_frames",
-        &mut p.readout_frames,
-        &c.frontend.readout_frames,
-    );
-    fill(
-        m,
-        "calibrate_focal",
-        &mut p.calibrate_focal,
-        &c.frontend.calibrate_focal,
-    );
-    fill(
-        m,
-        "calibrate_radial",
-        &mut p.calibrate_radial,
-        &c.frontend.calibrate_radial,
-    );
-    fill(m, "window", &mut p.window, &c.solver.window);
-    fill(m, "overlap", &mut p.overlap, &c.solver.overlap);
-    fill(
-        m,
-        "loop_closures",
-        &mut p.loop_closures,
-        &c.solver.loop_closures,
-    );
-    fill(
-        m,
-        "global_ba_px",
-        &mut p.global_ba_px,
-        &c.merger.global_ba_px,
-    );
-    fill(
-        m,
-        "max_point_std",
-        &mut p.max_point_std,
-        &c.merger.max_point_std,
-    );
-    fill(
-        m,
-        "map_all_points",
-        &mut p.map_all_points,
-        &c.merger.map_all_points,
-    );
-    fill(
-        m,
-        "refine_keyframes",
-        &mut p.refine_keyframes,
-        &c.merger.refine_keyframes,
-    );
-    fill(
-        m,
-        "refinement_lag",
-        &mut p.refinement_lag,
-        &c.merger.refinement_lag,
-    );
-    fill(
-        m,
-        "loop_closure",
-        &mut p.loop_closure,
-        &c.merger.loop_closure,
-    );
-    fill(
-        m,
-        "cull_keyframes",
-        &mut p.cull_keyframes,
-        &c.merger.cull_keyframes,
-    );
-    fill(
-        m,
-        "max_map_keyframes",
-        &mut p.max_map_keyframes,
-        &c.merger.max_map_keyframes,
-    );
-    fill(
-        m,
-        "patch_retention_min",
-        &mut p.patch_retention_min,
-        &c.merger.patch_retention_min,
-    );
-}
-
-fn fill_egress(c: &Config, m: &ArgMatches, e: &mut EgressArgs) {
-    fill(m, "device", &mut e.device, &c.zenoh.device);
-    fill(m, "zenoh_listen", &mut e.zenoh_listen, &c.zenoh.listen);
-    fill(m, "zenoh_connect", &mut e.zenoh_connect, &c.zenoh.connect);
-    let tls = &c.zenoh.tls;
-    fill_optional(
-        m,
-        "zenoh_tls_root_ca",
-        &mut e.zenoh_tls_root_ca,
-        &tls.root_ca,
-    );
-    fill_optional(
-        m,
-        "zenoh_tls_certificate",
-        &mut e.zenoh_tls_certificate,
-        &tls.certificate,
-    );
-    fill_optional(
-        m,
-        "zenoh_tls_private_key",
-        &mut e.zenoh_tls_private_key,
-        &tls.private_key,
-    );
-    fill(m, "zenoh_tls_mutual", &mut e.zenoh_tls_mutual, &tls.mutual);
-    fill(
-        m,
-        "zenoh_allow_common_name",
-        &mut e.zenoh_allow_common_name,
-        &tls.allowed_common_names,
-    );
-    let writable = c.zenoh.remote_read_only.map(|read_only| !read_only);
-    fill(
-        m,
-        "zenoh_remote_writable",
-        &mut e.zenoh_remote_writable,
-        &writable,
-    );
-}
-
-fn fill_map(c: &Config, m: &ArgMatches, a: &mut crate::options::MapArgs) {
-    fill_optional(m, "map_in", &mut a.map_in, &c.map.extend);
-    fill_optional(m, "map_out", &mut a.map_out, &c.map.save);
-}
-
-/// Applies the file to the parsed command (`m`: the subcommand's matches).
-pub fn apply(c: &Config, m: &ArgMatches, command: &mut Command) {
-    match command {
-        Command::Run(a) => {
-            fill_optional(m, "input", &mut a.input, &c.input.path);
-            fill_optional(m, "calib", &mut a.calib, &c.input.calibration);
-            fill(m, "out", &mut a.out, &c.output.dir);
-            fill(m, "fps", &mut a.fps, &c.input.fps);
-            fill(m, "realtime", &mut a.realtime, &c.input.realtime);
-            fill_optional(m, "foxglove", &mut a.view.foxglove, &c.view.foxglove);
-            fill_optional(m, "record", &mut a.view.record, &c.view.record);
-            fill_pipeline(c, m, &mut a.pipeline);
-            fill_egress(c, m, &mut a.egress);
-            fill_map(c, m, &mut a.map);
-        }
-        Command::Replay(a) => {
-            fill_optional(m, "input", &mut a.input, &c.input.path);
-            fill(m, "fps", &mut a.fps, &c.input.fps);
-            fill(m, "realtime", &mut a.realtime, &c.input.realtime);
-            fill(m, "namespace", &mut a.service.namespace, &c.bus.namespace);
-            fill(m, "out", &mut a.service.out, &c.output.dir);
-            fill_pipeline(c, m, &mut a.service.pipeline);
-            fill_egress(c, m, &mut a.service.egress);
-        }
-        Command::CalibrateReadout(a) => {
-            fill(m, "fps", &mut a.fps, &c.input.fps);
-            fill_optional(m, "calib", &mut a.calib, &c.input.calibration);
-            fill_pipeline(c, m, &mut a.pipeline);
-        }
-        Command::Frontend(a) | Command::Solver(a) | Command::Merger(a) => {
-            fill(m, "namespace", &mut a.namespace, &c.bus.namespace);
-            fill(m, "out", &mut a.out, &c.output.dir);
-            fill_pipeline(c, m, &mut a.pipeline);
-            fill_egress(c, m, &mut a.egress);
-            fill_map(c, m, &mut a.map);
-        }
-        Command::Eval(_)
-        | Command::Export(_)
-        | Command::View(_)
-        | Command::Synth(_)
-        | Command::Bench(_)
-        | Command::Localize(_)
-        | Command::Vocab(_) => {}
-    }
+/// The command line parsed with the configuration file (`--config` or `EGOSLAM_CONFIG`)
+/// applied; a usage error or help exits as clap does, a bad file is an error.
+pub fn parse_command_line(command: clap::Command) -> anyhow::Result<clap::ArgMatches> {
+    let first = command.clone().get_matches();
+    let Some(path) = first.get_one::<PathBuf>("config") else {
+        return Ok(first);
+    };
+    let file = ConfigFile::load(path, &command)?;
+    Ok(file.apply(command).get_matches())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cli::{Cli, Command};
+    use clap::{CommandFactory, FromArgMatches};
 
-    fn parse(text: &str) -> anyhow::Result<Config> {
-        let c: Config = toml::from_str(text)?;
-        c.validate()?;
-        Ok(c)
+    fn parse(text: &str) -> anyhow::Result<ConfigFile> {
+        ConfigFile::parse(text, &Cli::command())
+    }
+
+    /// `argv` parsed with the file `text` applied.
+    fn command_with(text: &str, argv: &[&str]) -> Command {
+        let file = parse(text).expect("valid");
+        let matches = file
+            .apply(Cli::command())
+            .try_get_matches_from(argv)
+            .expect("args");
+        Cli::from_arg_matches(&matches).expect("cli").command
     }
 
     #[test]
-    fn the_shipped_example_is_valid() {
+    fn the_shipped_example_is_valid_and_sets_every_key() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/egoslam.toml");
-        let c = Config::load(&path).expect("deploy/egoslam.toml");
-        assert_eq!(c.solver.window, Some(20));
-        assert_eq!(c.zenoh.listen, Some(vec!["tcp/127.0.0.1:7447".to_string()]));
+        let file = ConfigFile::load(&path, &Cli::command()).expect("deploy/egoslam.toml");
+        let window = file.settings.iter().find(|s| s.key == "solver.window");
+        assert_eq!(window.map(|s| s.values.clone()), Some(vec!["20".into()]));
+        let listen = file.settings.iter().find(|s| s.key == "zenoh.listen");
+        assert_eq!(
+            listen.map(|s| s.values.clone()),
+            Some(vec!["tcp/127.0.0.1:7447".into()])
+        );
     }
 
     #[test]
     fn unknown_keys_and_bad_values_name_the_key() {
-        let e = parse("[solver]\nwindw = 20\n").expect_err("unknown key");
-        assert!(format!("{e:#}").contains("windw"), "{e:#}");
-        let e = parse("[sovler]\nwindow = 20\n").expect_err("unknown section");
-        assert!(format!("{e:#}").contains("sovler"), "{e:#}");
-        let e = parse("[solver]\nwindow = \"twenty\"\n").expect_err("type");
-        assert!(format!("{e:#}").contains("window"), "{e:#}");
-        let e = parse("[zenoh]\nlisten = [\"127.0.0.1:7447\"]\n").expect_err("endpoint");
-        assert!(format!("{e:#}").contains("127.0.0.1:7447"), "{e:#}");
-        assert!(parse("[merger]\nglobal_ba_px = inf\n").is_ok());
+        for (text, named) in [
+            ("[solver]\nwindw = 20\n", "windw"),
+            ("[sovler]\nwindow = 20\n", "sovler"),
+            ("[solver]\nwindow = \"twenty\"\n", "solver.window"),
+            ("[solver]\nwindow = 40\n", "solver.window = 40"),
+            ("[frontend]\ntracks = 1000000000\n", "frontend.tracks"),
+            ("[frontend]\nlk_window = 10\n", "frontend.lk_window"),
+            (
+                "[frontend]\nrolling_shutter_ms = 500\n",
+                "rolling_shutter_ms",
+            ),
+            ("[frontend]\ncalibrate_radial = 3\n", "calibrate_radial"),
+            ("[zenoh]\nlisten = [\"127.0.0.1:7447\"]\n", "127.0.0.1:7447"),
+            ("[zenoh]\ndevice = [\"a\", \"b\"]\n", "zenoh.device"),
+            ("[zenoh.tls]\nmutal = true\n", "mutal"),
+            ("[map]\nextends = \"x\"\n", "extends"),
+        ] {
+            let e = parse(text).expect_err(text);
+            assert!(format!("{e:#}").contains(named), "{text}: {e:#}");
+        }
+        let e = parse("[solver]\nwindw = 20\n").expect_err("unknown");
+        assert!(
+            format!("{e:#}").contains("loop_closures"),
+            "lists the keys: {e:#}"
+        );
+        for text in [
+            "[merger]\nglobal_ba_px = inf\n",
+            "[frontend]\nrolling_shutter_ms = 20\ncalibrate_radial = true\n",
+            "[frontend]\nrolling_shutter_ms = \"auto\"\ncalibrate_radial = \"auto\"\n",
+        ] {
+            parse(text).expect(text);
+        }
     }
 
     #[test]
     fn flags_win_over_the_file_and_the_file_over_defaults() {
-        use clap::{CommandFactory, FromArgMatches};
-        let c = parse("[solver]\nwindow = 12\noverlap = 4\n[zenoh]\ndevice = \"glasses\"\n")
-            .expect("valid");
-        let matches = crate::cli::Cli::command()
-            .try_get_matches_from(["egoslam", "solver", "--overlap", "6"])
-            .expect("args");
-        let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
-        let (_, sub) = matches.subcommand().expect("subcommand");
-        apply(&c, sub, &mut cli.command);
-        let Command::Solver(a) = cli.command else {
+        let text = "[solver]\nwindow = 12\noverlap = 4\n[zenoh]\ndevice = \"glasses\"\n";
+        let Command::Solver(a) = command_with(text, &["egoslam", "solver", "--overlap", "6"])
+        else {
             panic!("solver")
         };
         assert_eq!(a.pipeline.window, 12, "from the file");
@@ -444,46 +266,41 @@ mod tests {
     }
 
     #[test]
-    fn the_map_section_reaches_frontend_and_merger() {
-        use clap::{CommandFactory, FromArgMatches};
-        let c =
-            parse("[map]\nextend = \"/var/lib/egoslam/home.egomap\"\nsave = \"today.egomap\"\n")
-                .expect("valid");
+    fn the_input_output_and_map_sections_reach_their_commands() {
+        let text = "[input]\npath = \"/dev/video0\"\nfps = 15\nrealtime = true\n\
+                    calibration = \"/etc/egoslam/camera.yaml\"\n[output]\ndir = \"/var/lib/egoslam\"\n\
+                    [map]\nextend = \"/var/lib/egoslam/home.egomap\"\nsave = \"today.egomap\"\n\
+                    [bus]\nnamespace = \"glasses\"\n";
+        let Command::Run(run) = command_with(text, &["egoslam", "run"]) else {
+            panic!("run")
+        };
+        assert_eq!(run.input, Some(PathBuf::from("/dev/video0")));
+        assert_eq!(run.calib, Some(PathBuf::from("/etc/egoslam/camera.yaml")));
+        assert_eq!((run.fps, run.realtime), (15.0, true));
+        assert_eq!(run.out, PathBuf::from("/var/lib/egoslam"));
+        let Command::Replay(replay) = command_with(text, &["egoslam", "replay"]) else {
+            panic!("replay")
+        };
+        assert_eq!(replay.service.namespace, "glasses");
         for service in ["frontend", "merger"] {
-            let matches = crate::cli::Cli::command()
-                .try_get_matches_from(["egoslam", service])
-                .expect("args");
-            let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
-            let (_, sub) = matches.subcommand().expect("subcommand");
-            apply(&c, sub, &mut cli.command);
-            let (Command::Frontend(a) | Command::Merger(a)) = cli.command else {
+            let (Command::Frontend(a) | Command::Merger(a)) =
+                command_with(text, &["egoslam", service])
+            else {
                 panic!("{service}")
             };
             let home = PathBuf::from("/var/lib/egoslam/home.egomap");
             assert_eq!(a.map.map_in, Some(home), "{service}");
             assert_eq!(a.map.map_out, Some(PathBuf::from("today.egomap")));
         }
-        let e = parse("[map]\nextends = \"x\"\n").expect_err("unknown key");
-        assert!(format!("{e:#}").contains("extends"), "{e:#}");
     }
 
     #[test]
     fn the_tls_section_reaches_the_network_options() {
-        use clap::{CommandFactory, FromArgMatches};
-        let c = parse(
-            "[zenoh]\nlisten = [\"tls/0.0.0.0:7447\"]\nremote_read_only = true\n\
+        let text = "[zenoh]\nlisten = [\"tls/0.0.0.0:7447\"]\nremote_read_only = true\n\
              [zenoh.tls]\nroot_ca = \"/etc/egoslam/ca.pem\"\n\
              certificate = \"/etc/egoslam/box.pem\"\nprivate_key = \"/etc/egoslam/box.key\"\n\
-             mutual = true\nallowed_common_names = [\"viewer\"]\n",
-        )
-        .expect("valid");
-        let matches = crate::cli::Cli::command()
-            .try_get_matches_from(["egoslam", "merger"])
-            .expect("args");
-        let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
-        let (_, sub) = matches.subcommand().expect("subcommand");
-        apply(&c, sub, &mut cli.command);
-        let Command::Merger(a) = cli.command else {
+             mutual = true\nallowed_common_names = [\"viewer\"]\n";
+        let Command::Merger(a) = command_with(text, &["egoslam", "merger"]) else {
             panic!("merger")
         };
         let network = a.egress.network();
@@ -493,7 +310,14 @@ mod tests {
         assert_eq!(tls.certificate, Some(PathBuf::from("/etc/egoslam/box.pem")));
         assert!(tls.mutual);
         assert_eq!(tls.allowed_common_names, vec!["viewer".to_string()]);
-        let e = parse("[zenoh.tls]\nmutal = true\n").expect_err("unknown key");
-        assert!(format!("{e:#}").contains("mutal"), "{e:#}");
+        let writable = "[zenoh]\nremote_read_only = false\n";
+        let Command::Merger(a) = command_with(writable, &["egoslam", "merger"]) else {
+            panic!("merger")
+        };
+        assert!(!a.egress.network().remote_read_only);
+        let Command::Merger(a) = command_with("", &["egoslam", "merger"]) else {
+            panic!("merger")
+        };
+        assert!(a.egress.network().remote_read_only, "read-only by default");
     }
 }

@@ -5,7 +5,7 @@
 //! byte overwrites, truncation, insertion, duplication) by a seeded generator, so a failure
 //! is reproducible from the printed iteration. Errors are expected; a panic fails the test.
 
-use crate::config::Config;
+use crate::config::ConfigFile;
 use egoslam_durability::checkpoint::Checkpoint;
 use egoslam_durability::window_journal::{self, JournalWriter};
 use egoslam_merger::MergerState;
@@ -200,9 +200,10 @@ fn files_the_services_read_back() {
     let config =
         std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/egoslam.toml"))
             .expect("config");
+    let command = <crate::cli::Cli as clap::CommandFactory>::command();
     fuzz("config", 5, 1000, &config, |b| {
         std::fs::write(&path, b).expect("write");
-        Config::load(&path).is_ok()
+        ConfigFile::load(&path, &command).is_ok()
     });
     // Calibration and ground truth.
     let calib = std::fs::read(fixture().join("camera.yaml")).expect("calibration");

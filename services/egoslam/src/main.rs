@@ -21,25 +21,18 @@ fn main() -> std::process::ExitCode {
     // logs, saved maps) is for its owner only (files 0600, folders 0700).
     // SAFETY: umask(2) only sets the process's file mode mask.
     unsafe { libc::umask(0o077) };
-    let matches = cli::Cli::command().get_matches();
-    let mut cli = match cli::Cli::from_arg_matches(&matches) {
+    let matches = match config::parse_command_line(cli::Cli::command()) {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            return std::process::ExitCode::from(2);
+        }
+    };
+    let cli = match cli::Cli::from_arg_matches(&matches) {
         Ok(c) => c,
         Err(e) => e.exit(),
     };
     init_tracing(cli.verbose);
-    if let Some(path) = &cli.config {
-        match config::Config::load(path) {
-            Ok(c) => {
-                if let Some((_, sub)) = matches.subcommand() {
-                    config::apply(&c, sub, &mut cli.command);
-                }
-            }
-            Err(e) => {
-                eprintln!("error: {e:#}");
-                return std::process::ExitCode::from(2);
-            }
-        }
-    }
     // Usage errors exit with 2, as clap's own do.
     if let Err(e) = option_checks::validate(&cli.command) {
         eprintln!("error: {e}");

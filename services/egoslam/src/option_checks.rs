@@ -1,167 +1,117 @@
-//! The one validation of option values, whatever their source (flag, environment variable or
-//! configuration file): run on the merged options, before any work, so that a value out of
-//! range is refused with the option named and exit code 2, never passed on to OpenCV (which
-//! aborts on an LK window of 2) or to an allocation (which aborts on 10^9 tracks).
+//! The ranges of option values. Each is the value parser of its flag (options.rs), so a
+//! flag, its environment variable and its configuration-file key (config.rs) are checked
+//! by the same code, before any work: a value out of range is refused with the option named
+//! and exit code 2, never passed on to OpenCV (which aborts on an LK window of 2) or to an
+//! allocation (which aborts on 10^9 tracks). What spans two options is checked once they
+//! are merged ([`validate`]).
 
 use crate::cli::Command;
 use crate::options::PipelineArgs;
 
-/// An option value outside its range.
+/// A number in `[min, max]` (NaN never is).
+fn number_within(text: &str, min: f64, max: f64) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if (min..=max).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("{v} is not between {min} and {max}")),
+        Err(e) => Err(format!("{text:?}: {e}")),
+    }
+}
+
+/// `--keyframe-flow-px`: 0.1-1000 pixels.
+pub fn flow_px(text: &str) -> Result<f64, String> {
+    number_within(text, 0.1, 1000.0)
+}
+
+/// `--fps`: 0.1-1000 frames per second.
+pub fn frame_rate(text: &str) -> Result<f64, String> {
+    number_within(text, 0.1, 1000.0)
+}
+
+/// `--lk-window`: odd, 3-51 pixels.
+pub fn lk_window(text: &str) -> Result<i32, String> {
+    match text.trim().parse::<i32>() {
+        Ok(v) if !(3..=51).contains(&v) => Err(format!("{v} is not between 3 and 51")),
+        Ok(v) if v % 2 == 0 => Err(format!("{v} is not odd")),
+        Ok(v) => Ok(v),
+        Err(e) => Err(format!("{text:?}: {e}")),
+    }
+}
+
+/// A positive threshold; `inf` (allowed) disables what it starts, NaN is refused.
+pub fn positive_or_inf(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v > 0.0 => Ok(v),
+        Ok(v) => Err(format!("{v} is not positive (inf: never)")),
+        Err(e) => Err(format!("{text:?}: {e}")),
+    }
+}
+
+/// A retention in minutes: finite and not negative.
+pub fn non_negative_minutes(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(m) if m.is_finite() && m >= 0.0 => Ok(m),
+        _ => Err(format!("{text:?}: minutes, a number >= 0 (0: no limit)")),
+    }
+}
+
+/// A zenoh endpoint, `PROTOCOL/ADDRESS`, or `none`.
+pub fn zenoh_endpoint(text: &str) -> Result<String, String> {
+    if text == "none" || text.contains('/') {
+        Ok(text.to_string())
+    } else {
+        Err(format!(
+            "{text:?}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447"
+        ))
+    }
+}
+
+/// Options that are valid alone but not together.
 #[derive(Debug, thiserror::Error)]
 #[error("--{flag} = {value} (config {key}): {problem}")]
 pub struct InvalidOption {
     /// The command-line flag, without the dashes.
-    pub flag: &'static str,
+    pub flag: String,
     /// The configuration file's key.
-    pub key: &'static str,
+    pub key: String,
     pub value: String,
     pub problem: String,
 }
 
-fn invalid(
-    flag: &'static str,
-    key: &'static str,
-    value: impl ToString,
-    problem: String,
-) -> InvalidOption {
-    InvalidOption {
-        flag,
-        key,
-        value: value.to_string(),
-        problem,
-    }
-}
-
-/// `value` within `[min, max]` (NaN never is).
-fn within<T: PartialOrd + std::fmt::Display + Copy>(
-    flag: &'static str,
-    key: &'static str,
-    value: T,
-    min: T,
-    max: T,
-) -> Result<(), InvalidOption> {
-    if value >= min && value <= max {
-        Ok(())
-    } else {
-        Err(invalid(
-            flag,
-            key,
-            value,
-            format!("must be between {min} and {max}"),
-        ))
-    }
-}
-
-/// Positive, `inf` allowed (it disables what the threshold starts), NaN not.
-fn positive(
-    flag: &'static str,
-    key: &'static str,
-    value: f64,
-    inf_means: &str,
-) -> Result<(), InvalidOption> {
-    if value > 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(
-            flag,
-            key,
-            value,
-            format!("must be positive (inf {inf_means})"),
-        ))
+impl InvalidOption {
+    /// The option whose clap id is `id`, named as a flag and as a file key.
+    fn of(id: &str, value: impl ToString, problem: String) -> Self {
+        let command = <crate::cli::Cli as clap::CommandFactory>::command();
+        let run = command.find_subcommand("run");
+        let arg = run.and_then(|r| r.get_arguments().find(|a| a.get_id() == id));
+        Self {
+            flag: arg.and_then(|a| a.get_long()).unwrap_or(id).to_string(),
+            key: arg.map_or_else(|| id.to_string(), crate::config::file_key),
+            value: value.to_string(),
+            problem,
+        }
     }
 }
 
 impl PipelineArgs {
-    /// Checks every value's range.
+    /// What spans two options: the windows' overlap must leave each window new keyframes.
     pub fn validate(&self) -> Result<(), InvalidOption> {
-        within(
-            "keyframe-every",
-            "frontend.keyframe_every",
-            self.keyframe_every,
-            1,
-            1000,
-        )?;
-        within(
-            "keyframe-flow-px",
-            "frontend.keyframe_flow_px",
-            self.keyframe_flow_px,
-            0.1,
-            1000.0,
-        )?;
-        within("tracks", "frontend.tracks", self.tracks, 50, 20_000)?;
-        within("lk-window", "frontend.lk_window", self.lk_window, 3, 51)?;
-        if self.lk_window % 2 == 0 {
-            return Err(invalid(
-                "lk-window",
-                "frontend.lk_window",
-                self.lk_window,
-                "must be odd".into(),
+        if self.overlap >= usize::from(self.window) {
+            return Err(InvalidOption::of(
+                "overlap",
+                self.overlap,
+                format!("must be below the window ({})", self.window),
             ));
         }
-        within(
-            "readout-frames",
-            "frontend.readout_frames",
-            self.readout_frames,
-            23,
-            10_000,
-        )?;
-        within("window", "solver.window", self.window, 10, 30)?;
-        within(
-            "loop-closures",
-            "solver.loop_closures",
-            self.loop_closures,
-            1,
-            29,
-        )?;
-        within(
-            "overlap",
-            "solver.overlap",
-            self.overlap,
-            3,
-            usize::from(self.window) - 1,
-        )?;
-        positive(
-            "global-ba-px",
-            "merger.global_ba_px",
-            self.global_ba_px,
-            "disables it",
-        )?;
-        positive(
-            "max-point-std",
-            "merger.max_point_std",
-            self.max_point_std,
-            "publishes every point",
-        )?;
-        within(
-            "refinement-lag",
-            "merger.refinement_lag",
-            self.refinement_lag,
-            0,
-            1000,
-        )?;
         Ok(())
     }
-}
-
-fn frame_rate(fps: f64) -> Result<(), InvalidOption> {
-    within("fps", "input.fps", fps, 0.1, 1000.0)
 }
 
 /// Checks the options of `command` (after the configuration file was applied).
 pub fn validate(command: &Command) -> Result<(), InvalidOption> {
     match command {
-        Command::Run(a) => {
-            frame_rate(a.fps)?;
-            a.pipeline.validate()
-        }
-        Command::Replay(a) => {
-            frame_rate(a.fps)?;
-            a.service.pipeline.validate()
-        }
-        Command::CalibrateReadout(a) => {
-            frame_rate(a.fps)?;
-            a.pipeline.validate()
-        }
+        Command::Run(a) => a.pipeline.validate(),
+        Command::Replay(a) => a.service.pipeline.validate(),
+        Command::CalibrateReadout(a) => a.pipeline.validate(),
         Command::Frontend(a) | Command::Solver(a) | Command::Merger(a) => a.pipeline.validate(),
         Command::Eval(_)
         | Command::Export(_)
@@ -178,13 +128,13 @@ mod tests {
     use super::*;
     use clap::{CommandFactory, FromArgMatches};
 
-    fn checked(args: &[&str]) -> Result<(), InvalidOption> {
+    fn checked(args: &[&str]) -> Result<(), String> {
         let argv = ["egoslam", "run"].iter().chain(args);
         let matches = crate::cli::Cli::command()
             .try_get_matches_from(argv)
-            .expect("parses");
-        let cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
-        validate(&cli.command)
+            .map_err(|e| e.to_string())?;
+        let cli = crate::cli::Cli::from_arg_matches(&matches).map_err(|e| e.to_string())?;
+        validate(&cli.command).map_err(|e| e.to_string())
     }
 
     #[test]
@@ -193,7 +143,7 @@ mod tests {
     }
 
     #[test]
-    fn values_out_of_range_name_the_flag_and_the_key() {
+    fn values_out_of_range_name_the_flag() {
         for (args, flag) in [
             (&["--tracks", "1000000000"][..], "--tracks"),
             (&["--lk-window", "2"], "--lk-window"),
@@ -204,25 +154,21 @@ mod tests {
             (&["--global-ba-px", "NaN"], "--global-ba-px"),
             (&["--max-point-std=-1"], "--max-point-std"),
             (&["--fps", "0"], "--fps"),
-            (&["--overlap", "20"], "--overlap"),
+            (&["--zenoh-listen", "127.0.0.1:7447"], "--zenoh-listen"),
         ] {
             let e = checked(args).expect_err(flag);
-            assert!(e.to_string().starts_with(flag), "{args:?}: {e}");
+            assert!(e.contains(flag), "{args:?}: {e}");
         }
         checked(&["--global-ba-px", "inf", "--max-point-std", "inf"]).expect("inf allowed");
     }
 
     #[test]
-    fn values_from_the_configuration_file_are_checked_the_same_way() {
-        let c: crate::config::Config =
-            toml::from_str("[frontend]\ntracks = 1000000000\n").expect("toml");
-        let matches = crate::cli::Cli::command()
-            .try_get_matches_from(["egoslam", "run"])
-            .expect("parses");
-        let mut cli = crate::cli::Cli::from_arg_matches(&matches).expect("cli");
-        let (_, sub) = matches.subcommand().expect("subcommand");
-        crate::config::apply(&c, sub, &mut cli.command);
-        let e = validate(&cli.command).expect_err("range");
-        assert!(e.to_string().contains("frontend.tracks"), "{e}");
+    fn an_overlap_as_large_as_the_window_names_the_flag_and_the_key() {
+        let e = checked(&["--window", "12", "--overlap", "12"]).expect_err("overlap");
+        assert!(
+            e.starts_with("--overlap = 12 (config solver.overlap)"),
+            "{e}"
+        );
+        checked(&["--window", "12", "--overlap", "11"]).expect("below the window");
     }
 }

@@ -2,6 +2,8 @@
 //! `solver`, `merger`): clap flags, overridden by the configuration file (config.rs),
 //! checked by option_checks.rs; each service's options struct is built from them here.
 
+use crate::option_checks as checks;
+use clap::builder::RangedU64ValueParser;
 use clap::Args;
 use egoslam_frontend::{KeyframePolicy, TrackerOptions};
 use std::path::PathBuf;
@@ -9,40 +11,45 @@ use std::path::PathBuf;
 /// Options of the tracking and solving stages, shared by `run` and the services.
 #[derive(Args, Debug, Clone)]
 pub struct PipelineArgs {
-    /// P: a keyframe at least every P frames.
-    #[arg(long, default_value_t = 30)]
+    /// P: a keyframe at least every P frames (1-1000).
+    #[arg(long, help_heading = "frontend", default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub keyframe_every: u32,
-    /// m: a keyframe when the mean flow since the last one exceeds m pixels.
-    #[arg(long, default_value_t = 20.0)]
+    /// m: a keyframe when the mean flow since the last one exceeds m pixels (0.1-1000).
+    #[arg(long, help_heading = "frontend", default_value_t = 20.0, value_parser = checks::flow_px)]
     pub keyframe_flow_px: f64,
-    /// Tracks kept alive by the frontend.
-    #[arg(long, default_value_t = 1000)]
+    /// Tracks kept alive by the frontend (50-20000).
+    #[arg(long, help_heading = "frontend", default_value_t = 1000, value_parser = RangedU64ValueParser::<usize>::new().range(50..=20_000))]
     pub tracks: usize,
-    /// Lucas-Kanade window side, pixels (odd; larger is slower and smoother).
-    #[arg(long, default_value_t = 9)]
+    /// Lucas-Kanade window side, pixels (odd, 3-51; larger is slower and smoother).
+    #[arg(long, help_heading = "frontend", default_value_t = 9, value_parser = checks::lk_window)]
     pub lk_window: i32,
     /// Retry tracks LK lost from where their last motion predicts them (fast head turns;
     /// on by default, `--predict-motion false` turns it off: docs/config.md has the
     /// trade-off measured).
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    #[arg(long, help_heading = "frontend", default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
     /// global shutter), or `auto`: estimated from the first frames (read ahead by `egoslam
     /// run` in a recorded input; on a live stream by the frontend, which corrects from then
     /// on); observations are moved to the middle row's time (docs/config.md).
-    #[arg(long, default_value = "auto", env = "EGOSLAM_ROLLING_SHUTTER_MS")]
+    #[arg(
+        long,
+        help_heading = "frontend",
+        default_value = "auto",
+        env = "EGOSLAM_ROLLING_SHUTTER_MS"
+    )]
     pub rolling_shutter_ms: crate::calibration::settings::Readout,
     /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
     /// frames of a recorded input, read before the run, or of a live stream, which is
     /// corrected from then on.
-    #[arg(long, default_value_t = crate::calibration::settings::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
+    #[arg(long, help_heading = "frontend", default_value_t = crate::calibration::settings::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
     /// Self-calibrate the focal length: `egoslam run` solves the first windows of a
     /// recorded input with the intrinsics free and scales the calibration's fx and fy when
     /// they agree on a clearly different focal length (docs/config.md; a live camera runs
     /// with the calibration as given). Off by default: on TUM and KITTI it improves the
     /// positions and worsens the rotations (docs/config.md has the figures).
-    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, env = "EGOSLAM_CALIBRATE_FOCAL")]
+    #[arg(long, help_heading = "frontend", default_value_t = false, action = clap::ArgAction::Set, env = "EGOSLAM_CALIBRATE_FOCAL")]
     pub calibrate_focal: bool,
     /// Self-calibrate a radial distortion the calibration leaves: `egoslam run` solves the
     /// first windows of a recorded input with one radial term free (the focal held) and
@@ -51,118 +58,146 @@ pub struct PipelineArgs {
     /// calibration without distortion terms (rectified images, a datasheet's pinhole, a
     /// fisheye's nominal lens, whose first term is measured on its own image);
     /// kitti_odometry_00 0.479 -> 0.246 m.
-    #[arg(long, default_value_t = crate::calibration::settings::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
+    #[arg(long, help_heading = "frontend", default_value_t = crate::calibration::settings::RadialSetting::Auto, env = "EGOSLAM_CALIBRATE_RADIAL")]
     pub calibrate_radial: crate::calibration::settings::RadialSetting,
     /// K: keyframes per window (10-30, the paper's range).
-    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
+    #[arg(long, help_heading = "solver", default_value_t = 20, value_parser = clap::value_parser!(u16).range(10..=30))]
     pub window: u16,
-    /// L: loop-closure edges from each keyframe reach back this many keyframes.
-    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(1..=29))]
+    /// L: loop-closure edges from each keyframe reach back this many keyframes (1-29).
+    #[arg(long, help_heading = "solver", default_value_t = 6, value_parser = clap::value_parser!(u16).range(1..=29))]
     pub loop_closures: u16,
-    /// O: keyframes shared by consecutive windows.
-    #[arg(long, default_value_t = 5)]
+    /// O: keyframes shared by consecutive windows (3 to K - 1).
+    #[arg(long, help_heading = "solver", default_value_t = 5, value_parser = RangedU64ValueParser::<usize>::new().range(3..=29))]
     pub overlap: usize,
     /// Merger: start a background bundle adjustment of the map when a new window's
     /// median cross-window reprojection error exceeds this many pixels ("inf" disables
     /// it). Default 1.5: inside a window BA leaves ~0.8 px; measured between windows 0.5-1.2
     /// px on KITTI and TUM, and 2.6 px where the TUM clip's chain drifts (docs/solver.md).
-    #[arg(long, default_value_t = 1.5)]
+    #[arg(long, help_heading = "merger", default_value_t = 1.5, value_parser = checks::positive_or_inf)]
     pub global_ba_px: f64,
     /// Merger: keyframes in that bundle adjustment, newest first (0: the whole segment).
     /// Default 1500: its cost grows faster than the segment (800 keyframes 13 s, 2405 83 s,
     /// 5330 188 s); on the rendered 12,000-frame walk the bound took the run from 344 s to
     /// 218 s and the merger from 2.4 to 1.6 GB with the same keyframe ATE (5.62 m).
-    #[arg(long, default_value_t = 1500)]
+    #[arg(long, help_heading = "merger", default_value_t = 1500)]
     pub refine_keyframes: usize,
     /// Merger: fold that bundle adjustment into the map exactly this many windows after it
     /// started, waiting for it if need be, so that the same input always gives the same map
-    /// (0: whenever it has finished, never waiting; two runs then differ). Default 3.
-    #[arg(long, default_value_t = 3)]
+    /// (0: whenever it has finished, never waiting; two runs then differ; at most 1000).
+    /// Default 3.
+    #[arg(long, help_heading = "merger", default_value_t = 3, value_parser = clap::value_parser!(u32).range(0..=1000))]
     pub refinement_lag: u32,
     /// Merger: close loops inside a map segment when the newest keyframes relocalize into
     /// a part of it mapped long before (docs/merger.md, "Loop closure"); `false` turns it
     /// off.
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
     /// Merger: take out of the map the keyframes whose points nearly all (90 %) are seen
     /// by three other keyframes, once no window can bring them again (docs/merger.md,
     /// "Keyframe culling"); their frames stay in the trajectory. `false` keeps every
     /// keyframe (memory then grows with the time walked).
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
     pub cull_keyframes: bool,
     /// Merger: keyframes the map aims to keep at most (keyframes that see no point and
     /// those the spine needs stay beyond it); over it, those whose place another
     /// keyframe covers most closely are culled first (docs/merger.md, "Keyframe culling").
     /// Limits the merger's memory (~0.3-0.4 MB per keyframe); soft, so a long run can pass
     /// it (docs/benchmarks.md, "Endurance"). 0: no ceiling. Default 3000.
-    #[arg(long, default_value_t = 3000)]
+    #[arg(long, help_heading = "merger", default_value_t = 3000)]
     pub max_map_keyframes: usize,
     /// Merger: map.ply holds only the map points whose standard deviation, from the
     /// keyframes that saw them at 1 px noise, is at most this fraction of their distance to
     /// the nearest of those keyframes ("inf": every point). Default 0.02 (6 cm at 3 m).
     /// Zenoh carries every point with that figure; the saved map and the pipeline keep
     /// every point (docs/merger.md, "Published points").
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, help_heading = "merger", default_value_t = 0.02, value_parser = checks::positive_or_inf)]
     pub max_point_std: f64,
     /// Merger: also write map_all.ply, every triangulated point with its views and
     /// relative standard deviation (NaN where the views do not fix it).
-    #[arg(long)]
+    #[arg(long, help_heading = "merger")]
     pub map_all_points: bool,
     /// Merger: minutes of video a keyframe's image patches (pixels of the wearer's
     /// surroundings, kept for relocalization and map.ply's colours) are kept in the state
     /// folder; older ones leave at the features log's next compaction, descriptors stay
     /// while the map holds the keyframe (docs/durability.md, "Retention"). 0: as long as the
     /// map needs them.
-    #[arg(long, default_value_t = 0.0, value_parser = non_negative_minutes)]
+    #[arg(long, help_heading = "merger", default_value_t = 0.0, value_parser = checks::non_negative_minutes)]
     pub patch_retention_min: f64,
-}
-
-/// A retention in minutes: finite and not negative.
-fn non_negative_minutes(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(m) if m.is_finite() && m >= 0.0 => Ok(m),
-        _ => Err(format!("{text:?}: minutes, a number >= 0 (0: no limit)")),
-    }
 }
 
 /// Where results go over zenoh (docs/egress.md).
 #[derive(Args, Debug, Clone)]
 pub struct EgressArgs {
     /// Device name: key expressions are egoslam/<device>/...
-    #[arg(long, default_value = "default")]
+    #[arg(long, help_heading = "zenoh", default_value = "default")]
     pub device: String,
     /// zenoh endpoints to listen on (repeatable; loopback only by default; "none" disables
     /// zenoh output; "tcp/127.0.0.1:0" picks a free port).
     #[arg(
-        long,
+        id = "listen",
+        long = "zenoh-listen",
+        value_name = "ENDPOINT",
+        help_heading = "zenoh",
         env = "EGOSLAM_ZENOH_LISTEN",
-        default_value = "tcp/127.0.0.1:7447"
+        default_value = "tcp/127.0.0.1:7447",
+        value_parser = checks::zenoh_endpoint
     )]
     pub zenoh_listen: Vec<String>,
     /// zenoh router or peer endpoints to connect to (repeatable).
-    #[arg(long)]
+    #[arg(
+        id = "connect",
+        long = "zenoh-connect",
+        value_name = "ENDPOINT",
+        help_heading = "zenoh",
+        value_parser = checks::zenoh_endpoint
+    )]
     pub zenoh_connect: Vec<String>,
+    /// Remote sessions may only subscribe and query; `--zenoh-remote-writable` (file:
+    /// `remote_read_only = false`) lets them publish and declare queryables on egoslam/**.
+    #[arg(
+        id = "remote_read_only",
+        long = "zenoh-remote-writable",
+        help_heading = "zenoh",
+        action = clap::ArgAction::SetFalse
+    )]
+    pub remote_read_only: bool,
     /// TLS: CA certificate (PEM) that verifies client certificates (mutual TLS) or the
     /// router connected to.
-    #[arg(long)]
+    #[arg(
+        id = "root_ca",
+        long = "zenoh-tls-root-ca",
+        value_name = "FILE.pem",
+        help_heading = "zenoh.tls"
+    )]
     pub zenoh_tls_root_ca: Option<PathBuf>,
     /// TLS: this side's certificate chain (PEM); needed by a tls/ listen endpoint.
-    #[arg(long)]
+    #[arg(
+        id = "certificate",
+        long = "zenoh-tls-certificate",
+        value_name = "FILE.pem",
+        help_heading = "zenoh.tls"
+    )]
     pub zenoh_tls_certificate: Option<PathBuf>,
     /// TLS: the private key of --zenoh-tls-certificate (PEM).
-    #[arg(long)]
+    #[arg(
+        id = "private_key",
+        long = "zenoh-tls-private-key",
+        value_name = "FILE.pem",
+        help_heading = "zenoh.tls"
+    )]
     pub zenoh_tls_private_key: Option<PathBuf>,
     /// TLS: require client certificates signed by --zenoh-tls-root-ca.
-    #[arg(long)]
+    #[arg(id = "mutual", long = "zenoh-tls-mutual", help_heading = "zenoh.tls")]
     pub zenoh_tls_mutual: bool,
     /// Mutual TLS: only clients with this certificate common name get results (repeatable;
     /// none: every client the CA vouches for).
-    #[arg(long)]
+    #[arg(
+        id = "allowed_common_names",
+        long = "zenoh-allow-common-name",
+        value_name = "NAME",
+        help_heading = "zenoh.tls"
+    )]
     pub zenoh_allow_common_name: Vec<String>,
-    /// Let remote sessions publish and declare queryables on egoslam/** (default: they may
-    /// only subscribe and query).
-    #[arg(long)]
-    pub zenoh_remote_writable: bool,
 }
 
 impl EgressArgs {
@@ -186,7 +221,7 @@ impl EgressArgs {
             listen: self.zenoh_listen.clone(),
             connect: self.zenoh_connect.clone(),
             tls,
-            remote_read_only: !self.zenoh_remote_writable,
+            remote_read_only: self.remote_read_only,
         }
     }
 
@@ -217,7 +252,7 @@ impl EgressArgs {
         if self.zenoh_tls_mutual {
             flags.push("--zenoh-tls-mutual".into());
         }
-        if self.zenoh_remote_writable {
+        if !self.remote_read_only {
             flags.push("--zenoh-remote-writable".into());
         }
         flags
@@ -228,23 +263,39 @@ impl EgressArgs {
 pub struct RunArgs {
     /// Sequence: TUM/KITTI/EuRoC folder, video file or image folder. Default: the embedded
     /// TUM fr1_rpy clip (tests/data/tum_fr1_rpy_120), evaluated against its ground truth.
-    #[arg(long)]
+    #[arg(
+        id = "path",
+        long = "input",
+        value_name = "INPUT",
+        help_heading = "input"
+    )]
     pub input: Option<PathBuf>,
     /// Calibration YAML (or KITTI calib.txt); default: the dataset's own.
-    #[arg(long)]
+    #[arg(
+        id = "calibration",
+        long = "calib",
+        value_name = "CALIB",
+        help_heading = "input"
+    )]
     pub calib: Option<PathBuf>,
     /// Output folder (created): trajectory.tum, keyframes.tum, map.ply, report.json.
-    #[arg(long, default_value = "out")]
+    #[arg(
+        id = "dir",
+        long = "out",
+        value_name = "OUT",
+        help_heading = "output",
+        default_value = "out"
+    )]
     pub out: PathBuf,
     /// Ground truth to evaluate against; default: found next to the input, if any.
     #[arg(long)]
     pub gt: Option<PathBuf>,
     /// Replay at the recorded rate (frames dropped if the frontend falls behind) instead of
     /// as fast as the frontend consumes them (lossless).
-    #[arg(long)]
+    #[arg(long, help_heading = "input")]
     pub realtime: bool,
-    /// Frame rate assumed for image folders.
-    #[arg(long, default_value_t = 30.0)]
+    /// Frame rate assumed for image folders (0.1-1000).
+    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = checks::frame_rate)]
     pub fps: f64,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
@@ -261,10 +312,10 @@ pub struct RunArgs {
 pub struct ViewArgs {
     /// Serve the run to Foxglove (WebSocket, `foxglove.sdk.v1`) on HOST:PORT from the start,
     /// e.g. 127.0.0.1:8765 (port 0: a free one, logged).
-    #[arg(long, value_name = "HOST:PORT")]
+    #[arg(long, help_heading = "view", value_name = "HOST:PORT")]
     pub foxglove: Option<String>,
     /// Record the same channels into this MCAP file (replaced if present).
-    #[arg(long, value_name = "FILE.mcap")]
+    #[arg(long, help_heading = "view", value_name = "FILE.mcap")]
     pub record: Option<PathBuf>,
 }
 
@@ -279,12 +330,22 @@ impl ViewArgs {
 pub struct MapArgs {
     /// Write the map (keyframes, poses, points, descriptors) here at the end of the run,
     /// for `egoslam localize --map`.
-    #[arg(long)]
+    #[arg(
+        id = "save",
+        long = "map-out",
+        value_name = "MAP_OUT",
+        help_heading = "map"
+    )]
     pub map_out: Option<PathBuf>,
     /// Start from this saved map (`--map-out` of an earlier run) and extend it: the run's
     /// keyframes join it once they relocalize in it, from then on posed in its frame and
     /// scale; `--map-out` then writes both (docs/relocalization.md, "Extending a map").
-    #[arg(long, value_name = "FILE.egomap")]
+    #[arg(
+        id = "extend",
+        long = "map-in",
+        value_name = "FILE.egomap",
+        help_heading = "map"
+    )]
     pub map_in: Option<PathBuf>,
     /// Vocabulary tree file (`egoslam vocab train`); default: the one built into egoslam.
     #[arg(long)]
@@ -294,11 +355,18 @@ pub struct MapArgs {
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
     /// Sequence, video file or camera (required here or in the config file).
-    #[arg(long)]
+    #[arg(
+        id = "path",
+        long = "input",
+        value_name = "INPUT",
+        help_heading = "input"
+    )]
     pub input: Option<PathBuf>,
-    #[arg(long)]
+    /// Pace frames at the recorded rate and drop what the frontend cannot take.
+    #[arg(long, help_heading = "input")]
     pub realtime: bool,
-    #[arg(long, default_value_t = 30.0)]
+    /// Frame rate assumed for image folders (0.1-1000).
+    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = checks::frame_rate)]
     pub fps: f64,
     #[command(flatten)]
     pub service: ServiceArgs,
@@ -307,10 +375,16 @@ pub struct ReplayArgs {
 #[derive(Args, Debug, Clone)]
 pub struct ServiceArgs {
     /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
-    #[arg(long, default_value = "default")]
+    #[arg(long, help_heading = "bus", default_value = "default")]
     pub namespace: String,
     /// Output folder: services write their statistics (and the merger its map) here.
-    #[arg(long, default_value = "out")]
+    #[arg(
+        id = "dir",
+        long = "out",
+        value_name = "OUT",
+        help_heading = "output",
+        default_value = "out"
+    )]
     pub out: PathBuf,
     /// Calibration YAML in egoslam format (the launcher writes DIR/camera.yaml).
     #[arg(long)]

@@ -117,11 +117,16 @@ pub struct CalibrateReadoutArgs {
     /// the head, up and down as well as sideways.
     #[arg(long)]
     pub input: PathBuf,
-    /// Frame rate of image folders and videos without one.
-    #[arg(long, default_value_t = 30.0)]
+    /// Frame rate of image folders and videos without one (0.1-1000).
+    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = crate::option_checks::frame_rate)]
     pub fps: f64,
     /// Calibration file (default: found next to the input, docs/config.md).
-    #[arg(long)]
+    #[arg(
+        id = "calibration",
+        long = "calib",
+        value_name = "CALIB",
+        help_heading = "input"
+    )]
     pub calib: Option<PathBuf>,
     #[command(flatten)]
     pub pipeline: PipelineArgs,

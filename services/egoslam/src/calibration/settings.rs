@@ -1,7 +1,7 @@
 //! The calibration settings of the pipeline's options whose values say how a calibration
 //! is estimated: the rolling-shutter readout (`--rolling-shutter-ms`, a time or `auto`) and
-//! when the radial term is self-calibrated (`--calibrate-radial`). Parsed from flags and
-//! the configuration file alike.
+//! when the radial term is self-calibrated (`--calibrate-radial`). Parsed from flags, their
+//! environment variables and the configuration file alike (`FromStr`).
 
 use egoslam_geometry::PinholeRadtan;
 
@@ -65,22 +65,6 @@ impl std::fmt::Display for Readout {
     }
 }
 
-impl<'de> serde::Deserialize<'de> for Readout {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        #[derive(serde::Deserialize)]
-        #[serde(untagged)]
-        enum Value {
-            Number(f64),
-            Word(String),
-        }
-        match Value::deserialize(d)? {
-            Value::Number(v) => millis(v),
-            Value::Word(w) => w.parse(),
-        }
-        .map_err(|e| serde::de::Error::custom(format!("rolling_shutter_ms = {e}")))
-    }
-}
-
 /// When the radial term is self-calibrated (`--calibrate-radial`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RadialSetting {
@@ -132,23 +116,6 @@ impl std::fmt::Display for RadialSetting {
     }
 }
 
-impl<'de> serde::Deserialize<'de> for RadialSetting {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        #[derive(serde::Deserialize)]
-        #[serde(untagged)]
-        enum Value {
-            Bool(bool),
-            Word(String),
-        }
-        match Value::deserialize(d)? {
-            Value::Bool(true) => Ok(RadialSetting::On),
-            Value::Bool(false) => Ok(RadialSetting::Off),
-            Value::Word(w) => w.parse(),
-        }
-        .map_err(|e| serde::de::Error::custom(format!("calibrate_radial = {e}")))
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -162,15 +129,6 @@ mod tests {
         assert!("101".parse::<Readout>().is_err());
         assert!("fast".parse::<Readout>().is_err());
         assert_eq!(Readout::Millis(12.5).to_string(), "12.5");
-        #[derive(serde::Deserialize)]
-        struct Section {
-            rolling_shutter_ms: Readout,
-        }
-        let s: Section = toml::from_str("rolling_shutter_ms = 20").expect("number");
-        assert_eq!(s.rolling_shutter_ms, Readout::Millis(20.0));
-        let s: Section = toml::from_str("rolling_shutter_ms = \"auto\"").expect("auto");
-        assert_eq!(s.rolling_shutter_ms, Readout::Auto);
-        assert!(toml::from_str::<Section>("rolling_shutter_ms = 500").is_err());
     }
 
     #[test]
@@ -208,18 +166,5 @@ mod tests {
             );
         }
         assert!("yes".parse::<RadialSetting>().is_err());
-        #[derive(serde::Deserialize)]
-        struct Section {
-            calibrate_radial: RadialSetting,
-        }
-        for (toml_text, setting) in [
-            ("calibrate_radial = \"auto\"", RadialSetting::Auto),
-            ("calibrate_radial = true", RadialSetting::On),
-            ("calibrate_radial = false", RadialSetting::Off),
-        ] {
-            let s: Section = toml::from_str(toml_text).expect("parses");
-            assert_eq!(s.calibrate_radial, setting);
-        }
-        assert!(toml::from_str::<Section>("calibrate_radial = 3").is_err());
     }
 }
