@@ -214,6 +214,22 @@ mod tests {
             listen.map(|s| s.values.clone()),
             Some(vec!["tcp/127.0.0.1:7447".into()])
         );
+        // Every key is there, set or commented out, in its section.
+        let text = std::fs::read_to_string(&path).expect("deploy/egoslam.toml");
+        let command = Cli::command();
+        for (key, _, _) in file_options(&command) {
+            let (section, name) = key.rsplit_once('.').expect("a section");
+            let body = text
+                .split(&format!("[{section}]\n"))
+                .nth(1)
+                .and_then(|rest| rest.split("\n[").next())
+                .unwrap_or_else(|| panic!("deploy/egoslam.toml has no [{section}]"));
+            let listed = body.lines().any(|line| {
+                let line = line.trim_start_matches('#').trim_start();
+                line.starts_with(&format!("{name} ="))
+            });
+            assert!(listed, "deploy/egoslam.toml does not list {key}");
+        }
     }
 
     #[test]
