@@ -17,7 +17,7 @@
 use egoslam_messages::v1 as pb;
 use prost::Message;
 use std::sync::{Arc, Mutex};
-use zenoh::qos::CongestionControl;
+use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Wait;
 
 /// Points per `map` message (keeps each under ~200 KB).
@@ -110,11 +110,12 @@ impl Egress {
             reason: e.to_string(),
         })?;
         let prefix = format!("egoslam/{}", options.device);
-        let declare = |name: &str, congestion_control: CongestionControl| {
+        let declare = |name: &str, congestion_control: CongestionControl, priority: Priority| {
             let key = format!("{prefix}/{name}");
             session
                 .declare_publisher(key.clone())
                 .congestion_control(congestion_control)
+                .priority(priority)
                 .wait()
                 .map_err(|e| EgressError::Declare {
                     key,
@@ -122,17 +123,18 @@ impl Egress {
                 })
         };
         // A pose is superseded by the frame's next revision and must not wait behind a
-        // slow link: dropped under congestion. The map arrives as changes, so a lost chunk
-        // would leave a hole no later message fills; it, the trajectory and the status
-        // (which a client takes as "all before me arrived") block instead, one priority so
-        // they keep their order. Zenoh closes a link that stays blocked for 5 s
-        // (`congestion_control/block/wait_before_close`), so a stuck client cannot stall
-        // the merger for longer.
+        // slow link or a window's map: dropped under congestion, and sent ahead of the
+        // rest (a queue of its own, zenoh's `DataHigh`). The map arrives as changes, so a
+        // lost chunk would leave a hole no later message fills; it, the trajectory and the
+        // status (which a client takes as "all before me arrived") block instead, at one
+        // priority so they keep their order. Zenoh closes a link that stays blocked for
+        // 5 s (`congestion_control/block/wait_before_close`), so a stuck client cannot
+        // stall the merger for longer.
         let (pose, trajectory, map, status) = (
-            declare("pose", CongestionControl::Drop)?,
-            declare("trajectory", CongestionControl::Block)?,
-            declare("map", CongestionControl::Block)?,
-            declare("status", CongestionControl::Block)?,
+            declare("pose", CongestionControl::Drop, Priority::DataHigh)?,
+            declare("trajectory", CongestionControl::Block, Priority::Data)?,
+            declare("map", CongestionControl::Block, Priority::Data)?,
+            declare("status", CongestionControl::Block, Priority::Data)?,
         );
         let snapshot = Arc::new(Mutex::new(pb::Snapshot::default().encode_to_vec()));
         let shared = snapshot.clone();
