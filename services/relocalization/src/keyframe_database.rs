@@ -17,7 +17,12 @@ pub struct Candidate {
 /// Keyframes searchable by bag of words.
 #[derive(Debug, Clone, Default)]
 pub struct KeyframeDatabase {
+    /// The keyframe of each entry (a removed keyframe's entry is reused by a later one, so
+    /// the entries follow the keyframes indexed at once, not all ever added: a day's
+    /// stream makes hundreds of thousands, of which the map keeps a few thousand).
     keyframes: Vec<u64>,
+    /// Entries of removed keyframes, free for the next ones.
+    free: Vec<u32>,
     /// keyframe id -> index into `keyframes`, of the keyframes indexed now.
     entries: HashMap<u64, u32>,
     /// word -> (index into `keyframes`, weight).
@@ -37,8 +42,16 @@ impl KeyframeDatabase {
     pub fn add(&mut self, keyframe_id: u64, bow: &BowVector) {
         self.remove(keyframe_id);
         self.bags.insert(keyframe_id, bow.clone());
-        let index = self.keyframes.len() as u32;
-        self.keyframes.push(keyframe_id);
+        let index = match self.free.pop() {
+            Some(index) => {
+                self.keyframes[index as usize] = keyframe_id;
+                index
+            }
+            None => {
+                self.keyframes.push(keyframe_id);
+                (self.keyframes.len() - 1) as u32
+            }
+        };
         self.entries.insert(keyframe_id, index);
         for &(word, weight) in bow {
             self.inverted.entry(word).or_default().push((index, weight));
@@ -62,6 +75,12 @@ impl KeyframeDatabase {
                 }
             }
         }
+        self.free.push(index);
+    }
+
+    /// Entries the index holds, in use or free (what a query's score arrays span).
+    pub fn entries(&self) -> usize {
+        self.keyframes.len()
     }
 
     /// Whether keyframe `keyframe_id` is indexed now.
@@ -181,5 +200,24 @@ mod tests {
         let ids: Vec<u64> = got.iter().map(|c| c.keyframe_id).collect();
         assert_eq!(ids, vec![1, 2]);
         assert!((got[0].score - 0.5).abs() < 1e-6 && (got[1].score - 0.2).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_index_follows_the_keyframes_kept_not_those_ever_added() {
+        let mut db = KeyframeDatabase::new();
+        // A long stream: 10 keyframes indexed at a time, 1000 added over it.
+        for k in 0..1000u64 {
+            db.add(k, &vec![((k % 7) as u32, 0.5), (100 + (k % 3) as u32, 0.5)]);
+            if k >= 10 {
+                db.remove(k - 10);
+            }
+        }
+        assert_eq!(db.len(), 10);
+        assert!(db.entries() <= 11, "{} entries", db.entries());
+        // The reused entries answer for their new keyframes.
+        let got = db.query(&vec![(999 % 7, 0.5), (100 + 999 % 3, 0.5)], 1);
+        assert_eq!(got[0].keyframe_id, 999);
+        assert!((got[0].score - 1.0).abs() < 1e-6);
+        assert!(db.query(&vec![(5000, 1.0)], 3).is_empty());
     }
 }
