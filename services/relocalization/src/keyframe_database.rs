@@ -215,7 +215,11 @@ mod tests {
         assert_eq!(db.len(), 10);
         assert!(db.entries() <= 11, "{} entries", db.entries());
         // The reused entries answer for their new keyframes.
-        let got = db.query(&vec![(999 % 7, 0.5), (100 + 999 % 3, 0.5)], 1);
+        let last = 999u64;
+        let got = db.query(
+            &vec![((last % 7) as u32, 0.5), (100 + (last % 3) as u32, 0.5)],
+            1,
+        );
         assert_eq!(got[0].keyframe_id, 999);
         assert!((got[0].score - 1.0).abs() < 1e-6);
         assert!(db.query(&vec![(5000, 1.0)], 3).is_empty());
