@@ -76,6 +76,9 @@ pub enum EgressError {
     Put { key: String, reason: String },
 }
 
+/// What the snapshot queryable answers: the encoded `Snapshot`, made on request.
+type SnapshotSource = Arc<dyn Fn() -> Vec<u8> + Send + Sync>;
+
 /// The publishers and the snapshot queryable of one device.
 pub struct Egress {
     /// Held so that the session lives as long as its publishers and queryable.
@@ -85,7 +88,7 @@ pub struct Egress {
     trajectory: zenoh::pubsub::Publisher<'static>,
     map: zenoh::pubsub::Publisher<'static>,
     status: zenoh::pubsub::Publisher<'static>,
-    snapshot: Arc<Mutex<Vec<u8>>>,
+    snapshot: Arc<Mutex<SnapshotSource>>,
     _queryable: zenoh::query::Queryable<()>,
 }
 
@@ -136,14 +139,19 @@ impl Egress {
             declare("map", CongestionControl::Block, Priority::Data)?,
             declare("status", CongestionControl::Block, Priority::Data)?,
         );
-        let snapshot = Arc::new(Mutex::new(pb::Snapshot::default().encode_to_vec()));
+        let empty = pb::Snapshot::default().encode_to_vec();
+        let snapshot: Arc<Mutex<SnapshotSource>> =
+            Arc::new(Mutex::new(Arc::new(move || empty.clone())));
         let shared = snapshot.clone();
         let key = format!("{prefix}/snapshot");
         let reply_key = key.clone();
         let queryable = session
             .declare_queryable(key.clone())
             .callback(move |query| {
-                let bytes = shared.lock().map(|b| b.clone()).unwrap_or_default();
+                // The source is taken out of the lock before it is encoded, so a large
+                // snapshot never holds up the merger replacing it.
+                let source = shared.lock().map(|s| Arc::clone(&s)).ok();
+                let bytes = source.map(|make| make()).unwrap_or_default();
                 if let Err(e) = query.reply(reply_key.clone(), bytes).wait() {
                     tracing::warn!(%e, "snapshot reply failed");
                 }
@@ -217,8 +225,19 @@ impl Egress {
 
     /// Replaces what the snapshot queryable answers.
     pub fn set_snapshot(&self, snapshot: &pb::Snapshot) {
-        if let Ok(mut bytes) = self.snapshot.lock() {
-            *bytes = snapshot.encode_to_vec();
+        let bytes = snapshot.encode_to_vec();
+        self.replace_snapshot(Arc::new(move || bytes.clone()));
+    }
+
+    /// Replaces what the snapshot queryable answers by what `make` returns when a client
+    /// asks (the merger's snapshot grows with the stream; most are never asked for).
+    pub fn set_snapshot_source(&self, make: impl Fn() -> pb::Snapshot + Send + Sync + 'static) {
+        self.replace_snapshot(Arc::new(move || make().encode_to_vec()));
+    }
+
+    fn replace_snapshot(&self, source: SnapshotSource) {
+        if let Ok(mut current) = self.snapshot.lock() {
+            *current = source;
         }
     }
 }

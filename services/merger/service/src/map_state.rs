@@ -110,12 +110,8 @@ pub fn publish(
     egress.publish_map(&publication.changed_points)?;
     // The snapshot before the status: a client that sees "finished" and then asks for the
     // snapshot (to fill what its subscription dropped) must get the final state.
-    egress.set_snapshot(&pb::Snapshot {
-        keyframes: Some(publication.keyframes),
-        frames: Some(publication.frames),
-        map: Some(publication.map),
-        status: Some(status.clone()),
-    });
+    let (parts, snapshot_status) = (publication.snapshot, status.clone());
+    egress.set_snapshot_source(move || parts.to_message(&snapshot_status));
     egress.publish_status(status)?;
     Ok(())
 }

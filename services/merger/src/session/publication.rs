@@ -42,45 +42,90 @@ impl MapState {
         self
     }
 
+    /// A point as the client contract carries it, with its confidence when scored.
+    fn point_message(&self, track: u64, x: &Vector3<f64>) -> pb::MapPoint {
+        let confidence = self.confidence.as_ref().and_then(|c| c.get(&track));
+        pb::MapPoint {
+            track_id: track,
+            position: Some(vec3_to_pb(x)),
+            observations: confidence.map_or(0, |c| c.views),
+            relative_std: confidence.and_then(|c| c.relative_std),
+            largest_reprojection_sigmas: confidence
+                .map(|c| c.largest_reprojection_sigmas)
+                .filter(|s| s.is_finite()),
+        }
+    }
+
     /// The messages of this state: poses new or moved since `revisions` last saw them
     /// (recorded there), and the rest at their current revisions; likewise the points new or
-    /// moved since `published_points` last saw them.
+    /// moved since `published_points` last saw them. The snapshot of every frame and point
+    /// is kept as this state, made into messages only when a client asks for it.
     pub fn publication(
-        &self,
+        self,
         revisions: &mut Revisions,
         published_points: &mut PublishedPoints,
     ) -> Publication {
         let poses = revisions.changed(&self.frames);
-        let trajectory = |v: &[PosedFrame]| pb::Trajectory {
-            poses: v
-                .iter()
-                .map(|f| message(f, revisions.revision(f.frame_id)))
-                .collect(),
+        let numbers = |v: &[PosedFrame]| -> Vec<u32> {
+            v.iter().map(|f| revisions.revision(f.frame_id)).collect()
         };
-        let point = |track: u64, x: &Vector3<f64>| {
-            let confidence = self.confidence.as_ref().and_then(|c| c.get(&track));
-            pb::MapPoint {
-                track_id: track,
-                position: Some(vec3_to_pb(x)),
-                observations: confidence.map_or(0, |c| c.views),
-                relative_std: confidence.and_then(|c| c.relative_std),
-                largest_reprojection_sigmas: confidence
-                    .map(|c| c.largest_reprojection_sigmas)
-                    .filter(|s| s.is_finite()),
-            }
-        };
+        let (keyframe_revisions, frame_revisions) =
+            (numbers(&self.keyframes), numbers(&self.frames));
+        let keyframes = trajectory(&self.keyframes, &keyframe_revisions);
+        let changed_points = published_points
+            .changed(&self.points)
+            .into_iter()
+            .map(|(t, x)| self.point_message(t, &x))
+            .collect();
         Publication {
             poses,
-            keyframes: trajectory(&self.keyframes),
-            frames: trajectory(&self.frames),
-            changed_points: published_points
-                .changed(&self.points)
-                .into_iter()
-                .map(|(t, x)| point(t, &x))
-                .collect(),
-            map: pb::MapPoints {
-                points: self.points.iter().map(|(t, x)| point(*t, x)).collect(),
+            keyframes: keyframes.clone(),
+            changed_points,
+            snapshot: SnapshotParts {
+                state: self,
+                keyframes,
+                frame_revisions,
             },
+        }
+    }
+}
+
+fn trajectory(frames: &[PosedFrame], revisions: &[u32]) -> pb::Trajectory {
+    pb::Trajectory {
+        poses: frames
+            .iter()
+            .zip(revisions)
+            .map(|(f, r)| message(f, *r))
+            .collect(),
+    }
+}
+
+/// What a snapshot holds, kept as the merger's own data: making every frame's and point's
+/// message after each window costs time in proportion to the stream's length (a day of
+/// video is millions of frames), so it is done when a client asks ([`Self::to_message`]).
+pub struct SnapshotParts {
+    state: MapState,
+    keyframes: pb::Trajectory,
+    /// The revision of each of `state.frames`, as published with this state.
+    frame_revisions: Vec<u32>,
+}
+
+impl SnapshotParts {
+    /// The snapshot message: the keyframes, every frame at its revision, every point, and
+    /// `status`.
+    pub fn to_message(&self, status: &pb::Status) -> pb::Snapshot {
+        pb::Snapshot {
+            keyframes: Some(self.keyframes.clone()),
+            frames: Some(trajectory(&self.state.frames, &self.frame_revisions)),
+            map: Some(pb::MapPoints {
+                points: self
+                    .state
+                    .points
+                    .iter()
+                    .map(|(t, x)| self.state.point_message(*t, x))
+                    .collect(),
+            }),
+            status: Some(status.clone()),
         }
     }
 }
@@ -91,12 +136,10 @@ pub struct Publication {
     pub poses: Vec<pb::Pose>,
     /// Every keyframe at its current revision.
     pub keyframes: pb::Trajectory,
-    /// Every frame at its current revision (the snapshot's).
-    pub frames: pb::Trajectory,
     /// The points new or moved since the last publication.
     pub changed_points: Vec<pb::MapPoint>,
-    /// Every point (the snapshot's).
-    pub map: pb::MapPoints,
+    /// Every frame and point, for the snapshot queryable.
+    pub snapshot: SnapshotParts,
 }
 
 /// Which map points were published where: a point is published again when the map moves it
@@ -257,5 +300,35 @@ mod tests {
             tracks(published.changed(&[(2, at(0.0)), (3, at(5.0))])),
             vec![2]
         );
+    }
+
+    #[test]
+    fn the_snapshot_made_on_request_holds_every_frame_at_its_revision() {
+        let state = |x: f64| MapState {
+            keyframes: vec![frame(1, x)],
+            frames: vec![frame(1, x), frame(2, 0.0)],
+            points: vec![(7, Vector3::new(x, 1.0, 2.0))],
+            confidence: None,
+        };
+        let (mut revisions, mut points) = (Revisions::default(), PublishedPoints::default());
+        let first = state(0.0).publication(&mut revisions, &mut points);
+        assert_eq!((first.poses.len(), first.changed_points.len()), (2, 1));
+        // Frame 1 (a keyframe) moves: revision 1 in the message, the keyframe trajectory
+        // and the snapshot; frame 2 stays at 0.
+        let moved = state(0.5).publication(&mut revisions, &mut points);
+        let status = pb::Status {
+            service: "merger".into(),
+            ..pb::Status::default()
+        };
+        let snapshot = moved.snapshot.to_message(&status);
+        let frames = snapshot.frames.expect("frames").poses;
+        let revision_of = |id: u64| frames.iter().find(|p| p.frame_id == id).map(|p| p.revision);
+        assert_eq!((revision_of(1), revision_of(2)), (Some(1), Some(0)));
+        assert_eq!(snapshot.keyframes.expect("keyframes").poses[0].revision, 1);
+        assert_eq!(moved.keyframes.poses[0].revision, 1);
+        let map = snapshot.map.expect("map").points;
+        assert_eq!(map.len(), 1);
+        assert_eq!(map[0].position.expect("position").x, 0.5);
+        assert_eq!(snapshot.status.expect("status").service, "merger");
     }
 }
