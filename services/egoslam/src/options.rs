@@ -1,6 +1,7 @@
 //! The option groups of the commands and services (`egoslam run`, `replay`, `frontend`,
-//! `solver`, `merger`): clap flags, overridden by the configuration file (config.rs),
-//! checked by option_checks.rs; each service's options struct is built from them here.
+//! `solver`, `merger`): each option defined once, as a clap flag whose help heading and id
+//! are its configuration-file section and key (config.rs) and whose value parser is its
+//! range check (option_checks.rs); each service's options struct is built from them here.
 
 use crate::option_checks as checks;
 use clap::builder::RangedU64ValueParser;
