@@ -1,8 +1,8 @@
 //! What the merger publishes after a window, as messages of the client contract: every
 //! frame's pose with its revision (a pose that moves is published again with the next
 //! revision), the keyframe trajectory, the points new or moved since last published and
-//! the whole map for late joiners' snapshot. The service hands them to `egoslam_egress` and writes the same
-//! [`MapState`] to its result files.
+//! the whole map for late joiners' snapshot. The service hands them to `egoslam_egress`
+//! and writes the same [`MapState`] to its result files.
 
 use super::frames::{posed_frames, posed_keyframes, FrameIndex, PosedFrame};
 use crate::{MapBuilder, PointConfidence};
