@@ -233,6 +233,30 @@ mod tests {
     }
 
     #[test]
+    fn a_key_taken_by_several_commands_is_one_definition() {
+        let command = Cli::command();
+        let options = file_options(&command);
+        let text = |arg: &clap::Arg| {
+            let help = arg.get_help().map(|h| h.to_string());
+            let defaults: Vec<_> = arg.get_default_values().to_vec();
+            (help, defaults, arg.get_long().map(str::to_string))
+        };
+        for (key, sub, arg) in &options {
+            let (_, first_sub, first) = options
+                .iter()
+                .find(|(k, _, _)| k == key)
+                .expect("the key itself");
+            assert_eq!(
+                text(arg),
+                text(first),
+                "{key} differs between {} and {}",
+                first_sub.get_name(),
+                sub.get_name()
+            );
+        }
+    }
+
+    #[test]
     fn unknown_keys_and_bad_values_name_the_key() {
         for (text, named) in [
             ("[solver]\nwindw = 20\n", "windw"),
@@ -290,10 +314,13 @@ mod tests {
         let Command::Run(run) = command_with(text, &["egoslam", "run"]) else {
             panic!("run")
         };
-        assert_eq!(run.input, Some(PathBuf::from("/dev/video0")));
-        assert_eq!(run.calib, Some(PathBuf::from("/etc/egoslam/camera.yaml")));
-        assert_eq!((run.fps, run.realtime), (15.0, true));
-        assert_eq!(run.out, PathBuf::from("/var/lib/egoslam"));
+        assert_eq!(run.sequence.input, Some(PathBuf::from("/dev/video0")));
+        assert_eq!(
+            run.calibration.calib,
+            Some(PathBuf::from("/etc/egoslam/camera.yaml"))
+        );
+        assert_eq!((run.sequence.rate.fps, run.sequence.realtime), (15.0, true));
+        assert_eq!(run.output.out, PathBuf::from("/var/lib/egoslam"));
         let Command::Replay(replay) = command_with(text, &["egoslam", "replay"]) else {
             panic!("replay")
         };

@@ -260,10 +260,13 @@ impl EgressArgs {
     }
 }
 
-#[derive(Args, Debug)]
-pub struct RunArgs {
-    /// Sequence: TUM/KITTI/EuRoC folder, video file or image folder. Default: the embedded
-    /// TUM fr1_rpy clip (tests/data/tum_fr1_rpy_120), evaluated against its ground truth.
+/// The input sequence of `egoslam run` and `egoslam replay`.
+#[derive(Args, Debug, Clone)]
+pub struct SequenceArgs {
+    /// Sequence: TUM/KITTI/EuRoC folder, video file, image folder or camera device.
+    /// `egoslam run` without one plays the embedded TUM fr1_rpy clip
+    /// (tests/data/tum_fr1_rpy_120), evaluated against its ground truth; `egoslam replay`
+    /// needs one (here or in the configuration file).
     #[arg(
         id = "path",
         long = "input",
@@ -271,7 +274,27 @@ pub struct RunArgs {
         help_heading = "input"
     )]
     pub input: Option<PathBuf>,
-    /// Calibration YAML (or KITTI calib.txt); default: the dataset's own.
+    /// Replay at the recorded rate (frames dropped if the frontend falls behind) instead of
+    /// as fast as the frontend consumes them (lossless).
+    #[arg(long, help_heading = "input")]
+    pub realtime: bool,
+    #[command(flatten)]
+    pub rate: FrameRateArgs,
+}
+
+/// The frame rate of inputs that carry none.
+#[derive(Args, Debug, Clone)]
+pub struct FrameRateArgs {
+    /// Frame rate assumed for image folders and videos without one (0.1-1000).
+    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = checks::frame_rate)]
+    pub fps: f64,
+}
+
+/// The camera calibration of the input.
+#[derive(Args, Debug, Clone)]
+pub struct CalibrationArgs {
+    /// Calibration file (egoslam, ORB-SLAM or Kalibr YAML, KITTI calib.txt, COLMAP
+    /// cameras.txt: docs/config.md); default: the dataset's own, found next to the input.
     #[arg(
         id = "calibration",
         long = "calib",
@@ -279,7 +302,13 @@ pub struct RunArgs {
         help_heading = "input"
     )]
     pub calib: Option<PathBuf>,
-    /// Output folder (created): trajectory.tum, keyframes.tum, map.ply, report.json.
+}
+
+/// Where results, statistics and state go.
+#[derive(Args, Debug, Clone)]
+pub struct OutputArgs {
+    /// Output folder (created): the results (trajectory.tum, keyframes.tum, map.ply,
+    /// report.json), the services' statistics (stats/) and state (state/).
     #[arg(
         id = "dir",
         long = "out",
@@ -288,16 +317,19 @@ pub struct RunArgs {
         default_value = "out"
     )]
     pub out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    #[command(flatten)]
+    pub sequence: SequenceArgs,
+    #[command(flatten)]
+    pub calibration: CalibrationArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
     /// Ground truth to evaluate against; default: found next to the input, if any.
     #[arg(long)]
     pub gt: Option<PathBuf>,
-    /// Replay at the recorded rate (frames dropped if the frontend falls behind) instead of
-    /// as fast as the frontend consumes them (lossless).
-    #[arg(long, help_heading = "input")]
-    pub realtime: bool,
-    /// Frame rate assumed for image folders (0.1-1000).
-    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = checks::frame_rate)]
-    pub fps: f64,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
     #[command(flatten)]
@@ -355,20 +387,8 @@ pub struct MapArgs {
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
-    /// Sequence, video file or camera (required here or in the config file).
-    #[arg(
-        id = "path",
-        long = "input",
-        value_name = "INPUT",
-        help_heading = "input"
-    )]
-    pub input: Option<PathBuf>,
-    /// Pace frames at the recorded rate and drop what the frontend cannot take.
-    #[arg(long, help_heading = "input")]
-    pub realtime: bool,
-    /// Frame rate assumed for image folders (0.1-1000).
-    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = checks::frame_rate)]
-    pub fps: f64,
+    #[command(flatten)]
+    pub sequence: SequenceArgs,
     #[command(flatten)]
     pub service: ServiceArgs,
 }
@@ -378,15 +398,8 @@ pub struct ServiceArgs {
     /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
     #[arg(long, help_heading = "bus", default_value = "default")]
     pub namespace: String,
-    /// Output folder: services write their statistics (and the merger its map) here.
-    #[arg(
-        id = "dir",
-        long = "out",
-        value_name = "OUT",
-        help_heading = "output",
-        default_value = "out"
-    )]
-    pub out: PathBuf,
+    #[command(flatten)]
+    pub output: OutputArgs,
     /// Calibration YAML in egoslam format (the launcher writes DIR/camera.yaml).
     #[arg(long)]
     pub camera: Option<PathBuf>,
@@ -403,7 +416,7 @@ impl ServiceArgs {
     pub fn frontend_options(&self) -> egoslam_frontend_service::FrontendServiceOptions {
         egoslam_frontend_service::FrontendServiceOptions {
             namespace: self.namespace.clone(),
-            out: self.out.clone(),
+            out: self.output.out.clone(),
             camera: self.camera.clone(),
             tracker: self.pipeline.tracker_options(0.0),
             rolling_shutter_ms: self.pipeline.rolling_shutter_ms.given_ms(),
@@ -416,7 +429,7 @@ impl ServiceArgs {
     pub fn solver_options(&self) -> egoslam_solver_service::SolverServiceOptions {
         egoslam_solver_service::SolverServiceOptions {
             namespace: self.namespace.clone(),
-            out: self.out.clone(),
+            out: self.output.out.clone(),
             windows: egoslam_solver::WindowOptions {
                 size: usize::from(self.pipeline.window),
                 overlap: self.pipeline.overlap,
@@ -432,7 +445,7 @@ impl ServiceArgs {
         let publishes = !self.egress.zenoh_listen.iter().any(|e| e == "none");
         egoslam_merger_service::MergerServiceOptions {
             namespace: self.namespace.clone(),
-            out: self.out.clone(),
+            out: self.output.out.clone(),
             map_in: self.map.map_in.clone(),
             map_out: self.map.map_out.clone(),
             vocabulary: self.map.vocabulary.clone(),

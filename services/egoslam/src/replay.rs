@@ -14,10 +14,10 @@ pub const SKIPPED_PREFIX: &str = "skipped_frames.";
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let mut stats = ServiceStats::new("replay");
-    let Some(input) = args.input.clone() else {
+    let Some(input) = args.sequence.input.clone() else {
         bail!("replay needs --input (or input.path in the config file)")
     };
-    let mut source = open_source(&input, args.fps)?;
+    let mut source = open_source(&input, args.sequence.rate.fps)?;
     let total = source.len_hint();
     let camera = match &args.service.camera {
         Some(path) => Some(read_calibration_file(path)?),
@@ -30,7 +30,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
-    let delivery = if args.realtime {
+    let delivery = if args.sequence.realtime {
         Delivery::DropNewest
     } else {
         Delivery::Lossless
@@ -74,7 +74,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         let Some(publisher) = publisher.as_mut() else {
             bail!("frame publisher missing")
         };
-        if args.realtime {
+        if args.sequence.realtime {
             let t0 = *first_t.get_or_insert(frame.timestamp);
             // Timestamps are finite and increasing (FrameStream); a gap too long for a
             // Duration is not waited for.
@@ -125,7 +125,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     }
     let Some(mut publisher) = publisher else {
         if interrupted {
-            return Ok(stats.write(&args.service.out)?);
+            return Ok(stats.write(&args.service.output.out)?);
         }
         bail!("{}: no frames", input.display())
     };
@@ -139,5 +139,5 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         dropped = publisher.dropped(),
         "replay finished"
     );
-    Ok(stats.write(&args.service.out)?)
+    Ok(stats.write(&args.service.output.out)?)
 }

@@ -117,17 +117,10 @@ pub struct CalibrateReadoutArgs {
     /// the head, up and down as well as sideways.
     #[arg(long)]
     pub input: PathBuf,
-    /// Frame rate of image folders and videos without one (0.1-1000).
-    #[arg(long, help_heading = "input", default_value_t = 30.0, value_parser = crate::option_checks::frame_rate)]
-    pub fps: f64,
-    /// Calibration file (default: found next to the input, docs/config.md).
-    #[arg(
-        id = "calibration",
-        long = "calib",
-        value_name = "CALIB",
-        help_heading = "input"
-    )]
-    pub calib: Option<PathBuf>,
+    #[command(flatten)]
+    pub rate: crate::options::FrameRateArgs,
+    #[command(flatten)]
+    pub calibration: crate::options::CalibrationArgs,
     #[command(flatten)]
     pub pipeline: PipelineArgs,
 }
@@ -139,11 +132,11 @@ pub fn calibrate(args: CalibrateReadoutArgs) -> anyhow::Result<()> {
     if matches!(layout, Layout::Camera { .. }) {
         bail!("calibrate-readout needs a recording, not a live camera: record a few seconds of turning the head and give that");
     }
-    let mut source = open_source(input, args.fps)?;
+    let mut source = open_source(input, args.rate.fps)?;
     let first = source
         .next_frame()
         .with_context(|| format!("{}: no frames", input.display()))??;
-    let camera = load_calibration(&layout, args.calib.as_deref())?
+    let camera = load_calibration(&layout, args.calibration.calib.as_deref())?
         .camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
     let e = estimate_from_source(first, &mut source, camera, &args.pipeline)
         .with_context(|| format!("estimating the readout of {}", input.display()))?;

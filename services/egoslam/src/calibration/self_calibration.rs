@@ -41,7 +41,7 @@ fn read_ahead<T>(
     // The readout pre-pass tracked these frames already, with no readout and this camera.
     let result = match tracked.filter(|t| readout_s == 0.0 && t.camera == camera) {
         Some(tracked) => estimate(&tracked.keyframes),
-        None => open_source(input, args.fps)
+        None => open_source(input, args.sequence.rate.fps)
             .map_err(anyhow::Error::from)
             .and_then(|source| {
                 let step = format!("{what} calibration");

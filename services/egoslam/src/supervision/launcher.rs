@@ -225,22 +225,22 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
 pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let live_view = crate::supervision::live_view::LiveView::start(&args.view, &args.egress)?;
-    let input = args.input.clone().unwrap_or_else(default_input);
+    let input = args.sequence.input.clone().unwrap_or_else(default_input);
     let layout = detect_layout(&input)?;
     // Open the sequence and decode the first frame now: a bad path, an empty sequence, an
     // unreadable image or a wrong calibration size fails here, before any process starts.
     // Quiet: the replay reads these frames again and warns about each bad one then.
-    let mut source = open_source(&input, args.fps)?.quiet();
+    let mut source = open_source(&input, args.sequence.rate.fps)?.quiet();
     let total_frames = source.len_hint();
     let first = source
         .next_frame()
         .with_context(|| format!("{}: no frames", input.display()))??;
-    let calibration = load_calibration(&layout, args.calib.as_deref())?;
+    let calibration = load_calibration(&layout, args.calibration.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
     check_listen_endpoints(&args.egress.zenoh_listen)?;
     // An output folder that cannot be made fails before the readout pre-pass, not after.
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.output.out)
+        .with_context(|| format!("creating {}", args.output.out.display()))?;
     let (readout_report, tracked) =
         resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
     drop(source);
@@ -271,7 +271,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     }
     let origin = PathBuf::from(origin);
 
-    let out = &args.out;
+    let out = &args.output.out;
     for stale in [
         "trajectory.tum",
         "keyframes.tum",
@@ -297,9 +297,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     common.extend(pipeline_flags(&args.pipeline));
     let mut replay_args = vec![
         format!("--input={}", input.display()),
-        format!("--fps={}", args.fps),
+        format!("--fps={}", args.sequence.rate.fps),
     ];
-    if args.realtime {
+    if args.sequence.realtime {
         replay_args.push("--realtime".into());
     }
     replay_args.extend(common.iter().cloned());
@@ -429,7 +429,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "run_id": run_id,
         "input": input.display().to_string(),
         // The rate image folders were stamped with (`egoslam export` names their images).
-        "fps": args.fps,
+        "fps": args.sequence.rate.fps,
         "layout": {
             "kind": layout.kind(),
             "path": layout.path().display().to_string(),
