@@ -153,7 +153,7 @@ mod docs_table {
         let command = Cli::command();
         let options = crate::config::file_options(&command);
         let mut table =
-            String::from("| key | flag | default | read by | meaning |\n|---|---|---|---|---|\n");
+            String::from("| key | flag | default | commands | meaning |\n|---|---|---|---|---|\n");
         let mut seen = Vec::new();
         for (key, _, arg) in &options {
             if seen.contains(key) {
