@@ -3,6 +3,7 @@
 //! (`crate::frame_localization`); those that cannot be stay interpolated and are marked so
 //! on the wire.
 
+use super::frame_tables::{FrameStamps, LocalizedFrames};
 use super::tally::Tally;
 use crate::{
     interpolate_between, interpolate_frames, localize_frame, LocalizationOptions, MapBuilder,
@@ -73,13 +74,13 @@ impl LocalizedFrame {
 #[derive(Default)]
 pub struct FrameIndex {
     /// frame id -> timestamp
-    pub frames: BTreeMap<u64, f64>,
+    pub frames: FrameStamps,
     /// keyframe id -> frame id
     pub keyframe_frames: BTreeMap<u64, u64>,
     /// frame id -> tracks, until its bracketing keyframes are in the map.
     pub pending: BTreeMap<u64, PendingFrame>,
     /// frame id -> PnP pose relative to its anchor keyframe.
-    pub localized: BTreeMap<u64, LocalizedFrame>,
+    pub localized: LocalizedFrames,
 }
 
 impl FrameIndex {
@@ -180,9 +181,19 @@ pub fn posed_frames(
     keyframes: &[PosedFrame],
     ids: impl std::ops::RangeBounds<u64>,
 ) -> Vec<PosedFrame> {
+    pose_frames(map, index, keyframes, index.frames.range(ids).map(|(i, t)| (*i, *t)))
+}
+
+/// The frames of `frames` (`(id, timestamp)`) that can be posed, as [`posed_frames`] poses
+/// them, in the order given.
+pub fn pose_frames(
+    map: &MapBuilder,
+    index: &FrameIndex,
+    keyframes: &[PosedFrame],
+    frames: impl Iterator<Item = (u64, f64)>,
+) -> Vec<PosedFrame> {
     let anchors: Vec<(u32, StampedPose)> = keyframes.iter().map(|k| (k.segment, k.pose)).collect();
-    let (ids, stamps): (Vec<u64>, Vec<f64>) =
-        index.frames.range(ids).map(|(i, t)| (*i, *t)).unzip();
+    let (ids, stamps): (Vec<u64>, Vec<f64>) = frames.unzip();
     let keyframe_ids: std::collections::BTreeSet<u64> =
         keyframes.iter().map(|k| k.frame_id).collect();
     interpolate_frames(&anchors, &stamps)

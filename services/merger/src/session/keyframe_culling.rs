@@ -90,7 +90,7 @@ impl MergerSession {
         // Frames of later passes posed against a candidate (culling anchors a revisit's
         // frames to the kept keyframe nearest in space, which may be one of these).
         let candidate_ids: BTreeSet<u64> = candidates.iter().copied().collect();
-        for (frame, l) in &frames.localized {
+        for (frame, l) in frames.localized.iter() {
             let posed_against = candidate_ids.contains(&l.anchor_keyframe)
                 || candidate_ids.contains(&l.next_keyframe);
             if !posed_against || before.contains_key(frame) {

@@ -8,6 +8,8 @@
 //! service backs with its features log.
 
 pub mod background_refinement;
+pub mod frame_poses;
+pub mod frame_tables;
 pub mod frames;
 mod keyframe_culling;
 pub mod publication;
