@@ -18,6 +18,7 @@ use egoslam_durability::checkpoint::{self, Checkpoint};
 use egoslam_durability::features_log::{patched_tracks, FeaturesLog, Keep};
 use egoslam_durability::log_compaction;
 use egoslam_egress::{Egress, EgressOptions};
+use egoslam_merger::session::frames::{posed_frames, posed_keyframes};
 use egoslam_merger::session::Tally;
 use egoslam_merger::{
     MergerSession, MergerState, PointConfidenceOptions, SessionOptions, StreamStart,
@@ -26,7 +27,7 @@ use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::saved_map::{features_from_pb, patches_from_pb};
 use egoslam_runtime::ServiceStats;
-use map_state::{MapState, PublishedPoints, Revisions};
+use map_state::{PublishedPoints, Revisions};
 use outputs::Outputs;
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -243,10 +244,11 @@ impl Merger {
             "unsolved_windows".into(),
             self.session.state.unsolved_windows,
         );
+        let camera = self.session.camera().cloned();
         self.outputs.emit(
             &self.options.out,
-            &self.session.state,
-            self.session.camera(),
+            &mut self.session.state,
+            camera.as_ref(),
             state,
             &mut self.stats,
             persist,
@@ -374,6 +376,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
         egress: open_egress(options.egress.as_ref())?.map(std::sync::Arc::new),
         revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::default())),
         published_points: PublishedPoints::default(),
+        frame_poses: Default::default(),
         point_confidence: PointConfidenceOptions {
             max_relative_std: options.max_point_std,
             ..PointConfidenceOptions::default()
@@ -438,7 +441,8 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
                 merger.session.index_keyframe(keyframe, &features);
             }
         }
-        let resumed_poses = MapState::of(&state.map, &state.frames);
+        let keyframes = posed_keyframes(&state.map, &state.frames);
+        let resumed_poses = posed_frames(&state.map, &state.frames, &keyframes, ..);
         *merger
             .outputs
             .revisions

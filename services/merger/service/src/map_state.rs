@@ -45,11 +45,12 @@ fn ply_points(
         .collect()
 }
 
-/// trajectory.tum, keyframes.tum, keyframe_segments.txt, map.ply, each written
+/// trajectory.tum (`frames`), keyframes.tum, keyframe_segments.txt, map.ply, each written
 /// atomically. The segments file says which map segment (own gauge and scale) each
 /// keyframe is in, so that a run with breaks can be evaluated segment by segment.
 pub fn write_files(
     state: &MapState,
+    frames: &[PosedFrame],
     out: &Path,
     published: &PointConfidenceOptions,
     all_points: bool,
@@ -66,7 +67,7 @@ pub fn write_files(
         written.bytes += bytes.len() as u64;
         Ok(())
     };
-    write("trajectory.tum", tum_text(&poses(&state.frames)).as_bytes())?;
+    write("trajectory.tum", tum_text(&poses(frames)).as_bytes())?;
     write(
         "keyframes.tum",
         tum_text(&poses(&state.keyframes)).as_bytes(),

@@ -4,6 +4,8 @@
 use crate::map_state::{self, MapState, PublishedPoints, Revisions};
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
+use egoslam_merger::session::frame_poses::FramePoseTracker;
+use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
@@ -17,6 +19,8 @@ pub(super) struct Outputs {
     /// Shared with the live tracker (`live_tracking.rs`), which publishes revision 0.
     pub(super) egress: Option<Arc<Egress>>,
     pub(super) revisions: Arc<Mutex<Revisions>>,
+    /// Which frames' poses to compute again after a window.
+    pub(super) frame_poses: FramePoseTracker,
     /// Where each map point was last published (a new or moved point goes out again).
     pub(super) published_points: PublishedPoints,
     /// Which map points map.ply holds (zenoh carries all, with their confidence).
@@ -40,7 +44,7 @@ impl Outputs {
     pub(super) fn emit(
         &mut self,
         out: &Path,
-        merger: &MergerState,
+        merger: &mut MergerState,
         camera: Option<&PinholeRadtan>,
         state: pb::ServiceState,
         stats: &mut ServiceStats,
@@ -49,8 +53,24 @@ impl Outputs {
         if !persist && self.egress.is_none() {
             return Ok(0); // nobody reads the poses of every frame now: don't compute them
         }
+        let update = stats.time("pose_frames", || {
+            self.frame_poses.update(&merger.map, &mut merger.frames)
+        });
         let (map, index) = (&merger.map, &merger.frames);
-        let mut snapshot = MapState::of(map, index);
+        let (poses, frames, posed_frames) = {
+            let mut revisions = self
+                .revisions
+                .lock()
+                .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
+            let poses = stats.time("record_poses", || revisions.record(&update));
+            // Every frame only for the files (at most every 5 s, O(frames) as the files).
+            let frames: Vec<PosedFrame> = match persist {
+                true => revisions.posed_frames().map(|(f, _)| *f).collect(),
+                false => Vec::new(),
+            };
+            (poses, frames, revisions.posed_count())
+        };
+        let mut snapshot = MapState::of(map, update.keyframes);
         if let Some(camera) = camera {
             // Scoring every point is a pass over every observation: done when the files
             // are written (at most every 5 s, and at the end); in between, a new point
@@ -70,6 +90,7 @@ impl Outputs {
             let grey = grey_levels(merger);
             let written = map_state::write_files(
                 &snapshot,
+                &frames,
                 out,
                 &self.point_confidence,
                 self.all_points,
@@ -84,7 +105,7 @@ impl Outputs {
         stats.keyframes = snapshot.keyframes.len() as u64;
         stats
             .counters
-            .insert("posed_frames".into(), snapshot.frames.len() as u64);
+            .insert("posed_frames".into(), posed_frames as u64);
         stats
             .counters
             .insert("segments".into(), map.live_segments() as u64);
@@ -104,7 +125,7 @@ impl Outputs {
             let status = pb::Status {
                 service: "merger".into(),
                 state: state as i32,
-                frames: snapshot.frames.len() as u64,
+                frames: posed_frames as u64,
                 keyframes: snapshot.keyframes.len() as u64,
                 windows: stats.windows,
                 message: format!(
@@ -114,12 +135,13 @@ impl Outputs {
                 ),
                 run_id: self.run_id.clone(),
             };
-            let mut revisions = self
-                .revisions
-                .lock()
-                .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
-            let publication = snapshot.publication(&mut revisions, &mut self.published_points);
-            map_state::publish(egress, publication, &status)?;
+            stats.count("poses_published", poses.len() as u64);
+            let publication = stats.time("find_changes", || {
+                snapshot.publication(poses, &self.revisions, &mut self.published_points)
+            });
+            stats.time("publish", || {
+                map_state::publish(egress, publication, &status)
+            })?;
         }
         Ok(written_bytes)
     }

@@ -9,10 +9,17 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Deref;
 
 /// frame id -> timestamp, recording the frames added.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default)]
 pub struct FrameStamps {
     stamps: BTreeMap<u64, f64>,
     added: BTreeSet<u64>,
+}
+
+/// Equal when they hold the same stamps (what was recorded as added is not content).
+impl PartialEq for FrameStamps {
+    fn eq(&self, other: &Self) -> bool {
+        self.stamps == other.stamps
+    }
 }
 
 impl FrameStamps {
@@ -55,6 +62,7 @@ pub struct LocalizedFrames {
     changed: BTreeSet<u64>,
 }
 
+/// Equal when they hold the same frames (the index and the record follow from them).
 impl PartialEq for LocalizedFrames {
     fn eq(&self, other: &Self) -> bool {
         self.frames == other.frames
@@ -79,7 +87,11 @@ impl LocalizedFrames {
 
     /// The frames whose pose keyframe `keyframe` enters.
     pub fn posed_against(&self, keyframe: u64) -> impl Iterator<Item = u64> + '_ {
-        self.by_keyframe.get(&keyframe).into_iter().flatten().copied()
+        self.by_keyframe
+            .get(&keyframe)
+            .into_iter()
+            .flatten()
+            .copied()
     }
 
     /// The frames inserted, replaced or removed since the last call.
@@ -148,7 +160,10 @@ mod tests {
         let mut table: LocalizedFrames = [(10, localized(1, 2)), (11, localized(1, 2))]
             .into_iter()
             .collect();
-        assert!(table.take_changed().is_empty(), "a loaded table starts clean");
+        assert!(
+            table.take_changed().is_empty(),
+            "a loaded table starts clean"
+        );
         let under = |t: &LocalizedFrames, k| t.posed_against(k).collect::<Vec<_>>();
         assert_eq!(under(&table, 1), vec![10, 11]);
         // Culling re-anchors frame 11 on keyframe 7 of an earlier pass.

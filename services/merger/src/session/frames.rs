@@ -181,7 +181,12 @@ pub fn posed_frames(
     keyframes: &[PosedFrame],
     ids: impl std::ops::RangeBounds<u64>,
 ) -> Vec<PosedFrame> {
-    pose_frames(map, index, keyframes, index.frames.range(ids).map(|(i, t)| (*i, *t)))
+    pose_frames(
+        map,
+        index,
+        keyframes,
+        index.frames.range(ids).map(|(i, t)| (*i, *t)),
+    )
 }
 
 /// The frames of `frames` (`(id, timestamp)`) that can be posed, as [`posed_frames`] poses

@@ -1,35 +1,35 @@
-//! What the merger publishes after a window, as messages of the client contract: every
-//! frame's pose with its revision (a pose that moves is published again with the next
-//! revision), the keyframe trajectory, the points new or moved since last published and
-//! the whole map for late joiners' snapshot. The service hands them to `egoslam_egress`
-//! and writes the same [`MapState`] to its result files.
+//! What the merger publishes after a window, as messages of the client contract: the
+//! poses of the frames new or moved with their revision (a pose that moves is published
+//! again with the next revision), the keyframe trajectory, the points new or moved since
+//! last published, and what a late joiner's snapshot holds. The service hands them to
+//! `egoslam_egress` and writes the same state to its result files.
 
-use super::frames::{posed_frames, posed_keyframes, FrameIndex, PosedFrame};
+use super::frame_poses::FramePoseUpdate;
+use super::frames::PosedFrame;
 use crate::{MapBuilder, PointConfidence};
 use egoslam_geometry::StampedPose;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::wire::{pose_to_pb, vec3_to_pb};
 use nalgebra::Vector3;
 use std::collections::{BTreeMap, HashMap};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
-/// The results at one moment.
+/// The map at one moment: its keyframes and points (the frames' poses are kept in
+/// [`Revisions`], updated with only what changed).
 pub struct MapState {
     pub keyframes: Vec<PosedFrame>,
-    pub frames: Vec<PosedFrame>,
     pub points: Vec<(u64, Vector3<f64>)>,
     /// How well each point is known, once attached ([`MapState::with_confidence`]).
     pub confidence: Option<Arc<HashMap<u64, PointConfidence>>>,
 }
 
 impl MapState {
-    pub fn of(map: &MapBuilder, index: &FrameIndex) -> Self {
-        let keyframes = posed_keyframes(map, index);
-        let frames = posed_frames(map, index, &keyframes, ..);
+    /// The map's points with `keyframes`, the map's keyframes of this run in time order
+    /// (`FramePoseUpdate::keyframes`).
+    pub fn of(map: &MapBuilder, keyframes: Vec<PosedFrame>) -> Self {
         let points = map.points().map(|(track, _, x)| (track, *x)).collect();
         Self {
             keyframes,
-            frames,
             points,
             confidence: None,
         }
@@ -56,21 +56,25 @@ impl MapState {
         }
     }
 
-    /// The messages of this state: poses new or moved since `revisions` last saw them
-    /// (recorded there), and the rest at their current revisions; likewise the points new or
+    /// The messages of this state: `poses` (what [`Revisions::record`] found new or
+    /// moved), the keyframes at their revisions in `revisions`, and the points new or
     /// moved since `published_points` last saw them. The snapshot of every frame and point
-    /// is kept as this state, made into messages only when a client asks for it.
+    /// is made into messages only when a client asks for it, the frames from `revisions`
+    /// as they are then.
     pub fn publication(
         self,
-        revisions: &mut Revisions,
+        poses: Vec<pb::Pose>,
+        revisions: &Arc<Mutex<Revisions>>,
         published_points: &mut PublishedPoints,
     ) -> Publication {
-        let poses = revisions.changed(&self.frames);
-        let numbers = |v: &[PosedFrame]| -> Vec<u32> {
-            v.iter().map(|f| revisions.revision(f.frame_id)).collect()
+        let keyframe_revisions: Vec<u32> = {
+            let revisions = revisions.lock().unwrap_or_else(|e| e.into_inner());
+            let numbers = self
+                .keyframes
+                .iter()
+                .map(|f| revisions.revision(f.frame_id));
+            numbers.collect()
         };
-        let (keyframe_revisions, frame_revisions) =
-            (numbers(&self.keyframes), numbers(&self.frames));
         let keyframes = trajectory(&self.keyframes, &keyframe_revisions);
         let changed_points = published_points
             .changed(&self.points)
@@ -84,7 +88,7 @@ impl MapState {
             snapshot: SnapshotParts {
                 state: self,
                 keyframes,
-                frame_revisions,
+                revisions: Arc::clone(revisions),
             },
         }
     }
@@ -106,17 +110,24 @@ fn trajectory(frames: &[PosedFrame], revisions: &[u32]) -> pb::Trajectory {
 pub struct SnapshotParts {
     state: MapState,
     keyframes: pb::Trajectory,
-    /// The revision of each of `state.frames`, as published with this state.
-    frame_revisions: Vec<u32>,
+    /// Every frame's pose and revision.
+    revisions: Arc<Mutex<Revisions>>,
 }
 
 impl SnapshotParts {
-    /// The snapshot message: the keyframes, every frame at its revision, every point, and
-    /// `status`.
+    /// The snapshot message: the keyframes, every posed frame at its revision, every
+    /// point, and `status`.
     pub fn to_message(&self, status: &pb::Status) -> pb::Snapshot {
+        let frames = {
+            let revisions = self.revisions.lock().unwrap_or_else(|e| e.into_inner());
+            let posed = revisions.posed_frames().map(|(f, r)| message(f, r));
+            pb::Trajectory {
+                poses: posed.collect(),
+            }
+        };
         pb::Snapshot {
             keyframes: Some(self.keyframes.clone()),
-            frames: Some(trajectory(&self.state.frames, &self.frame_revisions)),
+            frames: Some(frames),
             map: Some(pb::MapPoints {
                 points: self
                     .state
@@ -172,30 +183,59 @@ impl PublishedPoints {
     }
 }
 
-/// Revision bookkeeping: which frame poses are new or changed since last published.
+/// What is known of a frame's pose: as last published, with its revision, and as the map
+/// poses it now (`None` while it cannot be posed, or was only tracked live).
+struct FrameRecord {
+    published: StampedPose,
+    revision: u32,
+    current: Option<PosedFrame>,
+}
+
+/// Every frame's pose now and as last published: which poses are new or moved since, and
+/// their revisions.
 #[derive(Default)]
 pub struct Revisions {
-    published: BTreeMap<u64, (StampedPose, u32)>,
+    frames: BTreeMap<u64, FrameRecord>,
+    /// Frames with a current pose.
+    posed: usize,
 }
 
 impl Revisions {
-    /// The frames whose pose is new (revision 0) or moved (revision + 1), as messages.
-    pub fn changed(&mut self, frames: &[PosedFrame]) -> Vec<pb::Pose> {
+    /// Takes an update's poses as the frames' current ones; returns those new (revision 0)
+    /// or moved (revision + 1) since last published, as messages, and records them so.
+    pub fn record(&mut self, update: &FramePoseUpdate) -> Vec<pb::Pose> {
+        for frame in &update.unposed {
+            let record = self.frames.get_mut(frame);
+            if record.and_then(|r| r.current.take()).is_some() {
+                self.posed -= 1;
+            }
+        }
         let mut out = Vec::new();
-        for f in frames {
-            let revision = match self.published.get(&f.frame_id) {
-                None => 0,
-                Some((old, rev)) => {
-                    let moved = (old.position - f.pose.position).norm() > 1e-9
-                        || old.rotation.angle_to(&f.pose.rotation) > 1e-9;
-                    if !moved {
-                        continue;
-                    }
-                    rev + 1
-                }
+        for f in &update.posed {
+            let Some(record) = self.frames.get_mut(&f.frame_id) else {
+                self.frames.insert(
+                    f.frame_id,
+                    FrameRecord {
+                        published: f.pose,
+                        revision: 0,
+                        current: Some(*f),
+                    },
+                );
+                self.posed += 1;
+                out.push(message(f, 0));
+                continue;
             };
-            self.published.insert(f.frame_id, (f.pose, revision));
-            out.push(message(f, revision));
+            if record.current.replace(*f).is_none() {
+                self.posed += 1;
+            }
+            let (old, new) = (&record.published, &f.pose);
+            let moved = (old.position - new.position).norm() > 1e-9
+                || old.rotation.angle_to(&new.rotation) > 1e-9;
+            if moved {
+                record.published = f.pose;
+                record.revision += 1;
+                out.push(message(f, record.revision));
+            }
         }
         out
     }
@@ -203,32 +243,55 @@ impl Revisions {
     /// Records the live tracker's pose of a frame as its revision 0; `false` (nothing
     /// recorded) when the frame was already published, by a window that came first.
     pub fn claim_live(&mut self, frame_id: u64, pose: &StampedPose) -> bool {
-        if self.published.contains_key(&frame_id) {
+        if self.frames.contains_key(&frame_id) {
             return false;
         }
-        self.published.insert(frame_id, (*pose, 0));
+        let record = FrameRecord {
+            published: *pose,
+            revision: 0,
+            current: None,
+        };
+        self.frames.insert(frame_id, record);
         true
     }
 
     /// The last published revision of every frame (what a checkpoint keeps).
     pub fn numbers(&self) -> BTreeMap<u64, u32> {
-        self.published.iter().map(|(f, (_, r))| (*f, *r)).collect()
+        self.frames.iter().map(|(f, r)| (*f, r.revision)).collect()
     }
 
-    /// Revisions of a restarted merger: the checkpointed numbers, with the resumed poses, so
-    /// that a pose that moves later is published with a higher revision than any the
-    /// clients already hold (they keep the highest).
-    pub fn resume(numbers: &BTreeMap<u64, u32>, state: &MapState) -> Self {
-        let published = state
-            .frames
-            .iter()
-            .filter_map(|f| numbers.get(&f.frame_id).map(|r| (f.frame_id, (f.pose, *r))))
-            .collect();
-        Self { published }
+    /// Revisions of a restarted merger: the checkpointed numbers, with the resumed poses
+    /// (`frames`) as published, so that a pose that moves later is published with a higher
+    /// revision than any the clients already hold (they keep the highest). The frames'
+    /// current poses come with the next [`Self::record`].
+    pub fn resume(numbers: &BTreeMap<u64, u32>, frames: &[PosedFrame]) -> Self {
+        let records = frames.iter().filter_map(|f| {
+            let record = FrameRecord {
+                published: f.pose,
+                revision: *numbers.get(&f.frame_id)?,
+                current: None,
+            };
+            Some((f.frame_id, record))
+        });
+        Self {
+            frames: records.collect(),
+            posed: 0,
+        }
     }
 
     pub fn revision(&self, frame_id: u64) -> u32 {
-        self.published.get(&frame_id).map_or(0, |p| p.1)
+        self.frames.get(&frame_id).map_or(0, |r| r.revision)
+    }
+
+    /// Every frame the map poses now, with its revision, in frame id order.
+    pub fn posed_frames(&self) -> impl Iterator<Item = (&PosedFrame, u32)> {
+        let posed = self.frames.values();
+        posed.filter_map(|r| r.current.as_ref().map(|f| (f, r.revision)))
+    }
+
+    /// How many frames the map poses now.
+    pub fn posed_count(&self) -> usize {
+        self.posed
     }
 }
 
@@ -258,24 +321,60 @@ mod tests {
         }
     }
 
+    fn update(posed: &[PosedFrame], unposed: &[u64]) -> FramePoseUpdate {
+        FramePoseUpdate {
+            keyframes: Vec::new(),
+            posed: posed.to_vec(),
+            unposed: unposed.to_vec(),
+        }
+    }
+
+    fn revisions_of(poses: &[pb::Pose]) -> Vec<(u64, u32)> {
+        poses.iter().map(|p| (p.frame_id, p.revision)).collect()
+    }
+
     #[test]
     fn a_restarted_merger_keeps_counting_revisions_up() {
         let mut before = Revisions::default();
-        assert_eq!(before.changed(&[frame(1, 0.0), frame(2, 0.0)]).len(), 2);
-        let moved = before.changed(&[frame(1, 0.5), frame(2, 0.0)]);
-        assert_eq!((moved.len(), moved[0].revision), (1, 1));
+        assert_eq!(
+            before
+                .record(&update(&[frame(1, 0.0), frame(2, 0.0)], &[]))
+                .len(),
+            2
+        );
+        let moved = before.record(&update(&[frame(1, 0.5)], &[]));
+        assert_eq!(revisions_of(&moved), vec![(1, 1)]);
         // Kill and restart: the checkpointed numbers and the resumed poses.
-        let state = MapState {
-            keyframes: Vec::new(),
-            frames: vec![frame(1, 0.5), frame(2, 0.0)],
-            points: Vec::new(),
-            confidence: None,
-        };
-        let mut after = Revisions::resume(&before.numbers(), &state);
-        assert!(after.changed(&state.frames).is_empty(), "nothing moved");
-        let moved = after.changed(&[frame(1, 0.7), frame(2, 0.1), frame(3, 0.0)]);
-        let revisions: Vec<(u64, u32)> = moved.iter().map(|p| (p.frame_id, p.revision)).collect();
-        assert_eq!(revisions, vec![(1, 2), (2, 1), (3, 0)]);
+        let resumed = [frame(1, 0.5), frame(2, 0.0)];
+        let mut after = Revisions::resume(&before.numbers(), &resumed);
+        assert!(
+            after.record(&update(&resumed, &[])).is_empty(),
+            "nothing moved"
+        );
+        assert_eq!(after.posed_count(), 2);
+        let moved = after.record(&update(&[frame(1, 0.7), frame(2, 0.1), frame(3, 0.0)], &[]));
+        assert_eq!(revisions_of(&moved), vec![(1, 2), (2, 1), (3, 0)]);
+    }
+
+    #[test]
+    fn a_frame_tracked_live_is_published_again_only_when_the_map_poses_it_elsewhere() {
+        let mut revisions = Revisions::default();
+        let live = frame(4, 1.0);
+        assert!(revisions.claim_live(4, &live.pose));
+        assert_eq!(
+            revisions.posed_frames().count(),
+            0,
+            "not posed by the map yet"
+        );
+        assert!(revisions.record(&update(&[live], &[])).is_empty());
+        let moved = revisions.record(&update(&[frame(4, 1.25)], &[]));
+        assert_eq!(revisions_of(&moved), vec![(4, 1)]);
+        assert!(!revisions.claim_live(4, &live.pose), "already published");
+        // A frame the map can no longer pose leaves the snapshot, keeping its revision.
+        assert!(revisions.record(&update(&[], &[4])).is_empty());
+        assert_eq!((revisions.posed_count(), revisions.revision(4)), (0, 1));
+        let back = revisions.record(&update(&[frame(4, 2.0)], &[]));
+        assert_eq!(revisions_of(&back), vec![(4, 2)]);
     }
 
     #[test]
@@ -306,24 +405,31 @@ mod tests {
     fn the_snapshot_made_on_request_holds_every_frame_at_its_revision() {
         let state = |x: f64| MapState {
             keyframes: vec![frame(1, x)],
-            frames: vec![frame(1, x), frame(2, 0.0)],
             points: vec![(7, Vector3::new(x, 1.0, 2.0))],
             confidence: None,
         };
-        let (mut revisions, mut points) = (Revisions::default(), PublishedPoints::default());
-        let first = state(0.0).publication(&mut revisions, &mut points);
+        let revisions = Arc::new(Mutex::new(Revisions::default()));
+        let mut points = PublishedPoints::default();
+        let mut publish = |x: f64| {
+            let frames = [frame(1, x), frame(2, 0.0)];
+            let poses = revisions
+                .lock()
+                .expect("lock")
+                .record(&update(&frames, &[]));
+            state(x).publication(poses, &revisions, &mut points)
+        };
+        let first = publish(0.0);
         assert_eq!((first.poses.len(), first.changed_points.len()), (2, 1));
         // Frame 1 (a keyframe) moves: revision 1 in the message, the keyframe trajectory
         // and the snapshot; frame 2 stays at 0.
-        let moved = state(0.5).publication(&mut revisions, &mut points);
+        let moved = publish(0.5);
         let status = pb::Status {
             service: "merger".into(),
             ..pb::Status::default()
         };
         let snapshot = moved.snapshot.to_message(&status);
         let frames = snapshot.frames.expect("frames").poses;
-        let revision_of = |id: u64| frames.iter().find(|p| p.frame_id == id).map(|p| p.revision);
-        assert_eq!((revision_of(1), revision_of(2)), (Some(1), Some(0)));
+        assert_eq!(revisions_of(&frames), vec![(1, 1), (2, 0)]);
         assert_eq!(snapshot.keyframes.expect("keyframes").poses[0].revision, 1);
         assert_eq!(moved.keyframes.poses[0].revision, 1);
         let map = snapshot.map.expect("map").points;

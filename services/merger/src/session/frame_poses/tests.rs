@@ -172,8 +172,8 @@ impl Session {
         );
         for f in &fresh {
             let held = &self.held[&f.frame_id];
-            let same = (held.segment, held.pose, held.interpolated)
-                == (f.segment, f.pose, f.interpolated);
+            let same =
+                (held.segment, held.pose, held.interpolated) == (f.segment, f.pose, f.interpolated);
             assert!(same, "frame {}: {held:?} != {f:?}", f.frame_id);
         }
         again
@@ -184,7 +184,11 @@ impl Session {
 fn the_updated_poses_are_those_of_a_full_recomputation() {
     let mut session = Session::new();
     session.add_window(20);
-    assert_eq!(session.update_and_check(), session.index.frames.len(), "first: all");
+    assert_eq!(
+        session.update_and_check(),
+        session.index.frames.len(),
+        "first: all"
+    );
     for round in 0..400 {
         let step = session.draw(8);
         session.apply(step);
