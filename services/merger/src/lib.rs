@@ -13,6 +13,7 @@ pub mod keyframe_culling;
 pub mod live_tracking;
 pub mod loop_closure;
 pub mod map;
+pub mod map_points;
 pub mod point_confidence;
 pub mod provisional_scale;
 pub mod refinement;

@@ -4,6 +4,7 @@
 //! and the scale estimates it chooses between build on these types; this module depends
 //! on none of them.
 
+use crate::map_points::{Changed, MapPoints};
 use egoslam_geometry::{Similarity, StampedPose};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
@@ -125,7 +126,7 @@ pub struct MapBuilder {
     /// keyframe id -> (segment, pose in the segment's frame).
     pub(crate) keyframes: BTreeMap<u64, (u32, StampedPose)>,
     /// track id -> (segment, position).
-    pub(crate) points: BTreeMap<u64, (u32, Vector3<f64>)>,
+    pub(crate) points: MapPoints,
     /// (keyframe id, track id) -> undistorted pixel: every inlier observation of the
     /// windows, kept for the joint refinement of recent keyframes.
     pub(crate) observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
@@ -188,7 +189,7 @@ impl MapBuilder {
     pub fn to_parts(&self) -> MapParts {
         MapParts {
             keyframes: self.keyframes.clone(),
-            points: self.points.clone(),
+            points: (*self.points).clone(),
             observations: self.observations.clone(),
             weak: self.weak.clone(),
             current_segment: self.current_segment,
@@ -202,7 +203,7 @@ impl MapBuilder {
     pub fn from_parts(parts: MapParts) -> Self {
         Self {
             keyframes: parts.keyframes,
-            points: parts.points,
+            points: parts.points.into(),
             observations: parts.observations,
             weak: parts.weak,
             current_segment: parts.current_segment,
@@ -256,6 +257,11 @@ impl MapBuilder {
                 _ => None,
             })
             .collect()
+    }
+
+    /// The points inserted, moved or removed since the last call (all of them at first).
+    pub fn take_changed_points(&mut self) -> Changed {
+        self.points.take_changed()
     }
 
     /// Map points with their segment.

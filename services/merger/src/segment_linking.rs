@@ -441,7 +441,7 @@ impl MapBuilder {
                 *pose = transform_pose(&link.transform, pose);
             }
         }
-        for (segment, x) in self.points.values_mut() {
+        for (_, (segment, x)) in self.points.iter_mut() {
             if *segment == link.from {
                 *segment = link.to;
                 *x = link.transform.apply(x);

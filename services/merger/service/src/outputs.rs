@@ -136,8 +136,12 @@ impl Outputs {
                 run_id: self.run_id.clone(),
             };
             stats.count("poses_published", poses.len() as u64);
-            let publication = stats.time("find_changes", || {
-                snapshot.publication(poses, &self.revisions, &mut self.published_points)
+            let changed = merger.map.take_changed_points();
+            let changed_points = stats.time("find_changed_points", || {
+                self.published_points.changed(&merger.map, &changed)
+            });
+            let publication = stats.time("publication", || {
+                snapshot.publication(poses, &changed_points, &self.revisions)
             });
             stats.time("publish", || {
                 map_state::publish(egress, publication, &status)

@@ -6,6 +6,7 @@
 
 use super::frame_poses::FramePoseUpdate;
 use super::frames::PosedFrame;
+use crate::map_points::Changed;
 use crate::{MapBuilder, PointConfidence};
 use egoslam_geometry::StampedPose;
 use egoslam_messages::v1 as pb;
@@ -57,15 +58,15 @@ impl MapState {
     }
 
     /// The messages of this state: `poses` (what [`Revisions::record`] found new or
-    /// moved), the keyframes at their revisions in `revisions`, and the points new or
-    /// moved since `published_points` last saw them. The snapshot of every frame and point
-    /// is made into messages only when a client asks for it, the frames from `revisions`
-    /// as they are then.
+    /// moved), the keyframes at their revisions in `revisions`, and `changed_points` (what
+    /// [`PublishedPoints::changed`] found). The snapshot of every frame and point is made
+    /// into messages only when a client asks for it, the frames from `revisions` as they
+    /// are then.
     pub fn publication(
         self,
         poses: Vec<pb::Pose>,
+        changed_points: &[(u64, Vector3<f64>)],
         revisions: &Arc<Mutex<Revisions>>,
-        published_points: &mut PublishedPoints,
     ) -> Publication {
         let keyframe_revisions: Vec<u32> = {
             let revisions = revisions.lock().unwrap_or_else(|e| e.into_inner());
@@ -76,10 +77,9 @@ impl MapState {
             numbers.collect()
         };
         let keyframes = trajectory(&self.keyframes, &keyframe_revisions);
-        let changed_points = published_points
-            .changed(&self.points)
-            .into_iter()
-            .map(|(t, x)| self.point_message(t, &x))
+        let changed_points = changed_points
+            .iter()
+            .map(|(t, x)| self.point_message(*t, x))
             .collect();
         Publication {
             poses,
@@ -163,23 +163,30 @@ pub struct PublishedPoints {
 }
 
 impl PublishedPoints {
-    /// The points of `points` new or moved (by more than 1e-9) since the last call; points
-    /// no longer in the map are forgotten (a client keeps them, as culled).
-    pub fn changed(&mut self, points: &[(u64, Vector3<f64>)]) -> Vec<(u64, Vector3<f64>)> {
-        let mut changed = Vec::new();
-        let mut now = HashMap::with_capacity(points.len());
-        for &(track, x) in points {
-            if self
-                .published
-                .get(&track)
-                .is_none_or(|old| (old - x).norm() > 1e-9)
-            {
-                changed.push((track, x));
+    /// The points of `map` new or moved (by more than 1e-9) since the last call, among
+    /// those `changed` names (every point for [`Changed::All`]); points no longer in the
+    /// map are forgotten (a client keeps them, as culled).
+    pub fn changed(&mut self, map: &MapBuilder, changed: &Changed) -> Vec<(u64, Vector3<f64>)> {
+        let tracks = match changed {
+            Changed::All => {
+                self.published
+                    .retain(|track, _| map.point(*track).is_some());
+                Box::new(map.points().map(|(track, ..)| track)) as Box<dyn Iterator<Item = u64>>
             }
-            now.insert(track, x);
+            Changed::Some(tracks) => Box::new(tracks.iter().copied()),
+        };
+        let mut out = Vec::new();
+        for track in tracks {
+            let Some((_, &x)) = map.point(track) else {
+                self.published.remove(&track);
+                continue;
+            };
+            let old = self.published.insert(track, x);
+            if old.is_none_or(|old| (old - x).norm() > 1e-9) {
+                out.push((track, x));
+            }
         }
-        self.published = now;
-        changed
+        out
     }
 }
 
@@ -379,26 +386,42 @@ mod tests {
 
     #[test]
     fn a_point_goes_out_when_it_enters_the_map_and_whenever_it_moves() {
+        let at = |x: f64| (0, Vector3::new(x, 1.0, 2.0));
+        let mut map = MapBuilder::from_parts(crate::MapParts::default());
         let mut published = PublishedPoints::default();
-        let at = |x: f64| Vector3::new(x, 1.0, 2.0);
-        let tracks =
-            |v: Vec<(u64, Vector3<f64>)>| v.into_iter().map(|(t, _)| t).collect::<Vec<_>>();
-        assert_eq!(
-            tracks(published.changed(&[(1, at(0.0)), (2, at(0.0))])),
-            vec![1, 2]
-        );
-        // A later window adds point 3 (brought by an earlier window, say) and its BA moves 1.
-        let changed = published.changed(&[(1, at(0.25)), (2, at(0.0)), (3, at(5.0))]);
-        assert_eq!(changed, vec![(1, at(0.25)), (3, at(5.0))]);
-        assert!(
-            published.changed(&[(1, at(0.25)), (3, at(5.0))]).is_empty(),
-            "2 culled"
-        );
-        // A culled point that comes back is new again.
-        assert_eq!(
-            tracks(published.changed(&[(2, at(0.0)), (3, at(5.0))])),
-            vec![2]
-        );
+        let mut publish = |map: &mut MapBuilder| {
+            let changed = map.take_changed_points();
+            let out = published.changed(map, &changed);
+            out.into_iter().map(|(t, _)| t).collect::<Vec<_>>()
+        };
+        assert!(publish(&mut map).is_empty());
+        map.points.insert(1, at(0.0));
+        map.points.insert(2, at(0.0));
+        assert_eq!(publish(&mut map), vec![1, 2]);
+        // A later window adds point 3 (brought by an earlier window, say), its BA moves 1
+        // and leaves 2 where it was.
+        map.points.insert(3, at(5.0));
+        map.points.insert(2, at(0.0));
+        if let Some((_, x)) = map.points.get_mut(&1) {
+            x.x = 0.25;
+        }
+        assert_eq!(publish(&mut map), vec![1, 3]);
+        map.points.remove(&2);
+        assert!(publish(&mut map).is_empty(), "2 culled");
+        // A culled point that comes back is new again; a change to every point (a segment
+        // relabelled) publishes those that moved.
+        map.points.insert(2, at(0.0));
+        for (track, (_, x)) in map.points.iter_mut() {
+            if *track == 3 {
+                x.x = 6.0;
+            }
+        }
+        assert_eq!(publish(&mut map), vec![2, 3]);
+        // A resumed map's points are all new to a restarted merger.
+        let mut resumed = MapBuilder::from_parts(map.to_parts());
+        let mut restarted = PublishedPoints::default();
+        let changed = resumed.take_changed_points();
+        assert_eq!(restarted.changed(&resumed, &changed).len(), 3);
     }
 
     #[test]
@@ -409,14 +432,14 @@ mod tests {
             confidence: None,
         };
         let revisions = Arc::new(Mutex::new(Revisions::default()));
-        let mut points = PublishedPoints::default();
-        let mut publish = |x: f64| {
+        let publish = |x: f64| {
             let frames = [frame(1, x), frame(2, 0.0)];
             let poses = revisions
                 .lock()
                 .expect("lock")
                 .record(&update(&frames, &[]));
-            state(x).publication(poses, &revisions, &mut points)
+            let changed_points = [(7, Vector3::new(x, 1.0, 2.0))];
+            state(x).publication(poses, &changed_points, &revisions)
         };
         let first = publish(0.0);
         assert_eq!((first.poses.len(), first.changed_points.len()), (2, 1));
