@@ -225,7 +225,10 @@ fn sampled_run(
     out: &Path,
     config: Option<&Path>,
 ) -> anyhow::Result<(Vec<Sample>, serde_json::Value)> {
-    let mut child = run_of(input, out, config, &[])?
+    // Publishing as deployed (the default listens for clients): to a loopback listener,
+    // so that what the merger's publication costs over a long run is in the figures.
+    let publishing = ["--zenoh-listen".to_string(), "tcp/127.0.0.1:0".to_string()];
+    let mut child = run_of(input, out, config, &publishing)?
         .spawn()
         .context("starting egoslam run")?;
     let started = Instant::now();
@@ -490,7 +493,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     let table = format!(
         "Measured by `egoslam bench --suite endurance --cycles {cycles} --walk-frames {walk_frames}`: \
          {name} ({walk_frames} frames, one pass) played back and forth {cycles} times ({frames} frames, \
-         {minutes} min of 30 fps video) through `egoslam run`; memory summed over the run's processes, \
+         {minutes} min of 30 fps video) through `egoslam run`, publishing over zenoh to a loopback listener; memory summed over the run's processes, \
          sampled every 2 s; {plot}samples in `{work}`.\n\n\
          | figure | up to the end of cycle 2 | last cycle / end |\n|---|---|---|\n\
          | peak RSS, all processes (MiB) | {rss_c2} | {rss_last} |\n\
