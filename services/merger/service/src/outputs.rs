@@ -65,7 +65,7 @@ impl Outputs {
             let poses = stats.time("record_poses", || revisions.record(&update));
             // Every frame only for the files (at most every 5 s, O(frames) as the files).
             let frames: Vec<PosedFrame> = match persist {
-                true => revisions.posed_frames().map(|(f, _)| *f).collect(),
+                true => revisions.posed_frames().map(|(f, _)| f).collect(),
                 false => Vec::new(),
             };
             (poses, frames, revisions.posed_count())

@@ -120,7 +120,7 @@ impl SnapshotParts {
     pub fn to_message(&self, status: &pb::Status) -> pb::Snapshot {
         let frames = {
             let revisions = self.revisions.lock().unwrap_or_else(|e| e.into_inner());
-            let posed = revisions.posed_frames().map(|(f, r)| message(f, r));
+            let posed = revisions.posed_frames().map(|(f, r)| message(&f, r));
             pb::Trajectory {
                 poses: posed.collect(),
             }
@@ -190,56 +190,74 @@ impl PublishedPoints {
     }
 }
 
-/// What is known of a frame's pose: as last published, with its revision, and as the map
-/// poses it now (`None` while it cannot be posed, or was only tracked live).
+/// A frame's pose as last published, with its revision, and whether the map poses it now
+/// (and how). Poses that moved by at most 1e-9 since are not published again, nor kept:
+/// one pose per frame (a day of video is millions of frames), and the snapshot and the
+/// files hold what the clients were sent.
 struct FrameRecord {
-    published: StampedPose,
+    pose: StampedPose,
     revision: u32,
-    current: Option<PosedFrame>,
+    segment: u32,
+    interpolated: bool,
+    /// Posed by the map now (`false`: not posable any more, or only tracked live).
+    posed: bool,
 }
 
-/// Every frame's pose now and as last published: which poses are new or moved since, and
-/// their revisions.
+impl FrameRecord {
+    fn posed_frame(&self, frame_id: u64) -> PosedFrame {
+        PosedFrame {
+            frame_id,
+            segment: self.segment,
+            pose: self.pose,
+            interpolated: self.interpolated,
+        }
+    }
+}
+
+/// Every frame's pose as published: which poses are new or moved since, and their
+/// revisions.
 #[derive(Default)]
 pub struct Revisions {
     frames: BTreeMap<u64, FrameRecord>,
-    /// Frames with a current pose.
+    /// Frames the map poses now.
     posed: usize,
 }
 
 impl Revisions {
-    /// Takes an update's poses as the frames' current ones; returns those new (revision 0)
-    /// or moved (revision + 1) since last published, as messages, and records them so.
+    /// Takes an update's poses; returns those new (revision 0) or moved (revision + 1)
+    /// since last published, as messages, and records them so.
     pub fn record(&mut self, update: &FramePoseUpdate) -> Vec<pb::Pose> {
         for frame in &update.unposed {
-            let record = self.frames.get_mut(frame);
-            if record.and_then(|r| r.current.take()).is_some() {
-                self.posed -= 1;
+            if let Some(record) = self.frames.get_mut(frame) {
+                if std::mem::replace(&mut record.posed, false) {
+                    self.posed -= 1;
+                }
             }
         }
         let mut out = Vec::new();
         for f in &update.posed {
             let Some(record) = self.frames.get_mut(&f.frame_id) else {
-                self.frames.insert(
-                    f.frame_id,
-                    FrameRecord {
-                        published: f.pose,
-                        revision: 0,
-                        current: Some(*f),
-                    },
-                );
+                let record = FrameRecord {
+                    pose: f.pose,
+                    revision: 0,
+                    segment: f.segment,
+                    interpolated: f.interpolated,
+                    posed: true,
+                };
+                self.frames.insert(f.frame_id, record);
                 self.posed += 1;
                 out.push(message(f, 0));
                 continue;
             };
-            if record.current.replace(*f).is_none() {
+            if !std::mem::replace(&mut record.posed, true) {
                 self.posed += 1;
             }
-            let (old, new) = (&record.published, &f.pose);
+            let (old, new) = (&record.pose, &f.pose);
             let moved = (old.position - new.position).norm() > 1e-9
                 || old.rotation.angle_to(&new.rotation) > 1e-9;
+            (record.segment, record.interpolated) = (f.segment, f.interpolated);
             if moved {
-                record.published = f.pose;
+                record.pose = f.pose;
                 record.revision += 1;
                 out.push(message(f, record.revision));
             }
@@ -254,9 +272,11 @@ impl Revisions {
             return false;
         }
         let record = FrameRecord {
-            published: *pose,
+            pose: *pose,
             revision: 0,
-            current: None,
+            segment: 0,
+            interpolated: false,
+            posed: false,
         };
         self.frames.insert(frame_id, record);
         true
@@ -269,14 +289,16 @@ impl Revisions {
 
     /// Revisions of a restarted merger: the checkpointed numbers, with the resumed poses
     /// (`frames`) as published, so that a pose that moves later is published with a higher
-    /// revision than any the clients already hold (they keep the highest). The frames'
-    /// current poses come with the next [`Self::record`].
+    /// revision than any the clients already hold (they keep the highest). Which frames the
+    /// map poses comes with the next [`Self::record`].
     pub fn resume(numbers: &BTreeMap<u64, u32>, frames: &[PosedFrame]) -> Self {
         let records = frames.iter().filter_map(|f| {
             let record = FrameRecord {
-                published: f.pose,
+                pose: f.pose,
                 revision: *numbers.get(&f.frame_id)?,
-                current: None,
+                segment: f.segment,
+                interpolated: f.interpolated,
+                posed: false,
             };
             Some((f.frame_id, record))
         });
@@ -290,10 +312,10 @@ impl Revisions {
         self.frames.get(&frame_id).map_or(0, |r| r.revision)
     }
 
-    /// Every frame the map poses now, with its revision, in frame id order.
-    pub fn posed_frames(&self) -> impl Iterator<Item = (&PosedFrame, u32)> {
-        let posed = self.frames.values();
-        posed.filter_map(|r| r.current.as_ref().map(|f| (f, r.revision)))
+    /// Every frame the map poses now, as published, with its revision, in frame id order.
+    pub fn posed_frames(&self) -> impl Iterator<Item = (PosedFrame, u32)> + '_ {
+        let posed = self.frames.iter().filter(|(_, r)| r.posed);
+        posed.map(|(id, r)| (r.posed_frame(*id), r.revision))
     }
 
     /// How many frames the map poses now.
