@@ -141,7 +141,10 @@ impl MergerSession {
         let closure = self.relocalize(&camera, features, "find_loop", |sources| {
             find_loop(sources, segment, &options)
         });
-        let Some(closure) = closure else { return };
+        let Some(closure) = closure else {
+            self.tally.count("loops_not_found", 1);
+            return;
+        };
         let report = match self.state.map.close_loop(&closure, &options) {
             Ok(report) => report,
             Err(e @ LoopNotApplied::TooLarge { .. }) => {
