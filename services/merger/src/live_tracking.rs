@@ -60,6 +60,12 @@ pub struct LiveTrackerOptions {
     /// not walked on).
     pub walk_anchor_s: f64,
     pub min_walk_parallax_px: f64,
+    /// How fast a head may have turned since the last posed frame, degrees per second: the
+    /// PnP pose may be this much further from the prior per second of the gap beyond
+    /// 50 ms (default 300: quick glances peak there). After frames the tracker could not
+    /// pose, the prior holds the orientation of before the turn, and a PnP pose on hundreds
+    /// of correspondences was refused as 30-60 deg away while the head had turned that far.
+    pub max_turn_rate_deg_s: f64,
 }
 
 impl Default for LiveTrackerOptions {
@@ -83,6 +89,7 @@ impl Default for LiveTrackerOptions {
             rotation_threshold_px: 5.0,
             rotation_min_inliers: 20,
             rotation_min_inlier_share: 0.5,
+            max_turn_rate_deg_s: 300.0,
         }
     }
 }
@@ -284,12 +291,12 @@ impl LiveTracker {
                     .map(|x| (*x, *px))
             })
             .collect();
-        let located = localize_frame(
-            &camera,
-            &correspondences,
-            &prior,
-            &self.options.localization,
-        );
+        let mut localization = self.options.localization;
+        if let Some(last) = &self.last {
+            let gap_s = (timestamp - last.timestamp - 0.05).max(0.0);
+            localization.max_rotation_from_prior_deg += self.options.max_turn_rate_deg_s * gap_s;
+        }
+        let located = localize_frame(&camera, &correspondences, &prior, &localization);
         let rays_now = rays(&camera, tracks);
         let live = match located {
             Ok(l) => {
@@ -336,10 +343,15 @@ impl LiveTracker {
                     }
                 },
                 None => {
+                    let shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
+                        rays_now.keys().filter(|t| before.contains_key(t)).count()
+                    });
                     tracing::debug!(
                         error = %e,
                         correspondences = correspondences.len(),
                         local_points = self.local_points.len(),
+                        tracks = tracks.len(),
+                        shared_with_previous,
                         "live frame not tracked"
                     );
                     self.unsupported(timestamp, prior)
@@ -357,6 +369,7 @@ impl LiveTracker {
         let alive: std::collections::HashSet<u64> = tracks.iter().map(|(t, _)| *t).collect();
         self.local_points.retain(|t, _| alive.contains(t));
         self.sightings.retain(|t, _| alive.contains(t));
+        tracing::trace!(timestamp, state = ?live.state, inliers = live.inliers, "live pose");
         Some(live)
     }
 

@@ -146,6 +146,44 @@ fn without_points_in_view_the_pose_is_predicted_then_lost() {
 }
 
 #[test]
+fn after_frames_not_posed_a_turn_found_by_pnp_is_taken() {
+    let points = scene();
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
+    for frame in 0..3 {
+        let truth = pose_at(frame);
+        tracker.track(truth.timestamp, &observe(&points, &truth));
+    }
+    // A quick glance: 0.2 s the tracker could not pose, the head 35 deg further round.
+    for frame in 3..9 {
+        tracker.track(pose_at(frame).timestamp, &[]);
+    }
+    let glance = UnitQuaternion::from_euler_angles(0.0, 35f64.to_radians(), 0.0);
+    let truth = StampedPose {
+        rotation: pose_at(9).rotation * glance,
+        ..pose_at(9)
+    };
+    let in_view = observe(&points, &truth);
+    assert!(in_view.len() > 50, "{} points in view", in_view.len());
+    let live = tracker.track(truth.timestamp, &in_view).expect("map");
+    assert_eq!(live.state, TrackingState::Tracking);
+    let (dx, da) = error(&live.pose, &truth);
+    assert!(dx < 1e-3 && da < 0.01, "{dx} m, {da} deg");
+    // Without the allowance for the gap, the prior's 20 deg refuse it.
+    let mut strict = LiveTracker::new(LiveTrackerOptions {
+        max_turn_rate_deg_s: 0.0,
+        ..LiveTrackerOptions::default()
+    });
+    strict.set_map(map_of(&points, 0..400, pose_at(0)));
+    for frame in 0..3 {
+        let truth = pose_at(frame);
+        strict.track(truth.timestamp, &observe(&points, &truth));
+    }
+    let refused = strict.track(truth.timestamp, &in_view).expect("map");
+    assert_ne!(refused.state, TrackingState::Tracking);
+}
+
+#[test]
 fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
     let points = scene();
     let turning = |frame: u32| StampedPose {
