@@ -64,6 +64,17 @@ fn map_of(points: &[Vector3<f64>], ids: std::ops::Range<usize>, newest: StampedP
     }
 }
 
+/// A tracker on the whole map that tracked frames 0-2.
+fn tracking_three_frames(points: &[Vector3<f64>], options: LiveTrackerOptions) -> LiveTracker {
+    let mut tracker = LiveTracker::new(options);
+    tracker.set_map(map_of(points, 0..400, pose_at(0)));
+    for frame in 0..3 {
+        let truth = pose_at(frame);
+        tracker.track(truth.timestamp, &observe(points, &truth));
+    }
+    tracker
+}
+
 #[test]
 fn a_frame_is_tracked_on_the_map_from_the_newest_keyframe() {
     let points = scene();
@@ -114,12 +125,7 @@ fn a_late_map_is_carried_to_the_present_through_the_frames_since_its_keyframe() 
 #[test]
 fn without_points_in_view_the_pose_is_predicted_then_lost() {
     let points = scene();
-    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
-    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
-    for frame in 0..3 {
-        let truth = pose_at(frame);
-        tracker.track(truth.timestamp, &observe(&points, &truth));
-    }
+    let mut tracker = tracking_three_frames(&points, LiveTrackerOptions::default());
     // Nothing tracked from frame 3 on: constant velocity for 0.5 s, then the last pose.
     let predicted = tracker.track(pose_at(4).timestamp, &[]).expect("map");
     assert_eq!(predicted.state, TrackingState::Predicted);
@@ -148,12 +154,7 @@ fn without_points_in_view_the_pose_is_predicted_then_lost() {
 #[test]
 fn after_frames_not_posed_a_turn_found_by_pnp_is_taken() {
     let points = scene();
-    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
-    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
-    for frame in 0..3 {
-        let truth = pose_at(frame);
-        tracker.track(truth.timestamp, &observe(&points, &truth));
-    }
+    let mut tracker = tracking_three_frames(&points, LiveTrackerOptions::default());
     // A quick glance: 0.2 s the tracker could not pose, the head 35 deg further round.
     for frame in 3..9 {
         tracker.track(pose_at(frame).timestamp, &[]);
@@ -170,15 +171,11 @@ fn after_frames_not_posed_a_turn_found_by_pnp_is_taken() {
     let (dx, da) = error(&live.pose, &truth);
     assert!(dx < 1e-3 && da < 0.01, "{dx} m, {da} deg");
     // Without the allowance for the gap, the prior's 20 deg refuse it.
-    let mut strict = LiveTracker::new(LiveTrackerOptions {
+    let strict = LiveTrackerOptions {
         max_turn_rate_deg_s: 0.0,
         ..LiveTrackerOptions::default()
-    });
-    strict.set_map(map_of(&points, 0..400, pose_at(0)));
-    for frame in 0..3 {
-        let truth = pose_at(frame);
-        strict.track(truth.timestamp, &observe(&points, &truth));
-    }
+    };
+    let mut strict = tracking_three_frames(&points, strict);
     let refused = strict.track(truth.timestamp, &in_view).expect("map");
     assert_ne!(refused.state, TrackingState::Tracking);
 }
