@@ -79,8 +79,10 @@ pub struct LoopOptions {
     /// keyframe agrees on it with at least this many pairs (default 300: ten times
     /// `min_shared_points`; revisits of the rendered corridor give 300-1,500)...
     pub min_step_shared_points: usize,
-    /// ... and it is at most this factor either way (default 5: a weak join at a turn was
-    /// measured 3x off; an order of magnitude is a wrong place).
+    /// ... and it is at most this factor either way (default 10: an hour of the rendered
+    /// corridor walked back and forth broke the chain 7x at a window that shared nothing
+    /// with the map, and every loop after asked for 6-10x with 650-1,400 pairs; a weak
+    /// join at a turn was measured 3x off; beyond an order of magnitude is a wrong place).
     pub max_step_scale: f64,
     /// Acceptance of the relocalized group (rotation and position tolerances, keyframes
     /// that must agree); segment linking's defaults.
@@ -98,7 +100,7 @@ impl Default for LoopOptions {
             max_scale_change: 1.5,
             scale_break: ScaleBreakOptions::default(),
             min_step_shared_points: 300,
-            max_step_scale: 5.0,
+            max_step_scale: 10.0,
             link: LinkOptions::default(),
         }
     }
@@ -531,7 +533,11 @@ mod tests {
             none(&map(Some((0, 5))), 10, 0.33, &strong),
             "before the anchor"
         );
-        assert!(none(&map(Some((0, 500))), 10, 0.1, &strong), "beyond 5x");
+        // The hour-long looped corridor's break: the chain 7x too small, loops of 650-1,400
+        // pairs asking for it.
+        let seven = break_since_last_loop(&map(Some((0, 500))), 0, 10, 7.0, &strong, &options);
+        assert!(seven.is_some_and(|s| (s.pace_ratio - 1.0 / 7.0).abs() < 1e-12));
+        assert!(none(&map(Some((0, 500))), 10, 0.05, &strong), "beyond 10x");
         assert!(
             none(&map(Some((0, 500))), 10, 0.33, &agreement(12, 100)),
             "few pairs"
