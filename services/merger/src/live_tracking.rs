@@ -343,15 +343,15 @@ impl LiveTracker {
                     }
                 },
                 None => {
-                    let shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
-                        rays_now.keys().filter(|t| before.contains_key(t)).count()
-                    });
                     tracing::debug!(
                         error = %e,
                         correspondences = correspondences.len(),
                         local_points = self.local_points.len(),
                         tracks = tracks.len(),
-                        shared_with_previous,
+                        // Counted only when the debug level is on.
+                        shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
+                            rays_now.keys().filter(|t| before.contains_key(t)).count()
+                        }),
                         "live frame not tracked"
                     );
                     self.unsupported(timestamp, prior)
