@@ -101,6 +101,69 @@ fn a_killed_merger_resumes_and_loses_nothing() {
     assert_eq!(keyframes(aborted.path()), expected, "results differ");
 }
 
+/// With a horizon of 0.6 s of video the merger retires frames at every persist: their
+/// rows are final in trajectory.tum's head and they leave its checkpoint. Killed after its
+/// first checkpoint, the restarted merger goes on from the head that checkpoint recorded:
+/// every frame is in the file exactly once, in time order, and scores as an undisturbed run.
+#[test]
+fn a_killed_merger_keeps_the_frames_it_retired_exactly_once() {
+    let _turn = one_test_at_a_time();
+    let out = tempfile::tempdir().expect("tempdir");
+    let mut c = egoslam_without_pre_passes();
+    let run = c
+        .args([
+            "run",
+            "--global-ba-px=inf",
+            "--frame-horizon-min=0.01",
+            "--input",
+        ])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(out.path())
+        .spawn()
+        .expect("run");
+    let start = Instant::now();
+    while !out.path().join("state/merger.checkpoint").exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let head = std::fs::read_to_string(out.path().join("trajectory.tum")).expect("first write");
+    sigkill("merger", out.path());
+    wait_success(run);
+    let r = report(out.path());
+    assert_eq!(r["restarts"]["merger"], 1, "{r}");
+    assert_eq!(r["posed_frames"], 120, "{r}");
+    let text = std::fs::read_to_string(out.path().join("trajectory.tum")).expect("trajectory");
+    let stamps: Vec<f64> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            l.split(' ')
+                .next()
+                .and_then(|t| t.parse().ok())
+                .expect("stamp")
+        })
+        .collect();
+    assert_eq!(stamps.len(), 120, "{text}");
+    assert!(
+        stamps.windows(2).all(|w| w[0] < w[1]),
+        "not once each in time order"
+    );
+    assert_eq!(text.matches("# timestamp").count(), 1);
+    let first_row = head.lines().nth(1).expect("a row at the first checkpoint");
+    assert!(
+        text.contains(first_row),
+        "the first frame's row moved after it was final"
+    );
+    let retired = merger_stats(out.path())["counters"]["retired_frames"].as_u64();
+    assert!(retired > Some(0), "the restarted merger retired nothing");
+    let ate = r["accuracy"]["trajectory"]["ate_rmse_m"]
+        .as_f64()
+        .expect("ATE");
+    // The same run undisturbed and without horizon scores 1.86 cm.
+    assert!(ate < 0.0195, "ATE {ate} m");
+}
+
 /// With the checkpoint's write budget at 1 byte/s the merger checkpoints after its first
 /// window and at the end only (the rewrites a growing map would make are spaced by its size
 /// over the budget); killed in between, it continues from that first checkpoint (the

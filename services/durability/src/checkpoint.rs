@@ -3,6 +3,7 @@
 //! window so that a killed merger resumes with nothing lost (docs/durability.md).
 
 use crate::write_atomically;
+use egoslam_merger::session::frame_retirement::RetiredFrames;
 use egoslam_merger::session::frames::{FrameIndex, LocalizedFrame, PendingFrame};
 use egoslam_merger::MergerState;
 use egoslam_merger::{MapBuilder, MapParts, ProvisionalScale};
@@ -149,6 +150,12 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 })
             })
             .collect(),
+        retired: Some(internal::RetiredFrames {
+            before_frame_id: state.frames.retired_before,
+            frames: state.retired.frames,
+            posed_frames: state.retired.posed,
+            trajectory_bytes: state.retired.trajectory_bytes,
+        }),
         localized_frames: state
             .frames
             .localized
@@ -225,6 +232,7 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .as_ref()
             .map(|p| (p.segment_id, p.keyframe_id)),
     };
+    let retired = m.retired.unwrap_or_default();
     Ok(MergerState {
         map: MapBuilder::from_parts(parts),
         frames: FrameIndex {
@@ -269,6 +277,7 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
                     Some((l.frame_id, frame))
                 })
                 .collect(),
+            retired_before: retired.before_frame_id,
         },
         stream_id: (m.stream_id != 0).then_some(m.stream_id),
         last_sequence: m.last_sequence,
@@ -277,6 +286,11 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
         unsolved_windows: m.unsolved_windows,
         culling_checked_before: m.culling_checked_before,
         patched_tracks: BTreeMap::new(),
+        retired: RetiredFrames {
+            frames: retired.frames,
+            posed: retired.posed_frames,
+            trajectory_bytes: retired.trajectory_bytes,
+        },
         revisions: m
             .revision_frame_ids
             .iter()
@@ -342,6 +356,12 @@ mod tests {
         state.revisions.insert(4, 2);
         state.windows = 4;
         state.culling_checked_before = 2;
+        state.frames.retired_before = 3;
+        state.retired = RetiredFrames {
+            frames: 3,
+            posed: 2,
+            trajectory_bytes: 190,
+        };
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join(FILE_NAME);
         state.save(&path).expect("save");
@@ -357,6 +377,8 @@ mod tests {
             (Some(7), Some(3), 4)
         );
         assert_eq!(back.culling_checked_before, 2);
+        assert_eq!(back.frames.retired_before, 3);
+        assert_eq!(back.retired, state.retired);
         assert!(MergerState::load(&dir.path().join("none"))
             .expect("absent is fine")
             .is_none());

@@ -7,6 +7,7 @@
 pub mod checkpoint;
 pub mod estimated_readout;
 pub mod features_log;
+pub mod frozen_head;
 pub mod log_compaction;
 pub mod map_file;
 pub mod record_log;

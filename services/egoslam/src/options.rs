@@ -124,6 +124,13 @@ pub struct PipelineArgs {
     /// map needs them.
     #[arg(long, help_heading = "merger", default_value_t = 0.0, value_parser = checks::non_negative_minutes)]
     pub patch_retention_min: f64,
+    /// Merger: minutes of video after which a frame's pose is final: it leaves memory and
+    /// the checkpoint, and its row joins trajectory.tum's head, which is not rewritten
+    /// (docs/merger.md, "Frame horizon"). Keyframes and the map are not affected; a loop
+    /// closed later moves only the frames within the horizon (and the keyframes). Bounds
+    /// the merger's per-frame state (~250 B a frame) over a day. 0: keep every frame.
+    #[arg(long, help_heading = "merger", default_value_t = 10.0, value_parser = checks::non_negative_minutes)]
+    pub frame_horizon_min: f64,
 }
 
 /// Where results go over zenoh (docs/egress.md).
@@ -467,6 +474,10 @@ impl ServiceArgs {
             },
             max_point_std: pipeline.max_point_std,
             map_all_points: pipeline.map_all_points,
+            frame_horizon_s: match pipeline.frame_horizon_min {
+                m if m > 0.0 => 60.0 * m,
+                _ => f64::INFINITY,
+            },
             rolling_shutter_ms: pipeline.rolling_shutter_ms.given_ms(),
         }
     }

@@ -47,6 +47,7 @@ fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
         format!("--rolling-shutter-ms={}", p.rolling_shutter_ms),
         format!("--readout-frames={}", p.readout_frames),
         format!("--patch-retention-min={}", p.patch_retention_min),
+        format!("--frame-horizon-min={}", p.frame_horizon_min),
     ];
     if p.map_all_points {
         flags.push("--map-all-points".into());

@@ -53,6 +53,9 @@ pub struct MergerServiceOptions {
     pub max_point_std: f64,
     /// Also write every point, however uncertain (map_all.ply).
     pub map_all_points: bool,
+    /// Frames this much stream time older than the newest are final: out of memory and
+    /// the checkpoint, their rows frozen in trajectory.tum (infinite: never).
+    pub frame_horizon_s: f64,
     /// The rolling-shutter readout the frames were corrected for, saved with the map: given
     /// (ms), or None when the frontend estimates it online (read from its state file).
     pub rolling_shutter_ms: Option<f64>,
@@ -384,6 +387,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
         confidence: None,
         run_id: run_id(&options.namespace),
         all_points: options.map_all_points,
+        frame_horizon_s: options.frame_horizon_s,
     };
     // Subscribe before reading the journal: whatever the journal does not hold yet is sent
     // after this point and therefore reaches this subscriber.
@@ -442,7 +446,8 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
             }
         }
         let keyframes = posed_keyframes(&state.map, &state.frames);
-        let resumed_poses = posed_frames(&state.map, &state.frames, &keyframes, ..);
+        let live = state.frames.retired_before..;
+        let resumed_poses = posed_frames(&state.map, &state.frames, &keyframes, live);
         *merger
             .outputs
             .revisions

@@ -2,10 +2,11 @@
 //! keyframe_segments.txt, map.ply) and published over zenoh, from the same
 //! `egoslam_merger::session::publication::MapState`.
 
+use egoslam_durability::frozen_head::write_with_frozen_head;
 use egoslam_durability::write_atomically;
 use egoslam_egress::Egress;
 use egoslam_export::map_ply::{self, MapPlyPoint};
-use egoslam_export::tum::tum_text;
+use egoslam_export::tum::{tum_rows, tum_text, TUM_HEADER};
 use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::session::publication::Publication;
 pub use egoslam_merger::session::publication::{MapState, PublishedPoints, Revisions};
@@ -45,12 +46,22 @@ fn ply_points(
         .collect()
 }
 
-/// trajectory.tum (`frames`), keyframes.tum, keyframe_segments.txt, map.ply, each written
-/// atomically. The segments file says which map segment (own gauge and scale) each
-/// keyframe is in, so that a run with breaks can be evaluated segment by segment.
+/// trajectory.tum's rows: the frames retired since the last write (final, appended to the
+/// file's frozen head of `head_len` bytes) and the frames after them (the tail, rewritten).
+pub struct TrajectoryRows<'a> {
+    pub head_len: u64,
+    pub retired: &'a [PosedFrame],
+    pub live: &'a [PosedFrame],
+}
+
+/// trajectory.tum (`trajectory`: its tail rewritten after a frozen head,
+/// egoslam_durability::frozen_head), keyframes.tum, keyframe_segments.txt, map.ply, each
+/// of the latter written atomically. The segments file says which map segment (own gauge
+/// and scale) each keyframe is in, so that a run with breaks can be evaluated segment by
+/// segment.
 pub fn write_files(
     state: &MapState,
-    frames: &[PosedFrame],
+    trajectory: TrajectoryRows,
     out: &Path,
     published: &PointConfidenceOptions,
     all_points: bool,
@@ -58,16 +69,34 @@ pub fn write_files(
 ) -> anyhow::Result<WrittenFiles> {
     let poses = |v: &[PosedFrame]| v.iter().map(|f| f.pose).collect::<Vec<_>>();
     let points = ply_points(state, published, false, grey);
+    let mut to_head = tum_rows(&poses(trajectory.retired));
+    if trajectory.head_len == 0 {
+        to_head.insert_str(0, TUM_HEADER);
+    }
+    let tail = tum_rows(&poses(trajectory.live));
+    let path = out.join("trajectory.tum");
+    let head = write_with_frozen_head(
+        &path,
+        trajectory.head_len,
+        to_head.as_bytes(),
+        tail.as_bytes(),
+    )?;
+    if head.missing > 0 {
+        tracing::warn!(
+            missing_bytes = head.missing,
+            "trajectory.tum was cut short outside egoslam: the rows of retired frames it lost are gone"
+        );
+    }
     let mut written = WrittenFiles {
         published_points: points.len(),
-        bytes: 0,
+        bytes: (to_head.len() + tail.len()) as u64,
+        trajectory_head_len: head.len,
     };
     let mut write = |name: &str, bytes: &[u8]| -> anyhow::Result<()> {
         write_atomically(&out.join(name), bytes)?;
         written.bytes += bytes.len() as u64;
         Ok(())
     };
-    write("trajectory.tum", tum_text(&poses(frames)).as_bytes())?;
     write(
         "keyframes.tum",
         tum_text(&poses(&state.keyframes)).as_bytes(),
@@ -95,8 +124,10 @@ pub fn write_files(
 pub struct WrittenFiles {
     /// Points map.ply holds.
     pub published_points: usize,
-    /// Bytes of all the files (what the write budget counts).
+    /// Bytes written to all the files (what the write budget counts).
     pub bytes: u64,
+    /// Length of trajectory.tum's frozen head now.
+    pub trajectory_head_len: u64,
 }
 
 /// Hands a window's messages to zenoh: what changed, the keyframe trajectory and the

@@ -1,10 +1,11 @@
 //! What the merger writes and publishes after a window: result files, stats and (when
 //! enabled) zenoh, all from one snapshot of the map.
 
-use crate::map_state::{self, MapState, PublishedPoints, Revisions};
+use crate::map_state::{self, MapState, PublishedPoints, Revisions, TrajectoryRows};
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::session::frame_poses::FramePoseTracker;
+use egoslam_merger::session::frame_retirement::retire_frames;
 use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
@@ -31,6 +32,35 @@ pub(super) struct Outputs {
     pub(super) run_id: String,
     /// Also write map_all.ply (`--map-all-points`).
     pub(super) all_points: bool,
+    /// Frames this much stream time older than the newest are final and leave memory
+    /// (`--frame-horizon-s`; infinite: never).
+    pub(super) frame_horizon_s: f64,
+}
+
+/// Retires the frames past the horizon (egoslam_merger::session::frame_retirement) from
+/// the state and the revisions; returns those the map posed, at their final poses.
+fn retire(
+    merger: &mut MergerState,
+    horizon_s: f64,
+    revisions: &mut Revisions,
+    stats: &mut ServiceStats,
+) -> Vec<PosedFrame> {
+    let start = std::time::Instant::now();
+    let Some(retirement) = retire_frames(merger, horizon_s) else {
+        return Vec::new();
+    };
+    let retired = revisions.retire(retirement.before);
+    stats.add_time("retire_frames", start.elapsed().as_secs_f64() * 1e3);
+    merger.retired.posed += retired.len() as u64;
+    stats.count("retired_frames", retirement.frames as u64);
+    stats.count("unposed_frames", retirement.pending as u64);
+    tracing::debug!(
+        before = retirement.before,
+        frames = retirement.frames,
+        posed = retired.len(),
+        "frames retired past the horizon"
+    );
+    retired
 }
 
 /// Each described track's grey level: the centre of its patch (relocalization's patches,
@@ -56,20 +86,27 @@ impl Outputs {
         let update = stats.time("pose_frames", || {
             self.frame_poses.update(&merger.map, &mut merger.frames)
         });
-        let (map, index) = (&merger.map, &merger.frames);
-        let (poses, frames, posed_frames) = {
+        let (poses, retired, frames, posed_frames) = {
             let mut revisions = self
                 .revisions
                 .lock()
                 .map_err(|_| anyhow::anyhow!("revisions poisoned"))?;
             let poses = stats.time("record_poses", || revisions.record(&update));
+            // Retired only when the files are written: trajectory.tum takes their final
+            // poses before the checkpoint forgets them.
+            let retired = match persist {
+                true => retire(merger, self.frame_horizon_s, &mut revisions, stats),
+                false => Vec::new(),
+            };
             // Every frame only for the files (at most every 5 s, O(frames) as the files).
             let frames: Vec<PosedFrame> = match persist {
                 true => revisions.posed_frames().map(|(f, _)| f).collect(),
                 false => Vec::new(),
             };
-            (poses, frames, revisions.posed_count())
+            (poses, retired, frames, revisions.posed_count())
         };
+        let posed_frames = posed_frames + merger.retired.posed as usize;
+        let (map, index) = (&merger.map, &merger.frames);
         let mut snapshot = MapState::of(map, update.keyframes);
         if let Some(camera) = camera {
             // Scoring every point is a pass over every observation: done when the files
@@ -88,20 +125,26 @@ impl Outputs {
         let mut written_bytes = 0;
         if persist {
             let grey = grey_levels(merger);
+            let trajectory = TrajectoryRows {
+                head_len: merger.retired.trajectory_bytes,
+                retired: &retired,
+                live: &frames,
+            };
             let written = map_state::write_files(
                 &snapshot,
-                &frames,
+                trajectory,
                 out,
                 &self.point_confidence,
                 self.all_points,
                 &|track| grey.get(&track).copied(),
             )?;
             written_bytes = written.bytes;
+            merger.retired.trajectory_bytes = written.trajectory_head_len;
             stats
                 .counters
                 .insert("published_points".into(), written.published_points as u64);
         }
-        stats.frames = index.frames.len() as u64;
+        stats.frames = index.frames.len() as u64 + merger.retired.frames;
         stats.keyframes = snapshot.keyframes.len() as u64;
         stats
             .counters

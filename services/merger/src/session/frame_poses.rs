@@ -8,6 +8,7 @@
 //! frames between the neighbours in time of such a keyframe (before and after the change).
 //! Everything else keeps its pose bit for bit, which is what makes the update exact: the
 //! poses it yields are those a recomputation of every frame would yield (unit test).
+//! Frames past the horizon (`super::frame_retirement`) are not posed again.
 //!
 //! Between keyframes "in time" is read as "in frame id": the frontend numbers frames in
 //! the order of their timestamps (it skips a frame stamped out of order). Should that ever
@@ -66,12 +67,14 @@ impl FramePoseTracker {
             }
             dirty
         });
+        // Frames past the horizon are final (`super::frame_retirement`).
+        let live = index.retired_before..;
         let frames: Vec<(u64, f64)> = match &dirty {
             Some(dirty) => dirty
-                .iter()
+                .range(live)
                 .filter_map(|f| index.frames.get(f).map(|t| (*f, *t)))
                 .collect(),
-            None => index.frames.iter().map(|(f, t)| (*f, *t)).collect(),
+            None => index.frames.range(live).map(|(f, t)| (*f, *t)).collect(),
         };
         let posed = pose_frames(map, index, &posed_keyframes, frames.iter().copied());
         let posed_ids: BTreeSet<u64> = posed.iter().map(|f| f.frame_id).collect();

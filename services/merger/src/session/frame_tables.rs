@@ -34,6 +34,23 @@ impl FrameStamps {
     pub fn take_added(&mut self) -> BTreeSet<u64> {
         std::mem::take(&mut self.added)
     }
+
+    /// Drops the frames numbered below `before` but those `keep` holds (frames retired
+    /// past the horizon, `super::frame_retirement`); not recorded as a change, as nothing
+    /// poses them any more. Returns how many went.
+    pub fn retire(&mut self, before: u64, keep: &BTreeSet<u64>) -> usize {
+        let old: Vec<u64> = self
+            .stamps
+            .range(..before)
+            .map(|(f, _)| *f)
+            .filter(|f| !keep.contains(f))
+            .collect();
+        for f in &old {
+            self.stamps.remove(f);
+            self.added.remove(f);
+        }
+        old.len()
+    }
 }
 
 impl Deref for FrameStamps {
@@ -97,6 +114,24 @@ impl LocalizedFrames {
     /// The frames inserted, replaced or removed since the last call.
     pub fn take_changed(&mut self) -> BTreeSet<u64> {
         std::mem::take(&mut self.changed)
+    }
+
+    /// Drops the frames numbered below `before` but those `keep` holds, as
+    /// [`FrameStamps::retire`] does (not recorded as a change).
+    pub fn retire(&mut self, before: u64, keep: &BTreeSet<u64>) -> usize {
+        let old: Vec<u64> = self
+            .frames
+            .range(..before)
+            .map(|(f, _)| *f)
+            .filter(|f| !keep.contains(f))
+            .collect();
+        for f in &old {
+            if let Some(l) = self.frames.remove(f) {
+                self.unlink(*f, &l);
+            }
+            self.changed.remove(f);
+        }
+        old.len()
     }
 
     fn link(&mut self, frame: u64, l: &LocalizedFrame) {
@@ -173,6 +208,33 @@ mod tests {
         assert!(under(&table, 1).is_empty() && under(&table, 2).is_empty());
         assert_eq!(table.take_changed(), BTreeSet::from([10, 11]));
         assert!(table.take_changed().is_empty());
+    }
+
+    #[test]
+    fn retired_frames_leave_the_tables_and_their_index_unrecorded() {
+        let mut stamps: FrameStamps = (0..10).map(|f| (f, f as f64)).collect();
+        stamps.insert(3, 3.5);
+        stamps.insert(8, 8.5);
+        assert_eq!(stamps.retire(6, &BTreeSet::from([2])), 5);
+        assert_eq!(
+            stamps.keys().copied().collect::<Vec<_>>(),
+            vec![2, 6, 7, 8, 9]
+        );
+        assert_eq!(
+            stamps.take_added(),
+            BTreeSet::from([8]),
+            "3 went unrecorded"
+        );
+        let mut table: LocalizedFrames = [(1, localized(0, 1)), (4, localized(3, 5))]
+            .into_iter()
+            .chain([(7, localized(3, 5))])
+            .collect();
+        table.insert(4, localized(3, 6));
+        assert_eq!(table.retire(5, &BTreeSet::new()), 2);
+        assert_eq!(table.keys().copied().collect::<Vec<_>>(), vec![7]);
+        assert!(table.take_changed().is_empty());
+        let under = |k| table.posed_against(k).collect::<Vec<_>>();
+        assert_eq!((under(0), under(3), under(6)), (vec![], vec![7], vec![]));
     }
 
     #[test]

@@ -81,6 +81,9 @@ pub struct FrameIndex {
     pub pending: BTreeMap<u64, PendingFrame>,
     /// frame id -> PnP pose relative to its anchor keyframe.
     pub localized: LocalizedFrames,
+    /// Frames numbered below this are past the horizon (`super::frame_retirement`): final,
+    /// no longer posed nor published; the few the map still needs keep their entries.
+    pub retired_before: u64,
 }
 
 impl FrameIndex {

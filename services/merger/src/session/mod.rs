@@ -9,6 +9,7 @@
 
 pub mod background_refinement;
 pub mod frame_poses;
+pub mod frame_retirement;
 pub mod frame_tables;
 pub mod frames;
 mod keyframe_culling;

@@ -322,6 +322,21 @@ impl Revisions {
     pub fn posed_count(&self) -> usize {
         self.posed
     }
+
+    /// Drops the frames numbered below `before` (retired past the horizon,
+    /// `super::frame_retirement`); returns those the map posed, as last published, in frame
+    /// id order: their final poses.
+    pub fn retire(&mut self, before: u64) -> Vec<PosedFrame> {
+        let kept = self.frames.split_off(&before);
+        let retired = std::mem::replace(&mut self.frames, kept);
+        let posed: Vec<PosedFrame> = retired
+            .iter()
+            .filter(|(_, r)| r.posed)
+            .map(|(f, r)| r.posed_frame(*f))
+            .collect();
+        self.posed -= posed.len();
+        posed
+    }
 }
 
 fn message(f: &PosedFrame, revision: u32) -> pb::Pose {
@@ -404,6 +419,24 @@ mod tests {
         assert_eq!((revisions.posed_count(), revisions.revision(4)), (0, 1));
         let back = revisions.record(&update(&[frame(4, 2.0)], &[]));
         assert_eq!(revisions_of(&back), vec![(4, 2)]);
+    }
+
+    #[test]
+    fn retired_frames_hand_back_their_last_published_poses() {
+        let mut revisions = Revisions::default();
+        let posed = [frame(1, 0.0), frame(2, 0.0), frame(5, 0.0)];
+        revisions.record(&update(&posed, &[]));
+        revisions.record(&update(&[frame(2, 0.3)], &[5]));
+        assert!(revisions.claim_live(3, &frame(3, 0.0).pose));
+        let retired = revisions.retire(4);
+        let ids: Vec<(u64, f64)> = retired
+            .iter()
+            .map(|f| (f.frame_id, f.pose.position.x))
+            .collect();
+        assert_eq!(ids, vec![(1, 0.0), (2, 0.3)], "3 was only tracked live");
+        assert_eq!(revisions.posed_count(), 0, "5 is not posed now");
+        assert_eq!(revisions.numbers().into_keys().collect::<Vec<_>>(), vec![5]);
+        assert!(revisions.retire(4).is_empty());
     }
 
     #[test]

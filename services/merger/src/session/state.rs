@@ -2,6 +2,7 @@
 //! stream stands. The service checkpoints it (egoslam's durability/checkpoint.rs) and a
 //! restarted merger resumes from it.
 
+use super::frame_retirement::RetiredFrames;
 use super::frames::FrameIndex;
 use crate::MapBuilder;
 use std::collections::BTreeMap;
@@ -27,6 +28,8 @@ pub struct MergerState {
     /// patch alignment) it holds in the features log, on disk only; with each patch's
     /// grey level (map.ply's colour).
     pub patched_tracks: BTreeMap<u64, Vec<(u64, u8)>>,
+    /// The frames retired past the horizon (session/frame_retirement.rs).
+    pub retired: RetiredFrames,
 }
 
 impl MergerState {

@@ -1,12 +1,14 @@
 //! The tracker's poses against a recomputation of every frame, through the changes a
 //! session makes: windows arriving, keyframes moved, culled (and back), split into
-//! segments and joined again, frames localized, re-anchored on an earlier pass and dropped.
+//! segments and joined again, frames localized, re-anchored on an earlier pass and dropped,
+//! frames retired past a horizon.
 
 use super::*;
+use crate::session::frame_retirement::retire_index;
 use crate::session::frames::{posed_frames, LocalizedFrame};
 use crate::MapParts;
 use nalgebra::{UnitQuaternion, Vector3};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Frames per keyframe: keyframe k is frame `FRAMES_PER_KEYFRAME * k`.
 const FRAMES_PER_KEYFRAME: u64 = 5;
@@ -19,6 +21,7 @@ struct Session {
     held: BTreeMap<u64, PosedFrame>,
     next_keyframe: u64,
     random: u64,
+    retirements: usize,
 }
 
 fn pose(t: f64, x: f64, yaw: f64) -> StampedPose {
@@ -38,6 +41,7 @@ impl Session {
             held: BTreeMap::new(),
             next_keyframe: 0,
             random: 0x9e37_79b9_7f4a_7c15,
+            retirements: 0,
         }
     }
 
@@ -142,6 +146,21 @@ impl Session {
                 let at = pose(frame as f64 / 30.0, k as f64 + 0.5, 0.0);
                 self.map.keyframes.insert(k, (segment, at));
             }
+            7 => {
+                // Frames past a horizon of 100-300 frames retire; the map's keyframes
+                // keep theirs.
+                let newest = self.index.frames.keys().last().copied().unwrap_or(0);
+                let before = newest.saturating_sub(100 + self.draw(200));
+                if before <= self.index.retired_before {
+                    return;
+                }
+                let keep: BTreeSet<u64> = (self.keyframe_ids().iter())
+                    .filter_map(|k| self.index.keyframe_frames.get(k).copied())
+                    .collect();
+                retire_index(&mut self.index, before, &keep);
+                self.held.retain(|f, _| *f >= before);
+                self.retirements += 1;
+            }
             _ => {
                 let localized: Vec<u64> = self.index.localized.keys().copied().collect();
                 let i = self.draw(localized.len() as u64) as usize;
@@ -164,7 +183,8 @@ impl Session {
             self.held.remove(&f);
         }
         let keyframes = posed_keyframes(&self.map, &self.index);
-        let fresh = posed_frames(&self.map, &self.index, &keyframes, ..);
+        let live = self.index.retired_before..;
+        let fresh = posed_frames(&self.map, &self.index, &keyframes, live);
         let ids = |v: &mut dyn Iterator<Item = u64>| v.collect::<Vec<_>>();
         assert_eq!(
             ids(&mut self.held.keys().copied()),
@@ -190,14 +210,16 @@ fn the_updated_poses_are_those_of_a_full_recomputation() {
         "first: all"
     );
     for round in 0..400 {
-        let step = session.draw(8);
+        let step = session.draw(9);
         session.apply(step);
         if round % 3 == 0 {
             session.add_window(2);
         }
         session.update_and_check();
     }
-    assert!(session.index.frames.len() > 1000);
+    let newest = session.index.frames.keys().last().copied().unwrap_or(0);
+    assert!(newest > 1000, "{newest} frames");
+    assert!(session.retirements > 5 && session.index.retired_before > 500);
 }
 
 #[test]
