@@ -8,6 +8,12 @@ use super::frames::LocalizedFrame;
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Deref;
 
+/// The frames of `table` numbered below `before` that `keep` does not hold.
+fn retiring<V>(table: &BTreeMap<u64, V>, before: u64, keep: &BTreeSet<u64>) -> Vec<u64> {
+    let below = table.range(..before).map(|(f, _)| *f);
+    below.filter(|f| !keep.contains(f)).collect()
+}
+
 /// frame id -> timestamp, recording the frames added.
 #[derive(Debug, Clone, Default)]
 pub struct FrameStamps {
@@ -39,12 +45,7 @@ impl FrameStamps {
     /// past the horizon, `super::frame_retirement`); not recorded as a change, as nothing
     /// poses them any more. Returns how many went.
     pub fn retire(&mut self, before: u64, keep: &BTreeSet<u64>) -> usize {
-        let old: Vec<u64> = self
-            .stamps
-            .range(..before)
-            .map(|(f, _)| *f)
-            .filter(|f| !keep.contains(f))
-            .collect();
+        let old = retiring(&self.stamps, before, keep);
         for f in &old {
             self.stamps.remove(f);
             self.added.remove(f);
@@ -119,12 +120,7 @@ impl LocalizedFrames {
     /// Drops the frames numbered below `before` but those `keep` holds, as
     /// [`FrameStamps::retire`] does (not recorded as a change).
     pub fn retire(&mut self, before: u64, keep: &BTreeSet<u64>) -> usize {
-        let old: Vec<u64> = self
-            .frames
-            .range(..before)
-            .map(|(f, _)| *f)
-            .filter(|f| !keep.contains(f))
-            .collect();
+        let old = retiring(&self.frames, before, keep);
         for f in &old {
             if let Some(l) = self.frames.remove(f) {
                 self.unlink(*f, &l);
