@@ -446,14 +446,15 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
             }
         }
         let keyframes = posed_keyframes(&state.map, &state.frames);
-        let live = state.frames.retired_before..;
-        let resumed_poses = posed_frames(&state.map, &state.frames, &keyframes, live);
+        // Below `retired_before`, only keyframes' frames are left (their revisions).
+        let resumed_poses = posed_frames(&state.map, &state.frames, &keyframes, ..);
+        let retired_before = state.frames.retired_before;
         *merger
             .outputs
             .revisions
             .lock()
             .map_err(|_| anyhow::anyhow!("revisions poisoned"))? =
-            Revisions::resume(&state.revisions, &resumed_poses);
+            Revisions::resume(&state.revisions, &resumed_poses, retired_before);
         merger.session.state = state;
         merger.catch_up(None)?;
     }

@@ -11,7 +11,7 @@ use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
 use egoslam_runtime::ServiceStats;
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -49,7 +49,11 @@ fn retire(
     let Some(retirement) = retire_frames(merger, horizon_s) else {
         return Vec::new();
     };
-    let retired = revisions.retire(retirement.before);
+    let keyframe_frames: BTreeSet<u64> = (merger.map.keyframes())
+        .filter_map(|(k, _, _)| merger.frames.keyframe_frames.get(&k).copied())
+        .filter(|f| *f < retirement.before)
+        .collect();
+    let retired = revisions.retire(retirement.before, &keyframe_frames);
     stats.add_time("retire_frames", start.elapsed().as_secs_f64() * 1e3);
     merger.retired.posed += retired.len() as u64;
     stats.count("retired_frames", retirement.frames as u64);

@@ -12,7 +12,7 @@ use egoslam_geometry::StampedPose;
 use egoslam_messages::v1 as pb;
 use egoslam_relocalization::wire::{pose_to_pb, vec3_to_pb};
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
 
 /// The map at one moment: its keyframes and points (the frames' poses are kept in
@@ -69,11 +69,11 @@ impl MapState {
         revisions: &Arc<Mutex<Revisions>>,
     ) -> Publication {
         let keyframe_revisions: Vec<u32> = {
-            let revisions = revisions.lock().unwrap_or_else(|e| e.into_inner());
+            let mut revisions = revisions.lock().unwrap_or_else(|e| e.into_inner());
             let numbers = self
                 .keyframes
                 .iter()
-                .map(|f| revisions.revision(f.frame_id));
+                .map(|f| revisions.keyframe_revision(f));
             numbers.collect()
         };
         let keyframes = trajectory(&self.keyframes, &keyframe_revisions);
@@ -221,6 +221,10 @@ pub struct Revisions {
     frames: BTreeMap<u64, FrameRecord>,
     /// Frames the map poses now.
     posed: usize,
+    /// Keyframes' frames retired past the horizon (`super::frame_retirement`) while their
+    /// keyframe stays in the map: no longer published as frames, but the keyframe
+    /// trajectory keeps counting their revisions up as the keyframe moves.
+    retired_keyframes: BTreeMap<u64, FrameRecord>,
 }
 
 impl Revisions {
@@ -252,11 +256,8 @@ impl Revisions {
             if !std::mem::replace(&mut record.posed, true) {
                 self.posed += 1;
             }
-            let (old, new) = (&record.pose, &f.pose);
-            let moved = (old.position - new.position).norm() > 1e-9
-                || old.rotation.angle_to(&new.rotation) > 1e-9;
             (record.segment, record.interpolated) = (f.segment, f.interpolated);
-            if moved {
+            if moved(&record.pose, &f.pose) {
                 record.pose = f.pose;
                 record.revision += 1;
                 out.push(message(f, record.revision));
@@ -284,14 +285,20 @@ impl Revisions {
 
     /// The last published revision of every frame (what a checkpoint keeps).
     pub fn numbers(&self) -> BTreeMap<u64, u32> {
-        self.frames.iter().map(|(f, r)| (*f, r.revision)).collect()
+        let records = self.frames.iter().chain(&self.retired_keyframes);
+        records.map(|(f, r)| (*f, r.revision)).collect()
     }
 
     /// Revisions of a restarted merger: the checkpointed numbers, with the resumed poses
     /// (`frames`) as published, so that a pose that moves later is published with a higher
     /// revision than any the clients already hold (they keep the highest). Which frames the
     /// map poses comes with the next [`Self::record`].
-    pub fn resume(numbers: &BTreeMap<u64, u32>, frames: &[PosedFrame]) -> Self {
+    /// Frames numbered below `retired_before` are keyframes' frames past the horizon.
+    pub fn resume(
+        numbers: &BTreeMap<u64, u32>,
+        frames: &[PosedFrame],
+        retired_before: u64,
+    ) -> Self {
         let records = frames.iter().filter_map(|f| {
             let record = FrameRecord {
                 pose: f.pose,
@@ -302,14 +309,33 @@ impl Revisions {
             };
             Some((f.frame_id, record))
         });
+        let mut frames: BTreeMap<u64, FrameRecord> = records.collect();
+        let live = frames.split_off(&retired_before);
         Self {
-            frames: records.collect(),
+            frames: live,
             posed: 0,
+            retired_keyframes: frames,
         }
     }
 
     pub fn revision(&self, frame_id: u64) -> u32 {
         self.frames.get(&frame_id).map_or(0, |r| r.revision)
+    }
+
+    /// The revision of keyframe `k`'s pose on the keyframe trajectory: its frame's, or,
+    /// for a frame retired past the horizon, counted up here whenever the keyframe moved.
+    pub fn keyframe_revision(&mut self, k: &PosedFrame) -> u32 {
+        if let Some(record) = self.frames.get(&k.frame_id) {
+            return record.revision;
+        }
+        let Some(record) = self.retired_keyframes.get_mut(&k.frame_id) else {
+            return 0;
+        };
+        if moved(&record.pose, &k.pose) {
+            record.pose = k.pose;
+            record.revision += 1;
+        }
+        record.revision
     }
 
     /// Every frame the map poses now, as published, with its revision, in frame id order.
@@ -326,7 +352,9 @@ impl Revisions {
     /// Drops the frames numbered below `before` (retired past the horizon,
     /// `super::frame_retirement`); returns those the map posed, as last published, in frame
     /// id order: their final poses.
-    pub fn retire(&mut self, before: u64) -> Vec<PosedFrame> {
+    /// Those in `keyframe_frames` (the map's keyframes') keep their record for
+    /// [`Self::keyframe_revision`], which forgets the others'.
+    pub fn retire(&mut self, before: u64, keyframe_frames: &BTreeSet<u64>) -> Vec<PosedFrame> {
         let kept = self.frames.split_off(&before);
         let retired = std::mem::replace(&mut self.frames, kept);
         let posed: Vec<PosedFrame> = retired
@@ -335,8 +363,16 @@ impl Revisions {
             .map(|(f, r)| r.posed_frame(*f))
             .collect();
         self.posed -= posed.len();
+        self.retired_keyframes.extend(retired);
+        self.retired_keyframes
+            .retain(|f, _| keyframe_frames.contains(f));
         posed
     }
+}
+
+/// Whether a pose moved from `old` to `new` enough to be published again (1e-9).
+fn moved(old: &StampedPose, new: &StampedPose) -> bool {
+    (old.position - new.position).norm() > 1e-9 || old.rotation.angle_to(&new.rotation) > 1e-9
 }
 
 fn message(f: &PosedFrame, revision: u32) -> pb::Pose {
@@ -390,7 +426,7 @@ mod tests {
         assert_eq!(revisions_of(&moved), vec![(1, 1)]);
         // Kill and restart: the checkpointed numbers and the resumed poses.
         let resumed = [frame(1, 0.5), frame(2, 0.0)];
-        let mut after = Revisions::resume(&before.numbers(), &resumed);
+        let mut after = Revisions::resume(&before.numbers(), &resumed, 0);
         assert!(
             after.record(&update(&resumed, &[])).is_empty(),
             "nothing moved"
@@ -428,15 +464,35 @@ mod tests {
         revisions.record(&update(&posed, &[]));
         revisions.record(&update(&[frame(2, 0.3)], &[5]));
         assert!(revisions.claim_live(3, &frame(3, 0.0).pose));
-        let retired = revisions.retire(4);
+        // Frame 2 is a keyframe's, which stays in the map.
+        let retired = revisions.retire(4, &BTreeSet::from([2]));
         let ids: Vec<(u64, f64)> = retired
             .iter()
             .map(|f| (f.frame_id, f.pose.position.x))
             .collect();
         assert_eq!(ids, vec![(1, 0.0), (2, 0.3)], "3 was only tracked live");
         assert_eq!(revisions.posed_count(), 0, "5 is not posed now");
-        assert_eq!(revisions.numbers().into_keys().collect::<Vec<_>>(), vec![5]);
-        assert!(revisions.retire(4).is_empty());
+        assert_eq!(revisions.posed_frames().count(), 0);
+        assert_eq!(
+            revisions.numbers().into_keys().collect::<Vec<_>>(),
+            vec![2, 5]
+        );
+        assert!(revisions.retire(4, &BTreeSet::from([2])).is_empty());
+        // The keyframe trajectory counts its revisions on as the keyframe moves, across a
+        // restart too.
+        assert_eq!(revisions.keyframe_revision(&frame(2, 0.3)), 1);
+        assert_eq!(revisions.keyframe_revision(&frame(2, 0.4)), 2);
+        let resumed = Revisions::resume(&revisions.numbers(), &[frame(2, 0.4), frame(5, 0.0)], 4);
+        let mut resumed = resumed;
+        assert_eq!(resumed.keyframe_revision(&frame(2, 0.5)), 3);
+        assert_eq!(
+            resumed.posed_frames().count(),
+            0,
+            "neither posed before a record"
+        );
+        // Culled since: forgotten at the next retirement.
+        resumed.retire(6, &BTreeSet::new());
+        assert_eq!(resumed.keyframe_revision(&frame(2, 0.6)), 0);
     }
 
     #[test]
