@@ -9,4 +9,4 @@ pub mod stats;
 pub mod systemd;
 
 pub use latency::LatencyHistogram;
-pub use stats::{peak_rss_kib, ServiceStats, StatsError};
+pub use stats::{cpu_seconds, peak_rss_kib, ServiceStats, StatsError};

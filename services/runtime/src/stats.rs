@@ -25,6 +25,9 @@ pub struct ServiceStats {
     /// Peak resident memory of the process so far (Linux VmHWM), kibibytes; 0 if unknown.
     #[serde(default)]
     pub peak_rss_kib: u64,
+    /// CPU time of the process so far (user + system, every thread), seconds.
+    #[serde(default)]
+    pub cpu_s: f64,
     /// Per hop, each frame's time from capture to this service's step (docs/benchmarks.md,
     /// "Pose latency").
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
@@ -41,6 +44,20 @@ pub fn peak_rss_kib() -> u64 {
                 .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         })
         .unwrap_or(0)
+}
+
+/// This process's CPU time so far, user + system over every thread (getrusage), seconds.
+pub fn cpu_seconds() -> f64 {
+    // SAFETY: getrusage writes the struct it is given and reads nothing else.
+    let usage = unsafe {
+        let mut usage: libc::rusage = std::mem::zeroed();
+        if libc::getrusage(libc::RUSAGE_SELF, &mut usage) != 0 {
+            return 0.0;
+        }
+        usage
+    };
+    let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    seconds(usage.ru_utime) + seconds(usage.ru_stime)
 }
 
 impl ServiceStats {
@@ -113,6 +130,7 @@ impl ServiceStats {
     /// Writes atomically (temp file + rename): a crash never leaves half a file.
     pub fn write(&mut self, out: &Path) -> Result<(), StatsError> {
         self.peak_rss_kib = peak_rss_kib();
+        self.cpu_s = cpu_seconds();
         let path = Self::path(out, &self.service);
         let text = serde_json::to_string_pretty(self).map_err(|source| StatsError::Format {
             path: path.clone(),
@@ -147,4 +165,32 @@ pub enum StatsError {
         path: PathBuf,
         source: serde_json::Error,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cpu_time_counts_the_work_of_every_thread() {
+        let before = cpu_seconds();
+        // Two threads each doing a fixed amount of work (~0.1 s of CPU time each here,
+        // however loaded the machine).
+        let busy = || {
+            let mut x = 0u64;
+            for _ in 0..100_000_000u64 {
+                x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+            }
+            x
+        };
+        let other = std::thread::spawn(busy);
+        busy();
+        other.join().expect("thread");
+        let spent = cpu_seconds() - before;
+        assert!(spent > 0.05, "{spent} s");
+        let mut stats = ServiceStats::new("test");
+        let dir = tempfile::tempdir().expect("tempdir");
+        stats.write(dir.path()).expect("write");
+        assert!(ServiceStats::read(dir.path(), "test").expect("read").cpu_s >= spent);
+    }
 }

@@ -223,6 +223,21 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
     serde_json::Value::Object(m)
 }
 
+/// CPU time per process and their sum, seconds: the launcher's includes the calibration
+/// pre-passes (run in it before the services start), each service's its own threads.
+fn cpu_time(stats: &[ServiceStats]) -> serde_json::Value {
+    let round = |s: f64| (s * 100.0).round() / 100.0;
+    let launcher = egoslam_runtime::cpu_seconds();
+    let mut m = serde_json::Map::new();
+    m.insert("launcher".into(), json!(round(launcher)));
+    for s in stats {
+        m.insert(s.service.clone(), json!(round(s.cpu_s)));
+    }
+    let sum = launcher + stats.iter().map(|s| s.cpu_s).sum::<f64>();
+    m.insert("sum".into(), json!(round(sum)));
+    serde_json::Value::Object(m)
+}
+
 pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let live_view = crate::supervision::live_view::LiveView::start(&args.view, &args.egress)?;
@@ -471,6 +486,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         "map_points": counter(merger, "map_points"),
         "published_points": counter(merger, "published_points"),
         "peak_rss_mib": peak_memory(&stats),
+        "cpu_s": cpu_time(&stats),
         // Tracks a restarted frontend continued from its predecessor's last frame.
         "resumed_tracks": counter(frontend, "resumed_tracks"),
         "restarts": restarts.iter().map(|(name, n)| (name.to_string(), json!(n))).collect::<serde_json::Map<_, _>>(),
