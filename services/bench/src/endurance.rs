@@ -362,14 +362,26 @@ fn written_mib(samples: &[Sample]) -> f64 {
 
 /// MiB written by each service while it ran: the largest of its samples (a service's count
 /// moves to the launcher's when it exits, so this misses what it wrote after the last
-/// sample, at most 2 s of writing).
+/// sample, at most 2 s of writing). The launcher's own: its count less the last seen counts
+/// of the services it has reaped.
 fn written_mib_by_service(samples: &[Sample]) -> BTreeMap<&'static str, f64> {
     let mut by_service: BTreeMap<&'static str, f64> = BTreeMap::new();
+    let mut last_seen: BTreeMap<&'static str, u64> = BTreeMap::new();
     for sample in samples {
+        let reaped: u64 = (last_seen.iter())
+            .filter(|(service, _)| !sample.written_bytes.contains_key(*service))
+            .map(|(_, bytes)| *bytes)
+            .sum();
         for (service, bytes) in &sample.written_bytes {
-            let mib = *bytes as f64 / (1024.0 * 1024.0);
+            let own = match *service {
+                "launcher" => bytes.saturating_sub(reaped),
+                _ => {
+                    last_seen.insert(service, *bytes);
+                    *bytes
+                }
+            };
             let most = by_service.entry(service).or_default();
-            *most = most.max(mib);
+            *most = most.max(own as f64 / (1024.0 * 1024.0));
         }
     }
     by_service
@@ -609,25 +621,30 @@ mod tests {
     #[test]
     fn each_service_is_charged_its_largest_count() {
         let mib = 1024 * 1024;
-        let sample = |solver: u64, merger: Option<u64>| Sample {
+        let sample = |launcher: u64, solver: u64, merger: Option<u64>| Sample {
             wall_s: 0.0,
             merged_video_s: 0.0,
             rss_mib: BTreeMap::new(),
             written_bytes: merger
                 .map(|m| ("merger", m * mib))
                 .into_iter()
-                .chain([("solver", solver * mib)])
+                .chain([("solver", solver * mib), ("launcher", launcher * mib)])
                 .collect(),
             disk_mib: 0.0,
             keyframes: 0,
             map_points: 0,
         };
-        // The merger wrote 30 MiB, then exited (its count gone from the last sample).
-        let samples = [sample(1, Some(10)), sample(4, Some(30)), sample(5, None)];
+        // The merger wrote 30 MiB, then exited (its count gone from the last sample, added
+        // to the launcher's, which wrote 2 MiB of its own).
+        let samples = [
+            sample(1, 1, Some(10)),
+            sample(2, 4, Some(30)),
+            sample(32, 5, None),
+        ];
         let by_service = written_mib_by_service(&samples);
         assert_eq!(
             by_service,
-            BTreeMap::from([("merger", 30.0), ("solver", 5.0)])
+            BTreeMap::from([("launcher", 2.0), ("merger", 30.0), ("solver", 5.0)])
         );
     }
 }
