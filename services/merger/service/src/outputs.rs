@@ -33,7 +33,7 @@ pub(super) struct Outputs {
     /// Also write map_all.ply (`--map-all-points`).
     pub(super) all_points: bool,
     /// Frames this much stream time older than the newest are final and leave memory
-    /// (`--frame-horizon-s`; infinite: never).
+    /// (`--frame-horizon-min`; infinite: never).
     pub(super) frame_horizon_s: f64,
 }
 
