@@ -208,34 +208,38 @@ fn per_run_bus_config(dir: &Path) -> anyhow::Result<PathBuf> {
     Ok(path)
 }
 
+/// One figure per process (the launcher's, then each service's from its stats) and their
+/// sum, each rounded to `decimals`.
+fn per_process(
+    launcher: f64,
+    stats: &[ServiceStats],
+    figure: impl Fn(&ServiceStats) -> f64,
+    decimals: i32,
+) -> serde_json::Value {
+    let unit = 10f64.powi(decimals);
+    let round = |v: f64| (v * unit).round() / unit;
+    let mut m = serde_json::Map::new();
+    m.insert("launcher".into(), json!(round(launcher)));
+    for s in stats {
+        m.insert(s.service.clone(), json!(round(figure(s))));
+    }
+    let sum = launcher + stats.iter().map(&figure).sum::<f64>();
+    m.insert("sum".into(), json!(round(sum)));
+    serde_json::Value::Object(m)
+}
+
 /// Peak resident memory per process and their sum (an upper bound of the pipeline's peak:
 /// the processes need not peak at the same moment), MiB.
 fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
-    let mib = |kib: u64| (kib as f64 / 1024.0 * 10.0).round() / 10.0;
-    let launcher = egoslam_runtime::peak_rss_kib();
-    let mut m = serde_json::Map::new();
-    m.insert("launcher".into(), json!(mib(launcher)));
-    for s in stats {
-        m.insert(s.service.clone(), json!(mib(s.peak_rss_kib)));
-    }
-    let sum = launcher + stats.iter().map(|s| s.peak_rss_kib).sum::<u64>();
-    m.insert("sum".into(), json!(mib(sum)));
-    serde_json::Value::Object(m)
+    let mib = |kib: u64| kib as f64 / 1024.0;
+    let launcher = mib(egoslam_runtime::peak_rss_kib());
+    per_process(launcher, stats, |s| mib(s.peak_rss_kib), 1)
 }
 
 /// CPU time per process and their sum, seconds: the launcher's includes the calibration
 /// pre-passes (run in it before the services start), each service's its own threads.
 fn cpu_time(stats: &[ServiceStats]) -> serde_json::Value {
-    let round = |s: f64| (s * 100.0).round() / 100.0;
-    let launcher = egoslam_runtime::cpu_seconds();
-    let mut m = serde_json::Map::new();
-    m.insert("launcher".into(), json!(round(launcher)));
-    for s in stats {
-        m.insert(s.service.clone(), json!(round(s.cpu_s)));
-    }
-    let sum = launcher + stats.iter().map(|s| s.cpu_s).sum::<f64>();
-    m.insert("sum".into(), json!(round(sum)));
-    serde_json::Value::Object(m)
+    per_process(egoslam_runtime::cpu_seconds(), stats, |s| s.cpu_s, 2)
 }
 
 pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
