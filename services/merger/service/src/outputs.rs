@@ -5,13 +5,13 @@ use crate::map_state::{self, MapState, PublishedPoints, Revisions, TrajectoryRow
 use egoslam_egress::Egress;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_merger::session::frame_poses::FramePoseTracker;
-use egoslam_merger::session::frame_retirement::retire_frames;
+use egoslam_merger::session::frame_retirement::{map_keyframe_frames, retire_frames};
 use egoslam_merger::session::frames::PosedFrame;
 use egoslam_merger::MergerState;
 use egoslam_merger::{point_confidence, PointConfidence, PointConfidenceOptions};
 use egoslam_messages::v1 as pb;
 use egoslam_runtime::ServiceStats;
-use std::collections::{BTreeSet, HashMap};
+use std::collections::HashMap;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -49,11 +49,7 @@ fn retire(
     let Some(retirement) = retire_frames(merger, horizon_s) else {
         return Vec::new();
     };
-    let keyframe_frames: BTreeSet<u64> = (merger.map.keyframes())
-        .filter_map(|(k, _, _)| merger.frames.keyframe_frames.get(&k).copied())
-        .filter(|f| *f < retirement.before)
-        .collect();
-    let retired = revisions.retire(retirement.before, &keyframe_frames);
+    let retired = revisions.retire(retirement.before, &map_keyframe_frames(merger));
     stats.add_time("retire_frames", start.elapsed().as_secs_f64() * 1e3);
     merger.retired.posed += retired.len() as u64;
     stats.count("retired_frames", retirement.frames as u64);

@@ -46,15 +46,23 @@ fn horizon_start(index: &FrameIndex, horizon_s: f64) -> Option<u64> {
     (first_within > index.retired_before).then_some(first_within)
 }
 
-/// The frames the map itself still needs below any horizon: its keyframes' (their poses and
-/// ages) and those of culled keyframes whose patches it keeps (placed at their frame's pose).
+/// The frames of `keyframes` (those the index knows).
+fn frames_of(state: &MergerState, keyframes: impl Iterator<Item = u64>) -> BTreeSet<u64> {
+    let frame = |k| state.frames.keyframe_frames.get(&k).copied();
+    keyframes.filter_map(frame).collect()
+}
+
+/// The frames of the map's keyframes (their poses and ages).
+pub fn map_keyframe_frames(state: &MergerState) -> BTreeSet<u64> {
+    frames_of(state, state.map.keyframes().map(|(k, _, _)| k))
+}
+
+/// The frames the map itself still needs below any horizon: its keyframes' and those of
+/// culled keyframes whose patches it keeps (placed at their frame's pose).
 fn frames_the_map_needs(state: &MergerState) -> BTreeSet<u64> {
-    let in_map = state.map.keyframes().map(|(k, _, _)| k);
-    let patched = state.patched_tracks.keys().copied();
-    in_map
-        .chain(patched)
-        .filter_map(|k| state.frames.keyframe_frames.get(&k).copied())
-        .collect()
+    let mut frames = map_keyframe_frames(state);
+    frames.extend(frames_of(state, state.patched_tracks.keys().copied()));
+    frames
 }
 
 /// Retires the frames more than `horizon_s` seconds of stream time older than the newest:

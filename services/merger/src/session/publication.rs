@@ -318,10 +318,6 @@ impl Revisions {
         }
     }
 
-    pub fn revision(&self, frame_id: u64) -> u32 {
-        self.frames.get(&frame_id).map_or(0, |r| r.revision)
-    }
-
     /// The revision of keyframe `k`'s pose on the keyframe trajectory: its frame's, or,
     /// for a frame retired past the horizon, counted up here whenever the keyframe moved.
     pub fn keyframe_revision(&mut self, k: &PosedFrame) -> u32 {
@@ -452,7 +448,7 @@ mod tests {
         assert!(!revisions.claim_live(4, &live.pose), "already published");
         // A frame the map can no longer pose leaves the snapshot, keeping its revision.
         assert!(revisions.record(&update(&[], &[4])).is_empty());
-        assert_eq!((revisions.posed_count(), revisions.revision(4)), (0, 1));
+        assert_eq!((revisions.posed_count(), revisions.numbers()[&4]), (0, 1));
         let back = revisions.record(&update(&[frame(4, 2.0)], &[]));
         assert_eq!(revisions_of(&back), vec![(4, 2)]);
     }
@@ -482,8 +478,8 @@ mod tests {
         // restart too.
         assert_eq!(revisions.keyframe_revision(&frame(2, 0.3)), 1);
         assert_eq!(revisions.keyframe_revision(&frame(2, 0.4)), 2);
-        let resumed = Revisions::resume(&revisions.numbers(), &[frame(2, 0.4), frame(5, 0.0)], 4);
-        let mut resumed = resumed;
+        let mut resumed =
+            Revisions::resume(&revisions.numbers(), &[frame(2, 0.4), frame(5, 0.0)], 4);
         assert_eq!(resumed.keyframe_revision(&frame(2, 0.5)), 3);
         assert_eq!(
             resumed.posed_frames().count(),
