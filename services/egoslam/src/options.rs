@@ -31,8 +31,9 @@ pub struct PipelineArgs {
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
     /// global shutter), or `auto`: estimated from the first frames (read ahead by `egoslam
-    /// run` in a recorded input; on a live stream by the frontend, which corrects from then
-    /// on); observations are moved to the middle row's time (docs/config.md).
+    /// run` in a recorded input; on a live stream by the frontend, which holds their
+    /// keyframes until then and corrects them); observations are moved to the middle row's
+    /// time (docs/config.md).
     #[arg(
         long,
         help_heading = "frontend",
@@ -41,8 +42,8 @@ pub struct PipelineArgs {
     )]
     pub rolling_shutter_ms: crate::calibration::settings::Readout,
     /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
-    /// frames of a recorded input, read before the run, or of a live stream, which is
-    /// corrected from then on.
+    /// frames of a recorded input, read before the run, or of a live stream, whose
+    /// keyframes wait for the estimate (the first window comes that much later).
     #[arg(long, help_heading = "frontend", default_value_t = crate::calibration::settings::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
     /// Self-calibrate the focal length: `egoslam run` solves the first windows of a

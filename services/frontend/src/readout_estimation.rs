@@ -335,6 +335,7 @@ pub struct OnlineReadoutEstimator {
     options: ReadoutEstimationOptions,
     frames: usize,
     attempts_left: u32,
+    attempts: u32,
     collected: Vec<FrameTracks>,
 }
 
@@ -356,6 +357,7 @@ impl OnlineReadoutEstimator {
             options,
             frames: frames.max(options.min_pairs + 3),
             attempts_left: attempts.max(1),
+            attempts: attempts.max(1),
             collected: Vec::new(),
         }
     }
@@ -374,6 +376,40 @@ impl OnlineReadoutEstimator {
             Err(e) if self.attempts_left == 0 => OnlineReadout::GaveUp(e),
             Err(_) => OnlineReadout::Collecting,
         }
+    }
+
+    /// Whether the first attempt is still collecting.
+    pub fn in_first_attempt(&self) -> bool {
+        self.attempts_left == self.attempts
+    }
+
+    /// Frames collected in this attempt.
+    pub fn collected(&self) -> usize {
+        self.collected.len()
+    }
+
+    /// An early estimate from the frames collected so far, which keep being collected: a
+    /// look at whether the readout is likely to matter.
+    pub fn probe(&self, camera: &PinholeRadtan) -> Result<ReadoutEstimate, ReadoutEstimationError> {
+        if self.collected.len() < self.options.min_pairs + 3 {
+            return Err(ReadoutEstimationError::TooFewPairs {
+                pairs: self.collected.len().saturating_sub(2),
+                min_tracks: self.options.min_tracks,
+                needed: self.options.min_pairs,
+            });
+        }
+        estimate_readout(&self.collected, camera, &self.options)
+    }
+
+    /// The estimate from the frames collected so far, when the stream ends before an
+    /// attempt is complete (a short recording: as reading it ahead would).
+    pub fn finish(
+        &mut self,
+        camera: &PinholeRadtan,
+    ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
+        let estimate = self.probe(camera);
+        self.collected.clear();
+        estimate
     }
 }
 
@@ -436,6 +472,7 @@ mod tests {
                             track_id: id as u64,
                             raw: Point2::new(x, y),
                             undistorted: Point2::new(x, y),
+                            image_velocity: None,
                         })
                     })
                     .collect();

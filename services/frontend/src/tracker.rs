@@ -44,6 +44,10 @@ pub struct TrackPoint {
     pub raw: Point2<f32>,
     /// Undistorted pixel (ideal pinhole with the same intrinsics).
     pub undistorted: Point2<f32>,
+    /// The track's image velocity at the frame's time, pixels per second, as a
+    /// rolling-shutter correction takes it ([`Tracker::recorrect`]); `None` before two
+    /// frames were tracked.
+    pub image_velocity: Option<Point2<f32>>,
 }
 
 /// The tracks of a new keyframe.
@@ -544,15 +548,34 @@ impl Tracker {
         if !(readout > 0.0 && step > 0.0) {
             return t.pos;
         }
-        // The motion over the last frame is the velocity half a frame ago; with the frame
-        // before, it is carried to this frame's time (second order).
-        let v = match (t.velocity, t.previous_velocity) {
+        let v = self.frame_motion(t);
+        let shift = (self.camera.row_offset(f64::from(t.pos.y)) * readout / step) as f32;
+        Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)
+    }
+
+    /// A track's image motion over one frame at this frame's time: the motion over the
+    /// last frame is the velocity half a frame ago; with the frame before, it is carried
+    /// to this frame's time (second order); a track born on this frame takes the median
+    /// motion.
+    fn frame_motion(&self, t: &Track) -> Point2f {
+        match (t.velocity, t.previous_velocity) {
             (Some(a), Some(b)) => Point2f::new(a.x + 0.5 * (a.x - b.x), a.y + 0.5 * (a.y - b.y)),
             (Some(a), None) => a,
             _ => self.image_velocity,
-        };
-        let shift = (self.camera.row_offset(f64::from(t.pos.y)) * readout / step) as f32;
-        Point2f::new(t.pos.x - v.x * shift, t.pos.y - v.y * shift)
+        }
+    }
+
+    /// [`Self::frame_motion`] per second; `None` before two frames were tracked.
+    fn image_velocity(&self, t: &Track) -> Option<Point2<f32>> {
+        let step = self.last_times.1 - self.last_times.0;
+        if step.is_nan() || step <= 0.0 {
+            return None;
+        }
+        let v = self.frame_motion(t);
+        Some(Point2::new(
+            (f64::from(v.x) / step) as f32,
+            (f64::from(v.y) / step) as f32,
+        ))
     }
 
     /// A track as published: its raw image position and its undistorted geometric one
@@ -568,6 +591,7 @@ impl Tracker {
             track_id: t.id,
             raw: Point2::new(t.pos.x, t.pos.y),
             undistorted: Point2::new(und.x as f32, und.y as f32),
+            image_velocity: self.image_velocity(t),
         })
     }
 

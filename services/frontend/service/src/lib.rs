@@ -2,6 +2,7 @@
 //! the bus, and every frame's tracks to the merger's live tracker.
 
 pub mod online_readout;
+pub mod readout_hold;
 mod resume;
 
 use anyhow::{bail, Context};
@@ -343,6 +344,10 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
         ..args.tracker
     };
     let mut tracker = Tracker::new(camera, options);
+    // Keyframes wait for the readout estimate while it is made (readout_hold.rs).
+    let mut hold = online_readout
+        .as_ref()
+        .map(|_| readout_hold::ReadoutHold::default());
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.
     let mut patched: HashSet<u64> = HashSet::new();
@@ -439,8 +444,12 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
                     (m.x, m.y) = (t.undistorted.x, t.undistorted.y);
                 }
             }
-            let sender = (&mut keyframe_log, &mut keyframes);
-            publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+            if let Some(hold) = &mut hold {
+                hold.hold(k, msg);
+            } else {
+                let sender = (&mut keyframe_log, &mut keyframes);
+                publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+            }
         }
         if let Some(path) = &resume_path {
             let tracks = tracker.resumable_tracks();
@@ -462,10 +471,33 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
         drop(image);
         drop(frame);
         stats.frames += 1;
+        let mut attempt_over = false;
         if let Some(online) = &mut online_readout {
             if online_readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)? {
                 online_readout = None;
+                attempt_over = true;
+            } else {
+                attempt_over = !online.in_first_attempt()
+                    || (hold.is_some()
+                        && online.collected() == online_readout::PROBE_FRAMES
+                        && online_readout::probe_finds_none(online, &tracker));
             }
+        }
+        // This frame's keyframe was made uncorrected: corrected as a new one would be.
+        let mut correct_this_keyframe = false;
+        if let Some(held) = hold.take_if(|_| attempt_over) {
+            let readout_s = tracker.rolling_shutter_s();
+            correct_this_keyframe = readout_s > 0.0;
+            let count = held.len();
+            for (k, msg) in held.release(&tracker, readout_s, &mut skipped) {
+                let sender = (&mut keyframe_log, &mut keyframes);
+                publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+            }
+            tracing::info!(
+                keyframes = count,
+                readout_ms = readout_s * 1e3,
+                "keyframes held for the readout estimate published"
+            );
         }
         if outcome.blind {
             stats.count("blind_frames", 1);
@@ -480,30 +512,52 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
             tracks: Vec::new(),
         };
         match (outcome.keyframe, described) {
-            (Some(k), Some(mut msg)) => {
+            (Some(mut k), Some(mut msg)) => {
                 msg.frames_since_previous = std::mem::take(&mut skipped);
-                if tracker.rolling_shutter_s() > 0.0 {
+                if correct_this_keyframe {
+                    let readout_s = tracker.rolling_shutter_s();
+                    for (m, t) in msg.tracks.iter_mut().zip(&mut k.tracks) {
+                        tracker.recorrect(t, readout_s);
+                        (m.x, m.y) = (t.undistorted.x, t.undistorted.y);
+                    }
+                }
+                // Held keyframes wait for the next frame too: it centres their velocity.
+                if tracker.rolling_shutter_s() > 0.0 || hold.is_some() {
                     pending = Some((k, msg));
                 } else {
                     let sender = (&mut keyframe_log, &mut keyframes);
                     publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
                 }
             }
-            _ => skipped.push(internal::FrameStamp {
-                tracks: tracker
-                    .sample_tracks(TRACKS_PER_FRAME)
-                    .iter()
-                    .map(track_message)
-                    .collect(),
-                ..stamp
-            }),
+            _ => {
+                let points = tracker.sample_tracks(TRACKS_PER_FRAME);
+                skipped.push(internal::FrameStamp {
+                    tracks: points.iter().map(track_message).collect(),
+                    ..stamp
+                });
+                if let Some(hold) = &mut hold {
+                    hold.note_frame(points);
+                }
+            }
         }
         last_stamp = Some(stamp);
     }
     // No frame came after it to centre its correction.
     if let Some((k, msg)) = pending.take() {
-        let sender = (&mut keyframe_log, &mut keyframes);
-        publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+        if let Some(hold) = &mut hold {
+            hold.hold(k, msg);
+        } else {
+            let sender = (&mut keyframe_log, &mut keyframes);
+            publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+        }
+    }
+    // A stream shorter than the estimation's frames: estimated from all of it.
+    if let (Some(held), Some(online)) = (hold.take(), online_readout.take()) {
+        let readout_s = online_readout::finish_online(online, &mut tracker, &args.out)?;
+        for (k, msg) in held.release(&tracker, readout_s, &mut skipped) {
+            let sender = (&mut keyframe_log, &mut keyframes);
+            publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
+        }
     }
     // The last frame becomes a keyframe so that every frame lies between two keyframes.
     if let (Some(k), Some(last)) = (tracker.finish(), last_stamp) {

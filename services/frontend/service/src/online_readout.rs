@@ -72,9 +72,63 @@ pub fn observe_online(
             0.0
         }
     };
+    adopt(tracker, readout_s, out)?;
+    Ok(true)
+}
+
+/// Frames after which the keyframes held for the estimate (readout_hold.rs) are looked
+/// at early: 1 s at 30 fps, enough for the estimator's 20 frame pairs.
+pub const PROBE_FRAMES: usize = 30;
+
+/// Whether an early estimate over the frames collected so far finds no clear readout (or
+/// none at all): the held keyframes then go out uncorrected instead of waiting for the
+/// full estimate, which still corrects from then on if it finds one. A global shutter
+/// thus delays the first window by a second, not by the estimation's frames.
+pub fn probe_finds_none(online: &OnlineReadoutEstimator, tracker: &Tracker) -> bool {
+    match online.probe(&tracker.camera()) {
+        Ok(e) => {
+            tracing::debug!(
+                best_ms = e.best_s * 1e3,
+                significant = e.significant,
+                "early rolling-shutter readout look"
+            );
+            !e.significant
+        }
+        Err(_) => true,
+    }
+}
+
+/// At the end of a stream shorter than the estimation's frames: the estimate from what
+/// was collected (as reading the recording ahead would make), set on the tracker and saved.
+pub fn finish_online(
+    mut online: OnlineReadoutEstimator,
+    tracker: &mut Tracker,
+    out: &Path,
+) -> anyhow::Result<f64> {
+    let readout_s = match online.finish(&tracker.camera()) {
+        Ok(e) => {
+            log_estimate(
+                &e,
+                "from the whole stream, shorter than the estimation's frames",
+            );
+            e.readout_s
+        }
+        Err(e) => {
+            tracing::warn!(
+                "no rolling-shutter readout estimate ({e}): a global shutter is assumed"
+            );
+            0.0
+        }
+    };
+    adopt(tracker, readout_s, out)?;
+    Ok(readout_s)
+}
+
+/// Corrects with `readout_s` from now on, and saves it for a restart.
+fn adopt(tracker: &mut Tracker, readout_s: f64, out: &Path) -> anyhow::Result<()> {
     tracker.set_rolling_shutter_s(readout_s);
     egoslam_durability::estimated_readout::write(out, readout_s * 1e3)?;
-    Ok(true)
+    Ok(())
 }
 
 /// Logs an estimate with the residuals it rests on, and what to do when it found none.

@@ -14,7 +14,7 @@
 //! older tracks' (a turn changes every track's motion alike). The frontend service
 //! therefore holds each keyframe for one frame before publishing it.
 
-use super::{KeyframeTracks, Track, Tracker};
+use super::{KeyframeTracks, Track, TrackPoint, Tracker};
 use egoslam_geometry::median;
 use nalgebra::Point2;
 use opencv::core::Point2f;
@@ -25,11 +25,12 @@ impl Tracker {
     /// on the keyframe. Call it right after processing the frame that follows the
     /// keyframe's; returns how many tracks were moved: none without a readout or when
     /// another frame came between; tracks lost on the next frame keep the extrapolated
-    /// correction.
+    /// correction. Each centred track's `image_velocity` becomes the centred one, also
+    /// without a readout (for [`Tracker::recorrect`] once a readout is estimated).
     pub fn centre_keyframe(&self, keyframe: &mut KeyframeTracks) -> usize {
         let readout = self.options.rolling_shutter_s;
         let span = self.last_times.1 - self.time_before_last;
-        if !(readout > 0.0 && span > 0.0) || self.previous_frame_id != Some(keyframe.frame_id) {
+        if span.is_nan() || span <= 0.0 || self.previous_frame_id != Some(keyframe.frame_id) {
             return 0;
         }
         let live: HashMap<u64, &Track> = self.tracks.iter().map(|t| (t.id, t)).collect();
@@ -53,6 +54,13 @@ impl Tracker {
                 (Some(after), None, Some(c)) => (after, Point2f::new(after.x + c.x, after.y + c.y)),
                 _ => continue,
             };
+            point.image_velocity = Some(Point2::new(
+                (f64::from(after.x + before.x) / span) as f32,
+                (f64::from(after.y + before.y) / span) as f32,
+            ));
+            if readout <= 0.0 {
+                continue;
+            }
             let share = self.camera.row_offset(f64::from(point.raw.y)) * readout / span;
             let centred = Point2f::new(
                 point.raw.x - (after.x + before.x) * share as f32,
@@ -68,5 +76,28 @@ impl Tracker {
             moved += 1;
         }
         moved
+    }
+
+    /// Moves `point` (tracked with no readout correction) from its row's capture time to
+    /// the middle row's along its `image_velocity`, for a rolling-shutter readout of
+    /// `readout_s` estimated after it was tracked, and undistorts it again; a point with no
+    /// velocity, or a readout of 0, is left as tracked. `false` when the corrected position
+    /// leaves what the camera undistorts (the point keeps its uncorrected position).
+    pub fn recorrect(&self, point: &mut TrackPoint, readout_s: f64) -> bool {
+        let Some(velocity) = point.image_velocity.filter(|_| readout_s > 0.0) else {
+            return true;
+        };
+        let delay = (self.camera.row_offset(f64::from(point.raw.y)) * readout_s) as f32;
+        let moved = Point2::new(
+            f64::from(point.raw.x - velocity.x * delay),
+            f64::from(point.raw.y - velocity.y * delay),
+        );
+        match self.camera.undistort_pixel(moved) {
+            Some(u) => {
+                point.undistorted = Point2::new(u.x as f32, u.y as f32);
+                true
+            }
+            None => false,
+        }
     }
 }

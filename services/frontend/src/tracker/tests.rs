@@ -316,7 +316,72 @@ fn a_rolling_shutter_readout_moves_observations_to_the_middle_row_time() {
                 .keyframe,
         );
     }
-    assert_eq!(c[1].tracks, ka.tracks);
+    let positions = |k: &KeyframeTracks| -> Vec<_> {
+        k.tracks
+            .iter()
+            .map(|t| (t.track_id, t.raw, t.undistorted))
+            .collect()
+    };
+    assert_eq!(positions(&c[1]), positions(ka));
+}
+
+#[test]
+fn keyframes_tracked_uncorrected_are_recorrected_as_a_tracker_told_the_readout_makes_them() {
+    // An accelerating pan through two trackers, one told of a 20 ms readout, each keyframe
+    // centred on the frame after it; the other's keyframes, recorrected once the readout is
+    // known, must land where the told tracker put them.
+    let big = texture(1200, 300);
+    let (w, h) = (320, 240);
+    let readout = 0.020;
+    let told = TrackerOptions {
+        rolling_shutter_s: readout,
+        ..TrackerOptions::default()
+    };
+    let mut untold = Tracker::new(camera(w as u32, h as u32), TrackerOptions::default());
+    let mut shutter = Tracker::new(camera(w as u32, h as u32), told);
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    let (mut pending_a, mut pending_b): (Option<KeyframeTracks>, Option<KeyframeTracks>) =
+        (None, None);
+    for i in 0..24u64 {
+        let frame = crop(&big, (i * i) as i32 / 2 + 2 * i as i32, 30, w, h);
+        let t = i as f64 / 30.0;
+        let oa = untold.process_timed(i, t, &frame).expect("untold");
+        let ob = shutter.process_timed(i, t, &frame).expect("told");
+        if let (Some(mut ka), Some(mut kb)) = (pending_a.take(), pending_b.take()) {
+            assert_eq!(untold.centre_keyframe(&mut ka), 0);
+            shutter.centre_keyframe(&mut kb);
+            a.push(ka);
+            b.push(kb);
+        }
+        pending_a = oa.keyframe;
+        pending_b = ob.keyframe;
+    }
+    assert!(
+        a.len() >= 2 && a.len() == b.len(),
+        "{} {}",
+        a.len(),
+        b.len()
+    );
+    let mut checked = 0;
+    let mut largest_correction = 0.0f32;
+    for (ka, kb) in a.iter_mut().zip(&b) {
+        for (ta, tb) in ka.tracks.iter_mut().zip(&kb.tracks) {
+            assert_eq!((ta.track_id, ta.raw), (tb.track_id, tb.raw));
+            let before = ta.undistorted;
+            assert!(untold.recorrect(ta, readout));
+            largest_correction = largest_correction.max((ta.undistorted - before).norm());
+            assert!(
+                (ta.undistorted - tb.undistorted).norm() < 1e-3,
+                "track {}: {:?} recorrected, {:?} told",
+                ta.track_id,
+                ta.undistorted,
+                tb.undistorted
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 200, "{checked}");
+    assert!(largest_correction > 0.5, "{largest_correction}");
 }
 
 #[test]
