@@ -73,7 +73,7 @@ fn run_ok_with(input: &Path, extra: &[&str]) -> (String, serde_json::Value) {
 }
 
 /// The rolling-shutter readout was estimated from at least `n` frame pairs: a bad frame is
-/// left out of the pre-pass, as the run skips it, instead of ending it.
+/// left out of the estimation, as the run skips it, instead of ending it.
 fn assert_readout_pairs_at_least(report: &serde_json::Value, n: u64) {
     let pairs = &report["rolling_shutter"]["estimate"]["frame_pairs"];
     assert!(pairs.as_u64().is_some_and(|p| p >= n), "{pairs}");
@@ -219,7 +219,7 @@ fn an_output_folder_that_cannot_be_made_fails_before_any_work() {
         err.contains("creating") && err.contains("not_a_folder"),
         "{err}"
     );
-    // Refused before the rolling-shutter pre-pass tracks the first frames.
+    // Refused before any service starts tracking.
     assert!(!err.contains("readout estimated"), "{err}");
 }
 
@@ -410,7 +410,7 @@ fn a_zenoh_port_already_taken_is_refused_naming_the_option_before_any_work() {
         err.contains("--zenoh-listen") && err.contains(&endpoint) && err.contains("in use"),
         "{err}"
     );
-    // Refused before the pre-passes (seconds), not when the merger opens its session.
+    // Refused before the services start, not when the merger opens its session.
     assert!(!err.contains("readout estimated"), "{err}");
     assert!(started.elapsed() < std::time::Duration::from_secs(10));
 }

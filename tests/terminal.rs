@@ -24,7 +24,6 @@ fn a_terminal_shows_progress_and_a_pipe_gets_plain_lines() {
     assert!(seen.status.success(), "{seen:?}");
     let screen = String::from_utf8_lossy(&seen.stdout);
     for expected in [
-        "rolling-shutter readout [",
         "pipeline (frames posed) [",
         "/120 frames",
         " left",

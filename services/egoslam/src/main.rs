@@ -52,7 +52,7 @@ fn main() -> std::process::ExitCode {
         }
         cli::Command::Replay(args) => replay::run(args),
         cli::Command::Frontend(args) => egoslam_frontend_service::run(args.frontend_options()),
-        cli::Command::Solver(args) => egoslam_solver_service::run(args.solver_options()),
+        cli::Command::Solver(args) => args.solver_options().and_then(egoslam_solver_service::run),
         cli::Command::Merger(args) => egoslam_merger_service::run(args.merger_options()),
     };
     egoslam_runtime::systemd::notify("STOPPING=1");

@@ -30,10 +30,10 @@ pub struct PipelineArgs {
     #[arg(long, help_heading = "frontend", default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
-    /// global shutter), or `auto`: estimated from the first frames (read ahead by `egoslam
-    /// run` in a recorded input; on a live stream by the frontend, which holds their
-    /// keyframes until then and corrects them); observations are moved to the middle row's
-    /// time (docs/config.md).
+    /// global shutter), or `auto`: estimated by the frontend from the first frames (a
+    /// recorded input's run starts again with it when there is one; a live stream's
+    /// keyframes wait for it); observations are moved to the middle row's time
+    /// (docs/config.md).
     #[arg(
         long,
         help_heading = "frontend",
@@ -41,22 +41,22 @@ pub struct PipelineArgs {
         env = "EGOSLAM_ROLLING_SHUTTER_MS"
     )]
     pub rolling_shutter_ms: crate::calibration::settings::Readout,
-    /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the first
-    /// frames of a recorded input, read before the run, or of a live stream, whose
-    /// keyframes wait for the estimate (the first window comes that much later).
+    /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the
+    /// stream's first (a live stream's keyframes wait for the estimate: its first window
+    /// comes that much later).
     #[arg(long, help_heading = "frontend", default_value_t = crate::calibration::settings::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
-    /// Self-calibrate the focal length: `egoslam run` solves the first windows of a
-    /// recorded input with the intrinsics free and scales the calibration's fx and fy when
-    /// they agree on a clearly different focal length (docs/config.md; a live camera runs
-    /// with the calibration as given). Off by default: on TUM and KITTI it improves the
+    /// Self-calibrate the focal length: the solver solves the first windows of a recorded
+    /// input with the intrinsics free and, when they agree on a clearly different focal
+    /// length, the run starts again with the calibration's fx and fy scaled (docs/config.md;
+    /// a live camera runs with the calibration as given). Off by default: on TUM and KITTI it improves the
     /// positions and worsens the rotations (docs/config.md has the figures).
     #[arg(long, help_heading = "frontend", default_value_t = false, action = clap::ArgAction::Set, env = "EGOSLAM_CALIBRATE_FOCAL")]
     pub calibrate_focal: bool,
-    /// Self-calibrate a radial distortion the calibration leaves: `egoslam run` solves the
-    /// first windows of a recorded input with one radial term free (the focal held) and
-    /// adds it to the calibration's k1 when they agree on a clear one (docs/config.md; a
-    /// live camera runs with the calibration as given). `auto` (the default): only for a
+    /// Self-calibrate a radial distortion the calibration leaves: the solver solves the
+    /// first windows of a recorded input with one radial term free (the focal held) and,
+    /// when they agree on a clear one, the run starts again with it added to the
+    /// calibration's k1 (docs/config.md; a live camera runs with the calibration as given). `auto` (the default): only for a
     /// calibration without distortion terms (rectified images, a datasheet's pinhole, a
     /// fisheye's nominal lens, whose first term is measured on its own image);
     /// kitti_odometry_00 0.479 -> 0.246 m.
@@ -417,6 +417,27 @@ pub struct ServiceArgs {
     pub egress: EgressArgs,
     #[command(flatten)]
     pub map: MapArgs,
+    /// The solver estimates these self-calibrations (focal, radial) from the stream's first
+    /// frames and writes them to state/intrinsics_estimate.json; `egoslam run` asks for
+    /// them on a recorded input and starts it again with the camera they correct.
+    #[arg(long, hide = true, value_delimiter = ',')]
+    pub estimate_intrinsics: Vec<EstimatedIntrinsic>,
+    /// Keyframes wait while the frontend estimates an `auto` readout, and go out
+    /// corrected (`false`: they go out uncorrected; `egoslam run` starts a recorded input
+    /// again with the readout when it finds one).
+    #[arg(long, hide = true, default_value_t = true, action = clap::ArgAction::Set)]
+    pub hold_for_readout: bool,
+    /// The revision of a frame's first published pose (the merger's; `egoslam run` numbers
+    /// a run started again above the round before).
+    #[arg(long, hide = true, default_value_t = 0)]
+    pub first_revision: u32,
+}
+
+/// A self-calibration the solver can make from the stream (`--estimate-intrinsics`).
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EstimatedIntrinsic {
+    Focal,
+    Radial,
 }
 
 impl ServiceArgs {
@@ -429,13 +450,39 @@ impl ServiceArgs {
             tracker: self.pipeline.tracker_options(0.0),
             rolling_shutter_ms: self.pipeline.rolling_shutter_ms.given_ms(),
             readout_frames: self.pipeline.readout_frames,
+            hold_for_readout: self.hold_for_readout,
             map_in: self.map.map_in.clone(),
         }
     }
 
     /// The solver service's options from these flags.
-    pub fn solver_options(&self) -> egoslam_solver_service::SolverServiceOptions {
-        egoslam_solver_service::SolverServiceOptions {
+    pub fn solver_options(&self) -> anyhow::Result<egoslam_solver_service::SolverServiceOptions> {
+        use anyhow::Context;
+        let wants = |what| self.estimate_intrinsics.contains(&what);
+        let estimate_intrinsics = if self.estimate_intrinsics.is_empty() {
+            None
+        } else {
+            let path = self
+                .camera
+                .as_deref()
+                .context("--estimate-intrinsics needs --camera")?;
+            let calibration = egoslam_sources::calibration::read_calibration_file(path)?;
+            let (Some(w), Some(h)) = (calibration.width, calibration.height) else {
+                anyhow::bail!("{}: lacks the image size", path.display())
+            };
+            let (options, solver) = crate::calibration::focal::calibration_options(&self.pipeline);
+            Some(
+                egoslam_solver_service::intrinsics_estimation::IntrinsicsRequest {
+                    camera: calibration.camera_for(w, h)?,
+                    radial: wants(EstimatedIntrinsic::Radial),
+                    focal: wants(EstimatedIntrinsic::Focal),
+                    options,
+                    solver,
+                },
+            )
+        };
+        Ok(egoslam_solver_service::SolverServiceOptions {
+            estimate_intrinsics,
             namespace: self.namespace.clone(),
             out: self.output.out.clone(),
             windows: egoslam_solver::WindowOptions {
@@ -444,7 +491,7 @@ impl ServiceArgs {
                 ..egoslam_solver::WindowOptions::default()
             },
             loop_closure_span: usize::from(self.pipeline.loop_closures),
-        }
+        })
     }
 
     /// The merger service's options from these flags.
@@ -453,6 +500,7 @@ impl ServiceArgs {
         let publishes = !self.egress.zenoh_listen.iter().any(|e| e == "none");
         egoslam_merger_service::MergerServiceOptions {
             namespace: self.namespace.clone(),
+            first_revision: self.first_revision,
             out: self.output.out.clone(),
             map_in: self.map.map_in.clone(),
             map_out: self.map.map_out.clone(),

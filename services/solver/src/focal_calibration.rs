@@ -25,6 +25,11 @@ use crate::window_solver::{solve_window, WindowSolution, WindowSolverOptions, Wi
 use crate::windowing::{WindowBuilder, WindowOptions, WindowOptionsError};
 use egoslam_geometry::PinholeRadtan;
 
+/// The frames of a recording whose keyframes the estimates are made from (300: 10 s at
+/// 30 fps, 30 s of KITTI's 10 fps; enough keyframes for the 3-8 windows pooled on every
+/// sequence here).
+pub const FIRST_FRAMES: usize = 300;
+
 /// Options; defaults with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FocalCalibrationOptions {

@@ -12,7 +12,6 @@ pub mod error;
 pub mod frame_stream;
 pub mod ground_truth;
 pub mod layout;
-pub mod read_ahead;
 pub mod reader;
 
 pub use calibration::{load_calibration, Calibration};
@@ -37,5 +36,4 @@ pub use error::SourceError;
 pub use frame_stream::{FrameStream, FrameStreamOptions, SkipReason, SkippedFrames};
 pub use ground_truth::load_ground_truth;
 pub use layout::{detect_layout, Layout};
-pub use read_ahead::with_read_ahead;
 pub use reader::{image_files, open_source, Frame, FrameSource};

@@ -188,10 +188,11 @@ impl Viewer {
         self.port
     }
 
-    /// A frame's pose; a first pose (revision 0) also moves the camera frame.
+    /// A frame's pose; a first pose (revision 0, or a later round's first: the low 24
+    /// bits 0, see the proto) also moves the camera frame.
     pub fn pose(&self, pose: &pb::Pose) {
         self.channels.pose.log(&convert::pose_in_frame(pose));
-        if pose.revision == 0 {
+        if pose.revision & 0x00FF_FFFF == 0 {
             self.channels.tf.log(&convert::camera_transform(pose));
         }
     }

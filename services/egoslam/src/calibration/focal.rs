@@ -1,30 +1,16 @@
-//! Focal-length and radial self-calibration before a run (`--calibrate-focal`,
-//! `--calibrate-radial`, `frontend.calibrate_*`): `egoslam run` tracks the first frames of a
-//! recorded input, solves their first windows with the intrinsics free
-//! (`egoslam_solver::focal_calibration`) and, when they agree on a focal length clearly
-//! different from the calibration's, scales the calibration's fx and fy (or, on a clear
-//! radial distortion the calibration leaves, adds it to k1) before any service starts, so
-//! that every process (tracker, solver, merger, relocalization) and the saved camera.yaml
-//! use the same camera. A live camera cannot be read ahead: it runs with the calibration
-//! as given.
+//! Focal-length and radial self-calibration (`--calibrate-focal`, `--calibrate-radial`,
+//! `frontend.calibrate_*`): the solver solves a recorded input's first windows with the
+//! intrinsics free (`egoslam_solver::focal_calibration`, asked by `egoslam run`:
+//! supervision/stream_calibration.rs) and, when they agree on a focal length clearly
+//! different from the calibration's, the run starts again with the calibration's fx and
+//! fy scaled (or, on a clear radial distortion the calibration leaves, with it added to
+//! k1), so that every process (tracker, solver, merger, relocalization) and the saved
+//! camera.yaml use the same camera. A live camera runs with the calibration as given.
 
 use crate::options::PipelineArgs;
-use anyhow::Context;
-use egoslam_frontend::{FrameOutcome, KeyframeTracks, Tracker};
 use egoslam_geometry::PinholeRadtan;
-use egoslam_solver::focal_calibration::{
-    estimate_focal_scale, estimate_radial_term, FocalCalibrationOptions, FocalEstimate,
-    RadialEstimate,
-};
-use egoslam_solver::view_graph::KeyframeObservations;
+use egoslam_solver::focal_calibration::FocalCalibrationOptions;
 use egoslam_solver::window_solver::WindowSolverOptions;
-use egoslam_sources::FrameSource;
-use nalgebra::Point2;
-
-/// Frames tracked for the estimate (300: 10 s at 30 fps, 30 s of KITTI's 10 fps; enough
-/// keyframes for the 3-8 windows pooled on every sequence here; the whole pre-pass,
-/// tracking and solving, took 1.8-3.4 s in the dev build on six inputs).
-pub const FOCAL_FRAMES: usize = 300;
 
 /// `camera` with its focal lengths multiplied by `scale`.
 pub fn scaled(camera: &PinholeRadtan, scale: f64) -> PinholeRadtan {
@@ -78,72 +64,11 @@ pub fn with_the_maps_focal(calibrated: &PinholeRadtan, map: &PinholeRadtan) -> P
     *calibrated
 }
 
-/// Keyframes of a tracker as the self-calibrations take them: each keyframe's undistorted
-/// tracks, centred (with the tracker's readout) once the frame after it is tracked.
-#[derive(Default)]
-pub struct KeyframeCollector {
-    keyframes: Vec<KeyframeObservations>,
-    pending: Option<(KeyframeTracks, f64)>,
-}
-
-impl KeyframeCollector {
-    /// After `tracker` tracked the frame of `timestamp` with `outcome`.
-    pub fn push(&mut self, tracker: &Tracker, outcome: FrameOutcome, timestamp: f64) {
-        if let Some((mut k, at)) = self.pending.take() {
-            tracker.centre_keyframe(&mut k);
-            self.keyframes.push(as_observations(k, at));
-        }
-        self.pending = outcome.keyframe.map(|k| (k, timestamp));
-    }
-
-    /// The keyframes, the last one included.
-    pub fn finish(mut self) -> Vec<KeyframeObservations> {
-        let last = self.pending.take();
-        self.keyframes
-            .extend(last.map(|(k, timestamp)| as_observations(k, timestamp)));
-        self.keyframes
-    }
-}
-
-fn as_observations(k: KeyframeTracks, timestamp: f64) -> KeyframeObservations {
-    KeyframeObservations {
-        id: k.keyframe_id,
-        timestamp,
-        tracks: k
-            .tracks
-            .iter()
-            .map(|p| {
-                let u = p.undistorted;
-                (p.track_id, Point2::new(f64::from(u.x), f64::from(u.y)))
-            })
-            .collect(),
-    }
-}
-
-/// Tracks the first [`FOCAL_FRAMES`] frames of `source` as the frontend does (with the
-/// run's readout, each keyframe's correction centred on the next frame) and returns their
-/// keyframes' undistorted tracks. Frames that cannot be read or are of another size are
-/// left out, as the run skips them.
-pub fn first_keyframes(
-    source: &mut dyn FrameSource,
-    camera: PinholeRadtan,
-    pipeline: &PipelineArgs,
-    readout_s: f64,
-) -> anyhow::Result<Vec<KeyframeObservations>> {
-    let mut tracker = Tracker::new(camera, pipeline.tracker_options(readout_s));
-    let mut keyframes = KeyframeCollector::default();
-    for frame in std::iter::from_fn(|| source.next_frame()).take(FOCAL_FRAMES) {
-        // Bad frames were skipped by the source (FrameStream), as the run skips them.
-        let frame = frame.context("reading frames for the focal calibration")?;
-        let outcome = tracker.process_timed(frame.index, frame.timestamp, &frame.image)?;
-        keyframes.push(&tracker, outcome, frame.timestamp);
-    }
-    Ok(keyframes.finish())
-}
-
 /// The focal and radial estimates' options for `pipeline`: the windows and solver the run
 /// will use.
-fn calibration_options(pipeline: &PipelineArgs) -> (FocalCalibrationOptions, WindowSolverOptions) {
+pub fn calibration_options(
+    pipeline: &PipelineArgs,
+) -> (FocalCalibrationOptions, WindowSolverOptions) {
     let options = FocalCalibrationOptions {
         window: usize::from(pipeline.window),
         overlap: pipeline.overlap,
@@ -152,44 +77,6 @@ fn calibration_options(pipeline: &PipelineArgs) -> (FocalCalibrationOptions, Win
     let mut solver = WindowSolverOptions::default();
     solver.view_graph.loop_closure_span = usize::from(pipeline.loop_closures);
     (options, solver)
-}
-
-/// The focal estimate of a recording's first keyframes (module doc), logged.
-pub fn estimate_from_keyframes(
-    keyframes: &[KeyframeObservations],
-    camera: PinholeRadtan,
-    pipeline: &PipelineArgs,
-) -> anyhow::Result<FocalEstimate> {
-    let (options, solver) = calibration_options(pipeline);
-    let estimate = estimate_focal_scale(&camera, keyframes, &options, &solver)
-        .with_context(|| format!("{} keyframes", keyframes.len()))?;
-    tracing::info!(
-        scale = estimate.scale,
-        standard_error = estimate.standard_error,
-        windows = estimate.per_window.len(),
-        applied = estimate.significant,
-        "focal length estimated from the input's first windows"
-    );
-    Ok(estimate)
-}
-
-/// The radial estimate of a recording's first keyframes (module doc), logged.
-pub fn radial_from_keyframes(
-    keyframes: &[KeyframeObservations],
-    camera: PinholeRadtan,
-    pipeline: &PipelineArgs,
-) -> anyhow::Result<RadialEstimate> {
-    let (options, solver) = calibration_options(pipeline);
-    let estimate = estimate_radial_term(&camera, keyframes, &options, &solver)
-        .with_context(|| format!("{} keyframes", keyframes.len()))?;
-    tracing::info!(
-        k = estimate.k,
-        standard_error = estimate.standard_error,
-        windows = estimate.per_window.len(),
-        applied = estimate.significant,
-        "radial distortion estimated from the input's first windows"
-    );
-    Ok(estimate)
 }
 
 #[cfg(test)]

@@ -1,9 +1,10 @@
 //! The rolling-shutter readout setting (`--rolling-shutter-ms`, `frontend.rolling_shutter_ms`):
 //! a time in milliseconds, or `auto`, estimated from the video
-//! (`egoslam_frontend::readout_estimation`). `egoslam run` resolves it before the services
-//! start by tracking the first frames of a recorded input; a frontend service given `auto`
-//! (a live stream, which cannot be read ahead) estimates it from its first frames and
-//! corrects from then on (`egoslam_frontend_service::online_readout`). `egoslam calibrate-readout` prints the estimate for a recording.
+//! (`egoslam_frontend::readout_estimation`). The frontend estimates `auto` from the first
+//! frames it tracks (`egoslam_frontend_service::online_readout`): on a live stream it holds
+//! their keyframes until then; on a recorded input `egoslam run` starts the run again with
+//! the readout when there is one (supervision/stream_calibration.rs).
+//! `egoslam calibrate-readout` prints the estimate for a recording.
 
 use crate::options::PipelineArgs;
 use anyhow::{bail, Context};
@@ -27,69 +28,27 @@ pub fn estimate_from_source(
     camera: PinholeRadtan,
     pipeline: &PipelineArgs,
 ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
-    estimate_and_track(first, source, camera, pipeline, 0).0
-}
-
-/// The first keyframes of a recording as the focal and radial self-calibrations take them
-/// (`focal::first_keyframes`, tracked with no readout through `camera`).
-pub struct FirstKeyframes {
-    pub camera: PinholeRadtan,
-    pub keyframes: Vec<egoslam_solver::view_graph::KeyframeObservations>,
-}
-
-/// [`estimate_from_source`], tracking on to the first `keyframe_frames` frames for
-/// [`FirstKeyframes`] when that is more: the self-calibrations then need not read and track
-/// them again when the readout comes out 0. `None` when a frame up to there could not be
-/// read or tracked (the self-calibration reads them again and reports why).
-pub fn estimate_and_track(
-    first: Frame,
-    source: &mut dyn FrameSource,
-    camera: PinholeRadtan,
-    pipeline: &PipelineArgs,
-    keyframe_frames: usize,
-) -> (
-    Result<ReadoutEstimate, ReadoutEstimationError>,
-    Option<FirstKeyframes>,
-) {
     let mut tracker = Tracker::new(camera, pipeline.tracker_options(0.0));
     let mut tracked = Vec::new();
-    let mut keyframes = crate::calibration::focal::KeyframeCollector::default();
-    let mut complete = true;
-    let readout_frames = pipeline.readout_frames as usize;
     let frames = std::iter::once(Ok(first)).chain(std::iter::from_fn(|| source.next_frame()));
-    for (k, frame) in frames.take(readout_frames.max(keyframe_frames)).enumerate() {
+    for frame in frames.take(pipeline.readout_frames as usize) {
         let frame = match frame {
             Ok(frame) => frame,
             Err(e) => {
                 tracing::warn!(%e, "readout estimation stops where the source gave up");
-                complete = false;
                 break;
             }
         };
-        let outcome = match tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
-            Ok(outcome) => outcome,
-            Err(e) => {
-                tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
-                complete = false;
-                break;
-            }
-        };
-        if k < readout_frames {
-            tracked.push(FrameTracks {
-                timestamp_s: frame.timestamp,
-                tracks: tracker.sample_tracks(usize::MAX),
-            });
+        if let Err(e) = tracker.process_timed(frame.index, frame.timestamp, &frame.image) {
+            tracing::warn!(%e, "readout estimation stops at a frame it cannot track");
+            break;
         }
-        // Exactly the frames the self-calibrations would track themselves.
-        if k < keyframe_frames {
-            keyframes.push(&tracker, outcome, frame.timestamp);
-        }
+        tracked.push(FrameTracks {
+            timestamp_s: frame.timestamp,
+            tracks: tracker.sample_tracks(usize::MAX),
+        });
     }
-    let keyframes = (complete && keyframe_frames > 0).then(|| FirstKeyframes {
-        camera,
-        keyframes: keyframes.finish(),
-    });
-    (estimate_tracked(&tracked, &camera), keyframes)
+    estimate_tracked(&tracked, &camera)
 }
 
 /// The readout estimate of frames tracked with no correction, logged.

@@ -7,10 +7,10 @@ use egoslam_geometry::PinholeRadtan;
 
 pub use egoslam_durability::estimated_readout::MAX_READOUT_MS;
 
-/// Frames `auto` tracks before the run (150: 5 s at 30 fps, ~1.3 s of tracking, which is
-/// most of the pre-pass). 300 gave the same estimates on every sequence here (rendered
-/// 30 ms walks 29-30 ms, the 15 ms shake 16 ms, tum_fr1_rpy's 120 frames 22 ms, 0 on the
-/// global-shutter ones) at twice the cost.
+/// Frames `auto` estimates the readout from (150: 5 s at 30 fps; the frames a recorded
+/// input's run is started again after when it finds one). 300 gave the same estimates on
+/// every sequence here (rendered 30 ms walks 29-30 ms, the 15 ms shake 16 ms,
+/// tum_fr1_rpy's 120 frames 22 ms, 0 on the global-shutter ones) at twice the cost.
 pub const AUTO_FRAMES: u32 = 150;
 
 /// The readout the frontend corrects for.

@@ -1,17 +1,15 @@
 //! `egoslam run`: checks the input, starts the services, supervises them, reports.
 
-use crate::calibration::focal::FOCAL_FRAMES;
-use crate::calibration::readout::FirstKeyframes;
-use crate::options::{PipelineArgs, RunArgs};
-use crate::supervision::supervisor::{catch_stop_signals, spawn, stop_all, supervise, Supervision};
+use crate::options::RunArgs;
+use crate::supervision::services::Services;
+use crate::supervision::stream_calibration::{RoundSettings, StreamCalibration};
+use crate::supervision::supervisor::{catch_stop_signals, supervise, Supervision};
 use anyhow::Context;
 use egoslam_durability::write_atomically;
-use egoslam_export::camera_yaml::camera_yaml;
-use egoslam_geometry::PinholeRadtan;
 use egoslam_runtime::ServiceStats;
 use egoslam_sources::ground_truth::GroundTruth;
 use egoslam_sources::{
-    detect_layout, load_calibration, load_ground_truth, open_source, Frame, FrameSource, Layout,
+    detect_layout, load_calibration, load_ground_truth, open_source, FrameSource, Layout,
 };
 use opencv::prelude::*;
 use serde_json::json;
@@ -25,103 +23,6 @@ fn default_input() -> PathBuf {
         .unwrap_or_else(|| {
             Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/tum_fr1_rpy_120")
         })
-}
-
-fn pipeline_flags(p: &PipelineArgs) -> Vec<String> {
-    let mut flags = vec![
-        format!("--keyframe-every={}", p.keyframe_every),
-        format!("--keyframe-flow-px={}", p.keyframe_flow_px),
-        format!("--tracks={}", p.tracks),
-        format!("--lk-window={}", p.lk_window),
-        format!("--window={}", p.window),
-        format!("--overlap={}", p.overlap),
-        format!("--loop-closures={}", p.loop_closures),
-        format!("--refine-keyframes={}", p.refine_keyframes),
-        format!("--refinement-lag={}", p.refinement_lag),
-        format!("--loop-closure={}", p.loop_closure),
-        format!("--cull-keyframes={}", p.cull_keyframes),
-        format!("--max-map-keyframes={}", p.max_map_keyframes),
-        format!("--global-ba-px={}", p.global_ba_px),
-        format!("--max-point-std={}", p.max_point_std),
-        format!("--predict-motion={}", p.predict_motion),
-        format!("--rolling-shutter-ms={}", p.rolling_shutter_ms),
-        format!("--readout-frames={}", p.readout_frames),
-        format!("--patch-retention-min={}", p.patch_retention_min),
-        format!("--frame-horizon-min={}", p.frame_horizon_min),
-    ];
-    if p.map_all_points {
-        flags.push("--map-all-points".into());
-    }
-    flags
-}
-
-/// Replaces `--rolling-shutter-ms auto` by the readout estimated from the input's first
-/// frames (`first`, then the rest of `source`; 0 when no estimate can be made: too short or
-/// too still an input), and says what was used, for the report.
-fn resolve_readout(
-    args: &mut RunArgs,
-    input: &Path,
-    layout: &Layout,
-    first: Frame,
-    source: &mut dyn FrameSource,
-    camera: PinholeRadtan,
-) -> (serde_json::Value, Option<FirstKeyframes>) {
-    use crate::calibration::readout::estimate_and_track;
-    use crate::calibration::settings::Readout;
-    let given = args.pipeline.rolling_shutter_ms;
-    if let Readout::Millis(ms) = given {
-        return (
-            json!({ "setting": given.to_string(), "readout_ms": ms }),
-            None,
-        );
-    }
-    if matches!(layout, Layout::Camera { .. }) {
-        // A live camera cannot be read ahead: the frontend estimates it from its first
-        // frames (egoslam_frontend_service::online_readout) and logs the value.
-        let report = json!({ "setting": "auto", "estimated_by": "the frontend, online" });
-        return (report, None);
-    }
-    let started = Instant::now();
-    // Tracked on for the focal and radial self-calibrations, when one of them will run:
-    // with no readout found they take these keyframes instead of tracking again.
-    let self_calibrates =
-        args.pipeline.calibrate_focal || args.pipeline.calibrate_radial.applies_to(&camera);
-    let keyframe_frames = if self_calibrates { FOCAL_FRAMES } else { 0 };
-    let frames = (args.pipeline.readout_frames as usize).max(keyframe_frames);
-    let (estimate, first_keyframes) = crate::supervision::progress::reading_frames(
-        "rolling-shutter readout",
-        source,
-        frames,
-        1,
-        |source| estimate_and_track(first, source, camera, &args.pipeline, keyframe_frames),
-    );
-    let (readout_ms, details) = match estimate {
-        Ok(e) => (
-            e.readout_s * 1e3,
-            json!({
-                "best_ms": e.best_s * 1e3,
-                "significant": e.significant,
-                "residual_px": e.residual_px,
-                "residual_at_zero_px": e.residual_at_zero_px,
-                "frame_pairs": e.pairs,
-            }),
-        ),
-        Err(e) => {
-            let e = format!("estimating the readout of {}: {e}", input.display());
-            tracing::warn!(
-                "no rolling-shutter readout estimate ({e}): a global shutter is assumed"
-            );
-            (0.0, json!({ "error": e }))
-        }
-    };
-    args.pipeline.rolling_shutter_ms = Readout::Millis(readout_ms);
-    let report = json!({
-        "setting": "auto",
-        "readout_ms": readout_ms,
-        "estimate": details,
-        "estimation_ms": started.elapsed().as_secs_f64() * 1e3,
-    });
-    (report, first_keyframes)
 }
 
 /// Ground truth next to the input, if any (TUM groundtruth.txt, KITTI poses/NN.txt, EuRoC).
@@ -152,8 +53,8 @@ fn find_ground_truth(layout: &Layout) -> Option<GroundTruth> {
 }
 
 /// Fails, naming the option, when a zenoh TCP or TLS listen endpoint's address is taken
-/// (another run's, or another program's): found before any work rather than when the merger
-/// opens its session after the pre-passes.
+/// (another run's, or another program's): found before any service starts rather than when
+/// the merger opens its session.
 fn check_listen_endpoints(endpoints: &[String]) -> anyhow::Result<()> {
     for endpoint in endpoints {
         let Some(address) = endpoint
@@ -236,8 +137,9 @@ fn peak_memory(stats: &[ServiceStats]) -> serde_json::Value {
     per_process(launcher, stats, |s| mib(s.peak_rss_kib), 1)
 }
 
-/// CPU time per process and their sum, seconds: the launcher's includes the calibration
-/// pre-passes (run in it before the services start), each service's its own threads.
+/// CPU time per process and their sum, seconds: the launcher's own (the first frame's
+/// check, supervision, evaluation), each service's its own threads (of the last round, when
+/// the run started again for a calibration estimate).
 fn cpu_time(stats: &[ServiceStats]) -> serde_json::Value {
     per_process(egoslam_runtime::cpu_seconds(), stats, |s| s.cpu_s, 2)
 }
@@ -258,146 +160,110 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let calibration = load_calibration(&layout, args.calibration.calib.as_deref())?;
     let camera = calibration.camera_for(first.image.cols() as u32, first.image.rows() as u32)?;
     check_listen_endpoints(&args.egress.zenoh_listen)?;
-    // An output folder that cannot be made fails before the readout pre-pass, not after.
     std::fs::create_dir_all(&args.output.out)
         .with_context(|| format!("creating {}", args.output.out.display()))?;
-    let (readout_report, tracked) =
-        resolve_readout(&mut args, &input, &layout, first, &mut source, camera);
     drop(source);
-    let recording = (input.as_path(), &layout);
-    let (camera, focal_report) = crate::calibration::self_calibration::resolve_focal(
-        &args,
-        recording,
+    drop(first);
+    // The self-calibrations come from the stream (stream_calibration.rs): the services
+    // start with the calibration as given.
+    let mut calibrations = if matches!(layout, Layout::Camera { .. }) {
+        StreamCalibration::live(args.pipeline.rolling_shutter_ms)
+    } else {
+        StreamCalibration::new(
+            args.pipeline.rolling_shutter_ms,
+            args.pipeline.calibrate_focal,
+            args.pipeline.calibrate_radial.applies_to(&camera),
+        )
+    };
+    let mut round = RoundSettings {
+        readout: args.pipeline.rolling_shutter_ms,
         camera,
-        tracked.as_ref(),
-    );
-    let (camera, radial_report) = crate::calibration::self_calibration::resolve_radial(
-        &args,
-        recording,
-        camera,
-        tracked.as_ref(),
-    );
-    drop(tracked);
-    // The pre-passes tracked and solved hundreds of frames in this process, which then
-    // waits for the services for the rest of the run.
-    let returned = egoslam_runtime::memory::return_freed_memory();
-    tracing::debug!(mib = returned >> 20, "pre-pass memory returned");
-    let mut origin = calibration.origin.display().to_string();
-    if let Some(scale) = focal_report["applied_scale"].as_f64().filter(|s| *s != 1.0) {
-        origin += &format!(", focal lengths x{scale:.4} (self-calibrated, report.json)");
-    }
-    if let Some(k) = radial_report["applied_k"].as_f64().filter(|k| *k != 0.0) {
-        origin += &format!(", k1 {k:+.4} (self-calibrated, report.json)");
-    }
-    let origin = PathBuf::from(origin);
-
-    let out = &args.output.out;
-    for stale in [
-        "trajectory.tum",
-        "keyframes.tum",
-        "map.ply",
-        "map_all.ply",
-        "report.json",
-    ] {
-        let _ = std::fs::remove_file(out.join(stale));
-    }
-    // A new run starts from no state: a checkpoint or journal left there would be resumed.
-    let _ = std::fs::remove_dir_all(egoslam_durability::state_dir(out));
-    let _ = std::fs::remove_dir_all(out.join("stats"));
-    let camera_file = out.join("camera.yaml");
-    write_atomically(&camera_file, camera_yaml(&camera, &origin).as_bytes())?;
-    tracing::info!(input = %input.display(), ?layout, frames = ?total_frames, calibration = %calibration.origin.display(), "starting pipeline");
-
+    };
+    let out = args.output.out.clone();
+    let out = &out;
     let namespace = format!("run{}", std::process::id());
-    let mut common = vec![
-        format!("--namespace={namespace}"),
-        format!("--out={}", out.display()),
-        format!("--camera={}", camera_file.display()),
-    ];
-    common.extend(pipeline_flags(&args.pipeline));
-    let mut replay_args = vec![
-        format!("--input={}", input.display()),
-        format!("--fps={}", args.sequence.rate.fps),
-    ];
-    if args.sequence.realtime {
-        replay_args.push("--realtime".into());
-    }
-    replay_args.extend(common.iter().cloned());
     // The services' iceoryx2 files in a folder of this run's, not the shared /tmp/iceoryx2:
     // runs never see each other's services or clean up each other's nodes.
     let bus_root = std::env::temp_dir().join(format!("egoslam-{namespace}"));
     let bus_config = per_run_bus_config(&bus_root)?;
     std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
-    let run_id = format!(
-        "{namespace}-{}",
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_millis())
-    );
-    std::env::set_var("EGOSLAM_RUN_ID", &run_id);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
     catch_stop_signals()?;
     if crate::supervision::progress::on_terminal() && std::env::var_os("EGOSLAM_LOG").is_none() {
         // The bar shows the progress; the services only say what needs attention.
         std::env::set_var("EGOSLAM_LOG", format!("warn,{}", crate::QUIET_TARGETS));
     }
-    // Consumers first; every producer also waits for its consumer to connect.
-    let mut children = Vec::new();
-    let mut merger_args = common.clone();
-    merger_args.extend(args.egress.to_flags());
-    if let Some(view) = &live_view {
-        merger_args.push(view.merger_flag());
-    }
-    if let Some(path) = &args.map.map_out {
-        merger_args.push(format!("--map-out={}", path.display()));
-    }
-    if let Some(path) = &args.map.vocabulary {
-        merger_args.push(format!("--vocabulary={}", path.display()));
-    }
-    let mut frontend_args = common.clone();
-    if let Some(path) = &args.map.map_in {
-        // Read once here, so that a map this egoslam cannot use stops the run before it
-        // starts, with the reason.
-        let vocabulary =
-            egoslam_durability::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-        egoslam_durability::map_file::read_map(path, &vocabulary)?;
-        merger_args.push(format!("--map-in={}", path.display()));
-        frontend_args.push(format!("--map-in={}", path.display()));
-    }
-    for (name, service_args) in [
-        ("merger", &merger_args),
-        ("solver", &common),
-        ("frontend", &frontend_args),
-    ] {
-        match spawn(name, service_args) {
-            Ok(c) => children.push(c),
-            Err(e) => {
-                stop_all(&mut children);
-                return Err(e);
+    let (supervision, run_id) = loop {
+        args.pipeline.rolling_shutter_ms = round.readout;
+        // Each round on its own bus names: nothing of a stopped round's is met again.
+        let round_namespace = match calibrations.restarts {
+            0 => namespace.clone(),
+            n => format!("{namespace}r{n}"),
+        };
+        // A round started again is a new run to a client (Status.run_id changes): its
+        // poses start again from the first frame.
+        let run_id = format!(
+            "{round_namespace}-{}",
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_millis())
+        );
+        std::env::set_var("EGOSLAM_RUN_ID", &run_id);
+        let services = Services {
+            input: &input,
+            args: &args,
+            origin: &calibration.origin,
+            camera: &round.camera,
+            calibrated: &camera,
+            namespace: &round_namespace,
+            flags: calibrations.flags(),
+        };
+        let children = services.start(out, live_view.as_ref())?;
+        if calibrations.restarts == 0 {
+            tracing::info!(input = %input.display(), ?layout, frames = ?total_frames, calibration = %calibration.origin.display(), "starting pipeline");
+            if let Some(view) = &live_view {
+                let total = total_frames.map(|n| n as u64);
+                view.follow_with(crate::supervision::progress::frames_bar(
+                    "pipeline (frames posed)",
+                    total,
+                ));
             }
         }
-    }
-    match spawn("replay", &replay_args) {
-        Ok(c) => children.push(c),
-        Err(e) => {
-            stop_all(&mut children);
-            return Err(e);
+        let mut next = None;
+        let supervision = supervise(children, || {
+            next = calibrations.check(out, &round);
+            next.is_some()
+        });
+        // A run that ended before its last estimate was read (a short input).
+        let next = match &supervision {
+            Ok(s) if !s.started_again && s.interrupted_by.is_none() => {
+                next.or_else(|| calibrations.check(out, &round))
+            }
+            _ => next,
+        };
+        match next {
+            Some(settings) => {
+                // A killed frontend leaves the tracks it would have resumed from.
+                if let Some(path) = egoslam_frontend_service::resume::path(&round_namespace) {
+                    let _ = std::fs::remove_file(path);
+                }
+                calibrations.start_again();
+                tracing::info!("the run starts again from the first frame with the calibration estimated from the stream");
+                round = settings;
+            }
+            None => break (supervision, run_id),
         }
-    }
-    if let Some(view) = &live_view {
-        let total = total_frames.map(|n| n as u64);
-        view.follow_with(crate::supervision::progress::frames_bar(
-            "pipeline (frames posed)",
-            total,
-        ));
-    }
-    let supervision = supervise(children);
+    };
+    let camera = round.camera;
     // Every service has ended (or was stopped): their bus files are of no further use.
     let _ = std::fs::remove_dir_all(&bus_root);
     let Supervision {
         restarts,
         interrupted_by,
+        ..
     } = supervision?;
+    let [readout_report, focal_report, radial_report] = calibrations.reports();
+    let calibration_restarts = calibrations.restarts;
     let interrupted = interrupted_by.is_some();
     if let Some(view) = live_view {
         // The recording must be closed whatever the rest of the report does.
@@ -515,6 +381,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             "before_the_first_window": counter(merger, "live_before_map"),
             "missed": counter(merger, "live_frames_missed"),
         },
+        // Times the run started again from the first frame with a calibration estimated
+        // from the stream (docs/config.md, "Calibration from the stream").
+        "calibration_restarts": calibration_restarts,
         "rolling_shutter": readout_report,
         "focal_calibration": focal_report,
         "radial_calibration": radial_report,

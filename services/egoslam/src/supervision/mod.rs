@@ -4,4 +4,6 @@
 pub mod launcher;
 pub mod live_view;
 pub mod progress;
+pub mod services;
+pub mod stream_calibration;
 pub mod supervisor;

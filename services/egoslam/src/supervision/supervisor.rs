@@ -83,11 +83,16 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
 }
 
 pub fn stop_all(children: &mut [Supervised]) {
+    stop_all_within(children, Duration::from_secs(3));
+}
+
+/// [`stop_all`], killing what still runs after `grace`.
+fn stop_all_within(children: &mut [Supervised], grace: Duration) {
     // SIGTERM first: services finish their current item and release shared memory. Only
     // to those still running: a service that has exited was reaped by `try_wait`, its
     // process id may already be another process's.
     children.iter_mut().for_each(|c| signal(c, libc::SIGTERM));
-    let deadline = Instant::now() + Duration::from_secs(3);
+    let deadline = Instant::now() + grace;
     for c in children.iter_mut() {
         while Instant::now() < deadline && matches!(c.child.try_wait(), Ok(None)) {
             std::thread::sleep(Duration::from_millis(20));
@@ -96,6 +101,9 @@ pub fn stop_all(children: &mut [Supervised]) {
         let _ = c.child.wait();
     }
 }
+
+/// How long the services of a round started again have to stop before they are killed.
+const RESTART_GRACE: Duration = Duration::from_millis(300);
 
 /// After a stop request, how long the services have to finish what was sent before the
 /// ones still running get SIGTERM.
@@ -131,6 +139,8 @@ pub struct Supervision {
     pub restarts: Vec<(&'static str, u32)>,
     /// The signal that stopped the run early, if one did.
     pub interrupted_by: Option<i32>,
+    /// The services were stopped to start the run again (`start_again` said so).
+    pub started_again: bool,
 }
 
 fn signal(c: &mut Supervised, signal: i32) {
@@ -144,12 +154,28 @@ fn signal(c: &mut Supervised, signal: i32) {
 
 /// Waits for every service. A restartable service killed by a signal (SIGKILL, a crash) is
 /// started again; any other failure stops the others and is reported. A stop request stops
-/// them as the module documentation says.
-pub fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Supervision> {
+/// them as the module documentation says. `start_again` is asked every round while no
+/// stop was requested: when it says so, every service is stopped at once (the run starts
+/// again: stream_calibration.rs).
+pub fn supervise(
+    mut children: Vec<Supervised>,
+    mut start_again: impl FnMut() -> bool,
+) -> anyhow::Result<Supervision> {
     use std::os::unix::process::ExitStatusExt;
     let mut stop_started: Option<Instant> = None;
     let mut terminated = false;
     loop {
+        if stop_started.is_none() && STOP_REQUESTS.load(Ordering::Relaxed) == 0 && start_again() {
+            // Nothing of theirs is kept: a service still finishing an item (a send to a
+            // consumer that has gone waits out its 2 s grace) is killed; the next round's
+            // services clean up the dead nodes' bus resources when they open the bus.
+            stop_all_within(&mut children, RESTART_GRACE);
+            return Ok(Supervision {
+                restarts: children.iter().map(|c| (c.name, c.restarts)).collect(),
+                interrupted_by: None,
+                started_again: true,
+            });
+        }
         let requests = STOP_REQUESTS.load(Ordering::Relaxed);
         if requests >= 2 {
             tracing::warn!("second stop request: killing every service");
@@ -215,6 +241,7 @@ pub fn supervise(mut children: Vec<Supervised>) -> anyhow::Result<Supervision> {
             return Ok(Supervision {
                 restarts: children.iter().map(|c| (c.name, c.restarts)).collect(),
                 interrupted_by: stop_started.map(|_| STOP_SIGNAL.load(Ordering::Relaxed)),
+                started_again: false,
             });
         }
         std::thread::sleep(Duration::from_millis(20));

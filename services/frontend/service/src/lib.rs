@@ -3,7 +3,7 @@
 
 pub mod online_readout;
 pub mod readout_hold;
-mod resume;
+pub mod resume;
 
 use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
@@ -42,6 +42,10 @@ pub struct FrontendServiceOptions {
     pub rolling_shutter_ms: Option<f64>,
     /// Frames the online readout estimate is made from.
     pub readout_frames: u32,
+    /// Hold the keyframes of those frames until the estimate and correct them
+    /// (readout_hold.rs); else they go out uncorrected (a recorded input, which `egoslam
+    /// run` starts again with the readout when it finds one).
+    pub hold_for_readout: bool,
     /// A saved map the run extends: keyframe and track ids start above its own.
     pub map_in: Option<PathBuf>,
 }
@@ -347,6 +351,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
     // Keyframes wait for the readout estimate while it is made (readout_hold.rs).
     let mut hold = online_readout
         .as_ref()
+        .filter(|_| args.hold_for_readout)
         .map(|_| readout_hold::ReadoutHold::default());
     let mut describer = OrbDescriber::new(DescriberOptions::default())?;
     // Live tracks whose patch went out with an earlier keyframe.
@@ -552,9 +557,13 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
         }
     }
     // A stream shorter than the estimation's frames: estimated from all of it.
-    if let (Some(held), Some(online)) = (hold.take(), online_readout.take()) {
+    if let Some(online) = online_readout.take().filter(|o| o.in_first_attempt()) {
         let readout_s = online_readout::finish_online(online, &mut tracker, &args.out)?;
-        for (k, msg) in held.release(&tracker, readout_s, &mut skipped) {
+        for (k, msg) in hold
+            .take()
+            .map(|held| held.release(&tracker, readout_s, &mut skipped))
+            .unwrap_or_default()
+        {
             let sender = (&mut keyframe_log, &mut keyframes);
             publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
         }

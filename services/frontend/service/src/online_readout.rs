@@ -63,6 +63,7 @@ pub fn observe_online(
         OnlineReadout::Collecting => return Ok(false),
         OnlineReadout::Estimated(e) => {
             log_estimate(&e, "online; corrected from now on");
+            write_details(out, &e)?;
             e.readout_s
         }
         OnlineReadout::GaveUp(e) => {
@@ -74,6 +75,25 @@ pub fn observe_online(
     };
     adopt(tracker, readout_s, out)?;
     Ok(true)
+}
+
+/// File (in the state folder) with the figures of the online estimate, for the run's
+/// report (JSON).
+pub const DETAILS_FILE: &str = "frontend.readout_estimate.json";
+
+/// Writes the estimate's figures to [`DETAILS_FILE`] (before the readout itself, which
+/// tells the run the estimate is made).
+fn write_details(out: &Path, e: &ReadoutEstimate) -> anyhow::Result<()> {
+    let details = serde_json::json!({
+        "best_ms": e.best_s * 1e3,
+        "significant": e.significant,
+        "residual_px": e.residual_px,
+        "residual_at_zero_px": e.residual_at_zero_px,
+        "frame_pairs": e.pairs,
+    });
+    let path = egoslam_durability::state_dir(out).join(DETAILS_FILE);
+    egoslam_durability::write_atomically(&path, details.to_string().as_bytes())?;
+    Ok(())
 }
 
 /// Frames after which the keyframes held for the estimate (readout_hold.rs) are looked
@@ -111,6 +131,7 @@ pub fn finish_online(
                 &e,
                 "from the whole stream, shorter than the estimation's frames",
             );
+            write_details(out, &e)?;
             e.readout_s
         }
         Err(e) => {

@@ -37,6 +37,9 @@ use std::path::PathBuf;
 pub struct MergerServiceOptions {
     /// Bus namespace (iceoryx2 service names egoslam/<namespace>/...).
     pub namespace: String,
+    /// The revision of a frame's first published pose (`Revisions::starting_at`: above
+    /// an earlier round's when the run started again).
+    pub first_revision: u32,
     /// Output folder: result files, statistics, and the state folder (checkpoint, journal).
     pub out: PathBuf,
     /// A saved map this run extends.
@@ -364,6 +367,7 @@ fn run_id(namespace: &str) -> String {
 
 /// Runs the merger service until the stream's end (or a signal: an error).
 pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
+    let first_revision = options.first_revision;
     std::fs::create_dir_all(&options.out)?;
     let state_dir = egoslam_durability::create_state_dir(&options.out)?;
     let checkpoint_path = state_dir.join(checkpoint::FILE_NAME);
@@ -377,7 +381,9 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
     )?;
     let outputs = Outputs {
         egress: open_egress(options.egress.as_ref())?.map(std::sync::Arc::new),
-        revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::default())),
+        revisions: std::sync::Arc::new(std::sync::Mutex::new(Revisions::starting_at(
+            options.first_revision,
+        ))),
         published_points: PublishedPoints::default(),
         frame_poses: Default::default(),
         point_confidence: PointConfidenceOptions {
@@ -453,8 +459,12 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
             .outputs
             .revisions
             .lock()
-            .map_err(|_| anyhow::anyhow!("revisions poisoned"))? =
-            Revisions::resume(&state.revisions, &resumed_poses, retired_before);
+            .map_err(|_| anyhow::anyhow!("revisions poisoned"))? = Revisions::resume(
+            &state.revisions,
+            &resumed_poses,
+            retired_before,
+            first_revision,
+        );
         merger.session.state = state;
         merger.catch_up(None)?;
     }

@@ -186,15 +186,16 @@ fn tracking_to_pb(state: TrackingState) -> pb::TrackingState {
     }
 }
 
-/// Publishes the pose as the frame's revision 0, unless a window already posed the frame.
+/// Publishes the pose as the frame's first revision, unless a window already posed the frame.
 fn publish(publication: &Publication, frame_id: u64, live: &LivePose) -> anyhow::Result<()> {
     let claimed = publication
         .revisions
         .lock()
         .map_err(|_| anyhow::anyhow!("revisions poisoned"))?
         .claim_live(frame_id, &live.pose);
-    if let (true, Some(egress)) = (claimed, &publication.egress) {
+    if let (Some(revision), Some(egress)) = (claimed, &publication.egress) {
         let pose = pb::Pose {
+            revision,
             tracking: tracking_to_pb(live.state) as i32,
             inliers: live.inliers as u32,
             ..egoslam_relocalization::wire::pose_to_pb(frame_id, live.segment, &live.pose)

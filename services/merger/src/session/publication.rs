@@ -225,9 +225,22 @@ pub struct Revisions {
     /// keyframe stays in the map: no longer published as frames, but the keyframe
     /// trajectory keeps counting their revisions up as the keyframe moves.
     retired_keyframes: BTreeMap<u64, FrameRecord>,
+    /// The revision of a frame's first pose (0, but for a run started again:
+    /// [`Self::starting_at`]).
+    first: u32,
 }
 
 impl Revisions {
+    /// Revisions whose first is `first`: a run started again from the first frame (for a
+    /// calibration estimate) numbers its poses above those its earlier round published,
+    /// so that clients, which keep a frame's highest revision, take the new ones.
+    pub fn starting_at(first: u32) -> Self {
+        Self {
+            first,
+            ..Self::default()
+        }
+    }
+
     /// Takes an update's poses; returns those new (revision 0) or moved (revision + 1)
     /// since last published, as messages, and records them so.
     pub fn record(&mut self, update: &FramePoseUpdate) -> Vec<pb::Pose> {
@@ -243,14 +256,14 @@ impl Revisions {
             let Some(record) = self.frames.get_mut(&f.frame_id) else {
                 let record = FrameRecord {
                     pose: f.pose,
-                    revision: 0,
+                    revision: self.first,
                     segment: f.segment,
                     interpolated: f.interpolated,
                     posed: true,
                 };
                 self.frames.insert(f.frame_id, record);
                 self.posed += 1;
-                out.push(message(f, 0));
+                out.push(message(f, self.first));
                 continue;
             };
             if !std::mem::replace(&mut record.posed, true) {
@@ -266,21 +279,22 @@ impl Revisions {
         out
     }
 
-    /// Records the live tracker's pose of a frame as its revision 0; `false` (nothing
-    /// recorded) when the frame was already published, by a window that came first.
-    pub fn claim_live(&mut self, frame_id: u64, pose: &StampedPose) -> bool {
+    /// Records the live tracker's pose of a frame as its first revision, which it returns;
+    /// `None` (nothing recorded) when the frame was already published, by a window that
+    /// came first.
+    pub fn claim_live(&mut self, frame_id: u64, pose: &StampedPose) -> Option<u32> {
         if self.frames.contains_key(&frame_id) {
-            return false;
+            return None;
         }
         let record = FrameRecord {
             pose: *pose,
-            revision: 0,
+            revision: self.first,
             segment: 0,
             interpolated: false,
             posed: false,
         };
         self.frames.insert(frame_id, record);
-        true
+        Some(self.first)
     }
 
     /// The last published revision of every frame (what a checkpoint keeps).
@@ -298,6 +312,7 @@ impl Revisions {
         numbers: &BTreeMap<u64, u32>,
         frames: &[PosedFrame],
         retired_before: u64,
+        first: u32,
     ) -> Self {
         let records = frames.iter().filter_map(|f| {
             let record = FrameRecord {
@@ -315,6 +330,7 @@ impl Revisions {
             frames: live,
             posed: 0,
             retired_keyframes: frames,
+            first,
         }
     }
 
@@ -325,7 +341,7 @@ impl Revisions {
             return record.revision;
         }
         let Some(record) = self.retired_keyframes.get_mut(&k.frame_id) else {
-            return 0;
+            return self.first;
         };
         if moved(&record.pose, &k.pose) {
             record.pose = k.pose;
@@ -422,7 +438,7 @@ mod tests {
         assert_eq!(revisions_of(&moved), vec![(1, 1)]);
         // Kill and restart: the checkpointed numbers and the resumed poses.
         let resumed = [frame(1, 0.5), frame(2, 0.0)];
-        let mut after = Revisions::resume(&before.numbers(), &resumed, 0);
+        let mut after = Revisions::resume(&before.numbers(), &resumed, 0, 0);
         assert!(
             after.record(&update(&resumed, &[])).is_empty(),
             "nothing moved"
@@ -436,7 +452,7 @@ mod tests {
     fn a_frame_tracked_live_is_published_again_only_when_the_map_poses_it_elsewhere() {
         let mut revisions = Revisions::default();
         let live = frame(4, 1.0);
-        assert!(revisions.claim_live(4, &live.pose));
+        assert_eq!(revisions.claim_live(4, &live.pose), Some(0));
         assert_eq!(
             revisions.posed_frames().count(),
             0,
@@ -445,7 +461,11 @@ mod tests {
         assert!(revisions.record(&update(&[live], &[])).is_empty());
         let moved = revisions.record(&update(&[frame(4, 1.25)], &[]));
         assert_eq!(revisions_of(&moved), vec![(4, 1)]);
-        assert!(!revisions.claim_live(4, &live.pose), "already published");
+        assert_eq!(
+            revisions.claim_live(4, &live.pose),
+            None,
+            "already published"
+        );
         // A frame the map can no longer pose leaves the snapshot, keeping its revision.
         assert!(revisions.record(&update(&[], &[4])).is_empty());
         assert_eq!((revisions.posed_count(), revisions.numbers()[&4]), (0, 1));
@@ -459,7 +479,7 @@ mod tests {
         let posed = [frame(1, 0.0), frame(2, 0.0), frame(5, 0.0)];
         revisions.record(&update(&posed, &[]));
         revisions.record(&update(&[frame(2, 0.3)], &[5]));
-        assert!(revisions.claim_live(3, &frame(3, 0.0).pose));
+        assert_eq!(revisions.claim_live(3, &frame(3, 0.0).pose), Some(0));
         // Frame 2 is a keyframe's, which stays in the map.
         let retired = revisions.retire(4, &BTreeSet::from([2]));
         let ids: Vec<(u64, f64)> = retired
@@ -479,7 +499,7 @@ mod tests {
         assert_eq!(revisions.keyframe_revision(&frame(2, 0.3)), 1);
         assert_eq!(revisions.keyframe_revision(&frame(2, 0.4)), 2);
         let mut resumed =
-            Revisions::resume(&revisions.numbers(), &[frame(2, 0.4), frame(5, 0.0)], 4);
+            Revisions::resume(&revisions.numbers(), &[frame(2, 0.4), frame(5, 0.0)], 4, 0);
         assert_eq!(resumed.keyframe_revision(&frame(2, 0.5)), 3);
         assert_eq!(
             resumed.posed_frames().count(),
@@ -566,5 +586,27 @@ mod tests {
         assert_eq!(map.len(), 1);
         assert_eq!(map[0].position.expect("position").x, 0.5);
         assert_eq!(snapshot.status.expect("status").service, "merger");
+    }
+
+    #[test]
+    fn a_round_started_again_numbers_its_poses_above_the_round_before() {
+        let first = 2 << 24;
+        let mut revisions = Revisions::starting_at(first);
+        assert_eq!(revisions.claim_live(1, &frame(1, 0.0).pose), Some(first));
+        let published = revisions.record(&update(&[frame(1, 0.5), frame(2, 0.0)], &[]));
+        let numbers: Vec<(u64, u32)> = published.iter().map(|p| (p.frame_id, p.revision)).collect();
+        assert_eq!(numbers, vec![(1, first + 1), (2, first)]);
+        // A merger restarted within the round goes on in it.
+        let resumed = Revisions::resume(&revisions.numbers(), &[frame(1, 0.5)], 0, first);
+        let mut resumed = resumed;
+        let again = resumed.record(&update(&[frame(1, 0.5), frame(3, 0.0)], &[]));
+        assert_eq!(
+            again
+                .iter()
+                .map(|p| (p.frame_id, p.revision))
+                .collect::<Vec<_>>(),
+            vec![(3, first)]
+        );
+        assert_eq!(resumed.claim_live(4, &frame(4, 0.0).pose), Some(first));
     }
 }

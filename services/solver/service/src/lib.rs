@@ -2,6 +2,7 @@
 //! The geometry is `egoslam_solver::window_solver`; this crate only converts, journals and
 //! publishes.
 
+pub mod intrinsics_estimation;
 mod resume;
 
 use anyhow::bail;
@@ -32,6 +33,9 @@ pub struct SolverServiceOptions {
     pub windows: WindowOptions,
     /// Keyframes apart that local loop-closure edges may span.
     pub loop_closure_span: usize,
+    /// Self-calibrations to estimate from the stream's first frames
+    /// (intrinsics_estimation.rs); `None`: none.
+    pub estimate_intrinsics: Option<intrinsics_estimation::IntrinsicsRequest>,
 }
 
 /// Timing facts of a keyframe, for the merger's per-frame trajectory.
@@ -91,6 +95,20 @@ fn overlap_strength(overlap: &[internal::Keyframe]) -> usize {
 /// without those that are not finite or lie far outside the image (counted in `stats` as
 /// `invalid_tracks`): they come from another process, and one NaN would spoil a window.
 pub fn observations(k: &internal::Keyframe, stats: &mut ServiceStats) -> KeyframeObservations {
+    let (observations, rejected) = valid_observations(k);
+    if rejected > 0 {
+        tracing::warn!(
+            keyframe = k.keyframe_id,
+            rejected,
+            "tracks with invalid positions dropped"
+        );
+        stats.count("invalid_tracks", rejected as u64);
+    }
+    observations
+}
+
+/// [`observations`] and how many tracks it dropped.
+fn valid_observations(k: &internal::Keyframe) -> (KeyframeObservations, usize) {
     let limit = k
         .intrinsics
         .as_ref()
@@ -104,19 +122,12 @@ pub fn observations(k: &internal::Keyframe, stats: &mut ServiceStats) -> Keyfram
         })
         .collect();
     let rejected = k.tracks.len() - tracks.len();
-    if rejected > 0 {
-        tracing::warn!(
-            keyframe = k.keyframe_id,
-            rejected,
-            "tracks with invalid positions dropped"
-        );
-        stats.count("invalid_tracks", rejected as u64);
-    }
-    KeyframeObservations {
+    let observations = KeyframeObservations {
         id: k.keyframe_id,
         timestamp: k.timestamp_s,
         tracks,
-    }
+    };
+    (observations, rejected)
 }
 
 /// Largest displacement of a keyframe from the first, over the median depth of the points
@@ -422,6 +433,15 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
         }
         Ok(())
     };
+    // A restarted solver does not see the stream's start: it leaves the estimates to the
+    // run (which restarts the pipeline when one applies, and then asks again).
+    let mut estimation = args
+        .estimate_intrinsics
+        .clone()
+        .filter(|_| replay.is_empty() && skip_up_to.is_none())
+        .map(|request| {
+            intrinsics_estimation::IntrinsicsEstimation::new(request, state_dir.clone())
+        });
     let mut trailing = Vec::new();
     let mut replay = replay.into_iter();
     loop {
@@ -444,9 +464,17 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
             builder.finish()
         } else {
             stats.keyframes += 1;
+            if let Some(estimation) = &mut estimation {
+                estimation.observe(&k);
+            }
             builder.push(k)
         };
         if let Some(window) = window {
+            // SIGTERM means stop now (a Ctrl-C ends the stream at the replay instead): a
+            // backlog of windows is not solved first.
+            if egoslam_bus::stop_requested() {
+                bail!("terminated by signal")
+            }
             if let Some(dir) = std::env::var_os("EGOSLAM_DUMP_WINDOWS") {
                 dump_window(std::path::Path::new(&dir), stats.windows, &window)?;
             }
@@ -457,6 +485,9 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
         if end_of_stream {
             break;
         }
+    }
+    if let Some(estimation) = estimation.take() {
+        estimation.finish();
     }
     publish(internal::WindowSolution {
         end_of_stream: true,
