@@ -168,13 +168,22 @@ pub fn estimate_focal_scale(
     solver: &WindowSolverOptions,
 ) -> Result<FocalEstimate, FocalCalibrationError> {
     let _span = tracing::debug_span!("focal_calibration", keyframes = keyframes.len()).entered();
-    let mut solver = *solver;
-    solver.bundle_adjustment.refine_intrinsics = true;
-    let per_window: Vec<f64> = first_windows(camera, keyframes, options, &solver)?
-        .iter()
-        .map(|s| s.focal_scale)
-        .filter(|s| s.is_finite() && *s > 0.0)
-        .collect();
+    let solver = Intrinsic::Focal.solver(solver);
+    let solved = first_windows(camera, keyframes, options, &solver)?;
+    pool_focal_scales(
+        solved
+            .iter()
+            .filter_map(|s| Intrinsic::Focal.term(s))
+            .collect(),
+        options,
+    )
+}
+
+/// The focal estimate of the windows' scales (`per_window`, in order).
+pub fn pool_focal_scales(
+    per_window: Vec<f64>,
+    options: &FocalCalibrationOptions,
+) -> Result<FocalEstimate, FocalCalibrationError> {
     let (scale, standard_error) = pooled(&per_window, options)?;
     if scale.ln().abs() > (1.0 + options.max_correction).ln() {
         return Err(FocalCalibrationError::Implausible { scale });
@@ -201,14 +210,22 @@ pub fn estimate_radial_term(
     solver: &WindowSolverOptions,
 ) -> Result<RadialEstimate, FocalCalibrationError> {
     let _span = tracing::debug_span!("radial_calibration", keyframes = keyframes.len()).entered();
-    let mut solver = *solver;
-    solver.bundle_adjustment.refine_intrinsics = true;
-    solver.bundle_adjustment.hold_focal = true;
-    let per_window: Vec<f64> = first_windows(camera, keyframes, options, &solver)?
-        .iter()
-        .map(|s| s.radial_k)
-        .filter(|k| k.is_finite())
-        .collect();
+    let solver = Intrinsic::Radial.solver(solver);
+    let solved = first_windows(camera, keyframes, options, &solver)?;
+    pool_radial_terms(
+        solved
+            .iter()
+            .filter_map(|s| Intrinsic::Radial.term(s))
+            .collect(),
+        options,
+    )
+}
+
+/// The radial estimate of the windows' terms (`per_window`, in order).
+pub fn pool_radial_terms(
+    per_window: Vec<f64>,
+    options: &FocalCalibrationOptions,
+) -> Result<RadialEstimate, FocalCalibrationError> {
     let (k, standard_error) = pooled(&per_window, options)?;
     if k.abs() > options.max_radial_correction {
         return Err(FocalCalibrationError::ImplausibleRadial { k });
@@ -223,45 +240,117 @@ pub fn estimate_radial_term(
     })
 }
 
-/// The run's first windows of `keyframes` (without its adaptive ends), solved with
-/// `solver`; those solved with translation, in order.
+/// What a window solved with the intrinsics free measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Intrinsic {
+    /// The focal scale (the focal length and a radial term free).
+    Focal,
+    /// A radial term (the focal length held).
+    Radial,
+}
+
+impl Intrinsic {
+    /// `solver` with the intrinsics free as this estimate frees them.
+    pub fn solver(self, solver: &WindowSolverOptions) -> WindowSolverOptions {
+        let mut solver = *solver;
+        solver.bundle_adjustment.refine_intrinsics = true;
+        solver.bundle_adjustment.hold_focal = self == Intrinsic::Radial;
+        solver
+    }
+
+    /// The window's value of this intrinsic, when it is usable.
+    pub fn term(self, solution: &WindowSolution) -> Option<f64> {
+        match self {
+            Intrinsic::Focal => Some(solution.focal_scale).filter(|s| s.is_finite() && *s > 0.0),
+            Intrinsic::Radial => Some(solution.radial_k).filter(|k| k.is_finite()),
+        }
+    }
+}
+
+/// The run's first windows (without its adaptive ends, at most `max_windows`), as the
+/// keyframes come: each window a run of consecutive keyframe indices.
+pub struct FirstWindows {
+    builder: WindowBuilder<usize>,
+    made: usize,
+    max_windows: usize,
+    next: usize,
+}
+
+impl FirstWindows {
+    pub fn new(options: &FocalCalibrationOptions) -> Result<Self, FocalCalibrationError> {
+        let builder = WindowBuilder::new(WindowOptions {
+            size: options.window,
+            overlap: options.overlap,
+            ..WindowOptions::default()
+        })?;
+        Ok(Self {
+            builder,
+            made: 0,
+            max_windows: options.max_windows,
+            next: 0,
+        })
+    }
+
+    /// Whether every window to solve has been made.
+    pub fn complete(&self) -> bool {
+        self.made == self.max_windows
+    }
+
+    /// Takes the next keyframe; the window it completes, as the range of keyframe indices.
+    pub fn push(&mut self) -> Option<std::ops::RangeInclusive<usize>> {
+        if self.complete() {
+            return None;
+        }
+        let index = self.next;
+        self.next += 1;
+        let window = self.builder.push(index)?;
+        self.range(window.keyframes)
+    }
+
+    /// After the last keyframe: the last window, if one is left to make.
+    pub fn finish(mut self) -> Option<std::ops::RangeInclusive<usize>> {
+        if self.complete() {
+            return None;
+        }
+        let window = self.builder.finish()?;
+        self.range(window.keyframes)
+    }
+
+    fn range(&mut self, indices: Vec<usize>) -> Option<std::ops::RangeInclusive<usize>> {
+        self.made += 1;
+        Some(*indices.first()?..=*indices.last()?)
+    }
+}
+
+/// Solves one of the first windows with `solver` (an [`Intrinsic::solver`]); `None` when it
+/// is not solved with translation. `cache` is shared by the windows of one estimate.
+pub fn solve_first_window(
+    camera: &PinholeRadtan,
+    window: &[KeyframeObservations],
+    solver: &WindowSolverOptions,
+    cache: &mut EdgeCache,
+) -> Option<WindowSolution> {
+    let s = solve_window(camera, window, solver, cache);
+    tracing::debug!(keyframes = window.len(), status = ?s.status, focal_scale = s.focal_scale, radial_k = s.radial_k, "window");
+    (s.status == WindowStatus::Solved).then_some(s)
+}
+
+/// The run's first windows of `keyframes`, solved with `solver`; those solved with
+/// translation, in order.
 fn first_windows(
     camera: &PinholeRadtan,
     keyframes: &[KeyframeObservations],
     options: &FocalCalibrationOptions,
     solver: &WindowSolverOptions,
 ) -> Result<Vec<WindowSolution>, FocalCalibrationError> {
-    // From the solver's own builder, as ranges of keyframe indices (a window is a run of
-    // consecutive keyframes).
-    let mut builder = WindowBuilder::new(WindowOptions {
-        size: options.window,
-        overlap: options.overlap,
-        ..WindowOptions::default()
-    })?;
-    let mut windows: Vec<Vec<usize>> = Vec::new();
-    for k in 0..keyframes.len() {
-        if windows.len() == options.max_windows {
-            break;
-        }
-        windows.extend(builder.push(k).map(|w| w.keyframes));
-    }
-    if windows.len() < options.max_windows {
-        windows.extend(builder.finish().map(|w| w.keyframes));
-    }
+    let mut windows = FirstWindows::new(options)?;
+    let mut ranges: Vec<_> = keyframes.iter().filter_map(|_| windows.push()).collect();
+    ranges.extend(windows.finish());
     let mut cache = EdgeCache::new();
-    let mut solved = Vec::new();
-    for indices in &windows {
-        let (Some(&first), Some(&last)) = (indices.first(), indices.last()) else {
-            continue;
-        };
-        let window = &keyframes[first..=last];
-        let s = solve_window(camera, window, solver, &mut cache);
-        tracing::debug!(keyframes = window.len(), status = ?s.status, focal_scale = s.focal_scale, radial_k = s.radial_k, "window");
-        if s.status == WindowStatus::Solved {
-            solved.push(s);
-        }
-    }
-    Ok(solved)
+    Ok(ranges
+        .into_iter()
+        .filter_map(|r| solve_first_window(camera, &keyframes[r], solver, &mut cache))
+        .collect())
 }
 
 /// Median of the windows' values and its standard error (1.4826 x MAD / sqrt(n)); an

@@ -3,11 +3,11 @@
 //!
 //! `egoslam run` starts a recorded input's services with the calibration as given and asks
 //! the solver for the estimates (`--estimate-intrinsics`): the solver keeps the
-//! observations of the keyframes of the stream's first [`FIRST_FRAMES`] frames (what the
-//! pre-pass tracked: the same tracker, frames and readout), solves their first windows
-//! with the intrinsics free on a thread of its own (`egoslam_solver::focal_calibration`)
-//! while the stream goes on, and writes the estimates to [`FILE_NAME`] in the state
-//! folder. The run goes on when none applies; when one does, `egoslam run` starts it again
+//! observations of the keyframes of the stream's first [`FIRST_FRAMES`] frames (those a
+//! pass over the recording would track: the same tracker, frames and readout), solves
+//! their first windows with the intrinsics free on a thread of its own as each is complete
+//! (`egoslam_solver::focal_calibration`) while the stream goes on, and writes the estimates
+//! to [`FILE_NAME`] in the state folder. The run goes on when none applies; when one does, `egoslam run` starts it again
 //! with the corrected camera, so that every process and the saved camera use it from the
 //! first frame.
 
@@ -15,12 +15,14 @@ use egoslam_geometry::PinholeRadtan;
 use egoslam_messages::internal::v1 as internal;
 pub use egoslam_solver::focal_calibration::FIRST_FRAMES;
 use egoslam_solver::focal_calibration::{
-    estimate_focal_scale, estimate_radial_term, FocalCalibrationOptions,
+    pool_focal_scales, pool_radial_terms, solve_first_window, FirstWindows,
+    FocalCalibrationOptions, Intrinsic,
 };
-use egoslam_solver::view_graph::KeyframeObservations;
+use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::WindowSolverOptions;
 use serde_json::json;
 use std::path::PathBuf;
+use std::sync::mpsc;
 use std::thread::JoinHandle;
 
 /// The estimates' file in the state folder (JSON; written once, atomically).
@@ -38,96 +40,156 @@ pub struct IntrinsicsRequest {
     pub solver: WindowSolverOptions,
 }
 
-/// Collects the first frames' keyframes and estimates from them once they are in.
+/// Collects the first frames' keyframes into the estimates' windows, each solved on the
+/// estimation's thread as soon as it is complete (so that little is left to solve when
+/// the first frames end, often with the stream), and pools them at the end.
 pub struct IntrinsicsEstimation {
-    request: IntrinsicsRequest,
     state_dir: PathBuf,
     first_frame: Option<u64>,
     keyframes: Vec<KeyframeObservations>,
-    worker: Option<JoinHandle<()>>,
+    windows: Option<FirstWindows>,
+    to_solve: Option<mpsc::Sender<Vec<KeyframeObservations>>>,
+    worker: Option<JoinHandle<serde_json::Value>>,
 }
 
 impl IntrinsicsEstimation {
     pub fn new(request: IntrinsicsRequest, state_dir: PathBuf) -> Self {
+        let windows = match FirstWindows::new(&request.options) {
+            Ok(w) => Some(w),
+            Err(e) => {
+                tracing::warn!("no intrinsics estimate: {e}");
+                None
+            }
+        };
+        let (to_solve, solve) = mpsc::channel();
+        let worker = windows
+            .is_some()
+            .then(|| std::thread::spawn(move || solve_and_pool(&request, solve)));
         Self {
-            request,
             state_dir,
             first_frame: None,
             keyframes: Vec::new(),
-            worker: None,
+            windows,
+            to_solve: Some(to_solve),
+            worker,
         }
     }
 
-    /// Takes keyframe `k` (its observations as the solver takes them): kept while it lies
-    /// in the stream's first [`FIRST_FRAMES`] frames; the first keyframe beyond starts the
-    /// estimation. The stream's last keyframe (made at its end, not by the tracker's rules)
-    /// is not one the pre-pass saw, and is left out.
+    /// Takes keyframe `k` (its observations as the solver takes them) while it lies in
+    /// the stream's first [`FIRST_FRAMES`] frames; the first keyframe beyond ends the
+    /// collection. The stream's last keyframe (made at its end, not by the tracker's rules)
+    /// is not one the estimates would take from a recording's first frames, and is left
+    /// out.
     pub fn observe(&mut self, k: &internal::Keyframe) {
-        if self.worker.is_some() {
+        if self.to_solve.is_none() || k.reason() == internal::KeyframeReason::Last {
             return;
         }
         let first = *self.first_frame.get_or_insert(k.frame_id);
         if k.frame_id >= first + FIRST_FRAMES as u64 {
-            self.start();
-        } else if k.reason() != internal::KeyframeReason::Last {
-            self.keyframes.push(crate::valid_observations(k).0);
+            self.end();
+            return;
+        }
+        self.keyframes.push(crate::valid_observations(k).0);
+        let window = self.windows.as_mut().and_then(FirstWindows::push);
+        self.send(window);
+    }
+
+    /// The last window, and no more.
+    fn end(&mut self) {
+        let window = self.windows.take().and_then(FirstWindows::finish);
+        self.send(window);
+        self.to_solve = None;
+        self.keyframes = Vec::new();
+    }
+
+    fn send(&mut self, window: Option<std::ops::RangeInclusive<usize>>) {
+        if let (Some(range), Some(to_solve)) = (window, &self.to_solve) {
+            // The worker is gone only after a panic, which `finish` reports.
+            let _ = to_solve.send(self.keyframes[range].to_vec());
         }
     }
 
-    /// At the end of the stream: estimates from what came, if not begun already; then
-    /// waits for the estimates to be written.
+    /// At the end of the stream: the last window, the estimates pooled and written.
     pub fn finish(mut self) {
-        if self.worker.is_none() {
-            self.start();
+        if self.to_solve.is_some() {
+            self.end();
         }
-        if let Some(worker) = self.worker.take() {
-            if worker.join().is_err() {
+        let Some(worker) = self.worker.take() else {
+            return;
+        };
+        let estimates = match worker.join() {
+            Ok(estimates) => estimates,
+            Err(_) => {
                 tracing::error!("the intrinsics estimation panicked: no estimate");
+                return;
             }
-        }
-    }
-
-    fn start(&mut self) {
-        let keyframes = std::mem::take(&mut self.keyframes);
-        let request = self.request.clone();
+        };
         let path = self.state_dir.join(FILE_NAME);
-        self.worker = Some(std::thread::spawn(move || {
-            let _span =
-                tracing::info_span!("estimate_intrinsics", keyframes = keyframes.len()).entered();
-            let estimates = estimate(&request, &keyframes);
-            if let Err(e) =
-                egoslam_durability::write_atomically(&path, estimates.to_string().as_bytes())
-            {
-                tracing::error!(
-                    "{}: {e}; the run keeps the calibration as given",
-                    path.display()
-                );
-            }
-        }));
+        if let Err(e) =
+            egoslam_durability::write_atomically(&path, estimates.to_string().as_bytes())
+        {
+            tracing::error!(
+                "{}: {e}; the run keeps the calibration as given",
+                path.display()
+            );
+        }
     }
 }
 
-/// The requested estimates of `keyframes` as JSON: for each, the estimate's figures and
-/// whether it applies, or why there is none.
-fn estimate(request: &IntrinsicsRequest, keyframes: &[KeyframeObservations]) -> serde_json::Value {
-    let (camera, options, solver) = (&request.camera, &request.options, &request.solver);
-    let radial = request.radial.then(|| {
-        match estimate_radial_term(camera, keyframes, options, solver) {
-            Ok(e) => {
-                tracing::info!(k = e.k, standard_error = e.standard_error, windows = e.per_window.len(), applied = e.significant, "radial distortion estimated from the stream's first windows");
-                json!({ "k": e.k, "applied_k": e.applied(), "standard_error": e.standard_error, "per_window": e.per_window })
-            }
-            Err(e) => json!({ "error": format!("{e} ({} keyframes)", keyframes.len()) }),
+/// The estimation's thread: solves each window as it comes, for each intrinsic asked
+/// (one edge cache each, as `focal_calibration::first_windows`), then pools them.
+fn solve_and_pool(
+    request: &IntrinsicsRequest,
+    windows: mpsc::Receiver<Vec<KeyframeObservations>>,
+) -> serde_json::Value {
+    let asked: Vec<Intrinsic> = [
+        (request.focal, Intrinsic::Focal),
+        (request.radial, Intrinsic::Radial),
+    ]
+    .into_iter()
+    .filter_map(|(on, what)| on.then_some(what))
+    .collect();
+    let mut solvers: Vec<(Intrinsic, WindowSolverOptions, EdgeCache, Vec<f64>)> = asked
+        .iter()
+        .map(|&what| {
+            (
+                what,
+                what.solver(&request.solver),
+                EdgeCache::new(),
+                Vec::new(),
+            )
+        })
+        .collect();
+    let mut keyframes = 0;
+    for window in windows {
+        let _span = tracing::info_span!("estimate_intrinsics", keyframes = window.len()).entered();
+        keyframes += window.len();
+        for (what, solver, cache, terms) in &mut solvers {
+            let solved = solve_first_window(&request.camera, &window, solver, cache);
+            terms.extend(solved.as_ref().and_then(|s| what.term(s)));
         }
-    });
-    let focal = request.focal.then(|| {
-        match estimate_focal_scale(camera, keyframes, options, solver) {
-            Ok(e) => {
+    }
+    let options = &request.options;
+    let mut estimates = json!({ "radial": null, "focal": null });
+    for (what, _, _, terms) in solvers {
+        let estimate = match what {
+            Intrinsic::Focal => pool_focal_scales(terms, options).map(|e| {
                 tracing::info!(scale = e.scale, standard_error = e.standard_error, windows = e.per_window.len(), applied = e.significant, "focal length estimated from the stream's first windows");
                 json!({ "scale": e.scale, "applied_scale": e.applied(), "standard_error": e.standard_error, "per_window": e.per_window })
-            }
-            Err(e) => json!({ "error": format!("{e} ({} keyframes)", keyframes.len()) }),
-        }
-    });
-    json!({ "keyframes": keyframes.len(), "radial": radial, "focal": focal })
+            }),
+            Intrinsic::Radial => pool_radial_terms(terms, options).map(|e| {
+                tracing::info!(k = e.k, standard_error = e.standard_error, windows = e.per_window.len(), applied = e.significant, "radial distortion estimated from the stream's first windows");
+                json!({ "k": e.k, "applied_k": e.applied(), "standard_error": e.standard_error, "per_window": e.per_window })
+            }),
+        };
+        let key = if what == Intrinsic::Focal {
+            "focal"
+        } else {
+            "radial"
+        };
+        estimates[key] = estimate.unwrap_or_else(
+            |e| json!({ "error": format!("{e} (windows of {keyframes} keyframes)") }),
+        );
+    }
+    estimates
 }
