@@ -12,7 +12,7 @@
 //! corrects from then on. A frontend that dies while holding loses those keyframes (its
 //! restart begins a new stream: docs/durability.md).
 
-use crate::track_message;
+use crate::keyframe_message::track_message;
 use egoslam_frontend::{KeyframeTracks, TrackPoint, Tracker};
 use egoslam_messages::internal::v1 as internal;
 
