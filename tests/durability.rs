@@ -18,7 +18,7 @@ fn keyframes(out: &Path) -> String {
 }
 
 fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
-    let mut c = egoslam_without_pre_passes();
+    let mut c = egoslam_with_calibration_given();
     // The background refinement folds in whenever it finishes, which varies from run to
     // run; without it the results are deterministic and can be compared byte for byte.
     c.args(["run", "--global-ba-px=inf", "--input"])
@@ -34,7 +34,7 @@ fn run_fixture(out: &Path, fault: Option<&str>) -> std::process::Child {
 /// Starts the clip into `out` with the environment variable `env` set (as `run_fixture`,
 /// deterministic) and waits for the merger's first checkpoint.
 fn run_fixture_until_checkpoint(out: &Path, env: (&str, &str)) -> std::process::Child {
-    let mut c = egoslam_without_pre_passes();
+    let mut c = egoslam_with_calibration_given();
     let run = c
         .args(["run", "--global-ba-px=inf", "--input"])
         .arg(tum_fixture())
@@ -109,7 +109,7 @@ fn a_killed_merger_resumes_and_loses_nothing() {
 fn a_killed_merger_keeps_the_frames_it_retired_exactly_once() {
     let _turn = one_test_at_a_time();
     let out = tempfile::tempdir().expect("tempdir");
-    let mut c = egoslam_without_pre_passes();
+    let mut c = egoslam_with_calibration_given();
     let run = c
         .args([
             "run",
@@ -220,7 +220,7 @@ fn a_merger_behind_takes_the_windows_it_could_not_hold_from_the_journal() {
 /// keyframes.tum.
 fn kill_mid_run(service: &str, after: Duration, realtime: bool) -> (serde_json::Value, usize) {
     let out = tempfile::tempdir().expect("tempdir");
-    let mut command = egoslam_without_pre_passes();
+    let mut command = egoslam_with_calibration_given();
     command.arg("run");
     if realtime {
         command.arg("--realtime");
@@ -294,7 +294,7 @@ fn a_killed_frontend_or_solver_is_restarted_and_the_run_completes() {
 fn compacted_logs_still_recover_a_killed_merger_and_solver() {
     let _turn = one_test_at_a_time();
     let out = tempfile::tempdir().expect("tempdir");
-    let run = egoslam_without_pre_passes()
+    let run = egoslam_with_calibration_given()
         .args(["run", "--global-ba-px=inf", "--input"])
         .arg(tum_fixture())
         .arg("--out")

@@ -40,7 +40,7 @@ fn start_realtime(out: &Path) -> std::process::Child {
     for entry in std::fs::read_dir(corridor_walk().join("rgb")).expect("rgb") {
         let _ = std::fs::read(entry.expect("entry").path());
     }
-    let run = egoslam_without_pre_passes()
+    let run = egoslam_with_calibration_given()
         .args(["run", "--realtime", "--zenoh-listen", "none", "--input"])
         .arg(corridor_walk())
         .arg("--out")

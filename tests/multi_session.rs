@@ -49,7 +49,7 @@ fn trajectory(out: &Path) -> BTreeMap<i64, (Vector3<f64>, UnitQuaternion<f64>)> 
 }
 
 fn run(input: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
-    egoslam_without_pre_passes()
+    egoslam_with_calibration_given()
         .args(["run", "--input"])
         .arg(input)
         .arg("--out")

@@ -16,22 +16,22 @@ fn consumer_notices_a_killed_producer() {
         format!("--out={}", out.path().display()),
         format!("--camera={}", camera.display()),
     ];
-    let mut merger = egoslam_without_pre_passes()
+    let mut merger = egoslam_with_calibration_given()
         .arg("merger")
         .args(&args)
         .spawn()
         .expect("merger");
-    let mut solver = egoslam_without_pre_passes()
+    let mut solver = egoslam_with_calibration_given()
         .arg("solver")
         .args(&args)
         .spawn()
         .expect("solver");
-    let mut frontend = egoslam_without_pre_passes()
+    let mut frontend = egoslam_with_calibration_given()
         .arg("frontend")
         .args(&args)
         .spawn()
         .expect("frontend");
-    let mut replay = egoslam_without_pre_passes()
+    let mut replay = egoslam_with_calibration_given()
         .arg("replay")
         .arg(format!("--input={}", tum_fixture().display()))
         .arg("--realtime")
@@ -76,7 +76,7 @@ fn consumer_notices_a_killed_producer() {
 #[test]
 fn launcher_stops_everything_when_a_service_dies() {
     let out = tempfile::tempdir().expect("tempdir");
-    let mut run = egoslam_without_pre_passes()
+    let mut run = egoslam_with_calibration_given()
         .args(["run", "--realtime", "--input"])
         .arg(tum_fixture())
         .arg("--out")
@@ -122,7 +122,7 @@ fn services_stop_when_the_launcher_is_killed() {
     let out = tempfile::tempdir().expect("tempdir");
     // The clip's images as a folder replayed at 1 frame/s: two minutes of run, so services
     // still running after 15 s are orphans, not a run that ended by itself.
-    let mut run = egoslam_without_pre_passes()
+    let mut run = egoslam_with_calibration_given()
         .args(["run", "--realtime", "--fps", "1", "--input"])
         .arg(tum_fixture().join("rgb"))
         .arg("--calib")

@@ -37,7 +37,7 @@ fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
 /// [`map_then_localize`] with `run_args` added to the map's run.
 fn map_then_localize_with(input: &Path, dir: &Path, run_args: &[&str]) -> serde_json::Value {
     let map = dir.join("map.egomap");
-    let status = egoslam_without_pre_passes()
+    let status = egoslam_with_calibration_given()
         .args(["run", "--input"])
         .arg(input)
         .args(run_args)

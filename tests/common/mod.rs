@@ -13,11 +13,11 @@ pub fn egoslam() -> Command {
     c
 }
 
-/// `egoslam` for tests that kill a service a fixed time after the launch: the readout is
-/// given as 0 (a global shutter, what their figures were measured with) and the focal
-/// length and distortion as calibrated, so that no pre-pass (readout 0.5-1.7 s, focal
-/// 1.8-3.4 s, radial 2.2-2.4 s, longer in a debug build) moves the moment of the kill.
-pub fn egoslam_without_pre_passes() -> Command {
+/// `egoslam` for tests that kill or stop a service of a run: the readout is given as 0 (a
+/// global shutter, what their figures were measured with) and the focal length and
+/// distortion as calibrated, so that no estimate from the stream starts the run again
+/// (docs/config.md, "Calibration from the stream") after the service was hit.
+pub fn egoslam_with_calibration_given() -> Command {
     let mut c = egoslam();
     c.env("EGOSLAM_ROLLING_SHUTTER_MS", "0");
     c.env("EGOSLAM_CALIBRATE_FOCAL", "false");
