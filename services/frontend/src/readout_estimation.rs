@@ -383,33 +383,21 @@ impl OnlineReadoutEstimator {
         self.attempts_left == self.attempts
     }
 
-    /// Frames collected in this attempt.
-    pub fn collected(&self) -> usize {
-        self.collected.len()
-    }
-
-    /// An early estimate from the frames collected so far, which keep being collected: a
-    /// look at whether the readout is likely to matter.
-    pub fn probe(&self, camera: &PinholeRadtan) -> Result<ReadoutEstimate, ReadoutEstimationError> {
-        if self.collected.len() < self.options.min_pairs + 3 {
-            return Err(ReadoutEstimationError::TooFewPairs {
-                pairs: self.collected.len().saturating_sub(2),
-                min_tracks: self.options.min_tracks,
-                needed: self.options.min_pairs,
-            });
-        }
-        estimate_readout(&self.collected, camera, &self.options)
-    }
-
     /// The estimate from the frames collected so far, when the stream ends before an
     /// attempt is complete (a short recording: as reading it ahead would).
     pub fn finish(
         &mut self,
         camera: &PinholeRadtan,
     ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
-        let estimate = self.probe(camera);
-        self.collected.clear();
-        estimate
+        let collected = std::mem::take(&mut self.collected);
+        if collected.len() < self.options.min_pairs + 3 {
+            return Err(ReadoutEstimationError::TooFewPairs {
+                pairs: collected.len().saturating_sub(2),
+                min_tracks: self.options.min_tracks,
+                needed: self.options.min_pairs,
+            });
+        }
+        estimate_readout(&collected, camera, &self.options)
     }
 }
 

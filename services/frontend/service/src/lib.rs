@@ -402,10 +402,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
                 online_readout = None;
                 attempt_over = true;
             } else {
-                attempt_over = !online.in_first_attempt()
-                    || (hold.is_some()
-                        && online.collected() == online_readout::PROBE_FRAMES
-                        && online_readout::probe_finds_none(online, &tracker));
+                attempt_over = !online.in_first_attempt();
             }
         }
         // This frame's keyframe was made uncorrected: corrected as a new one would be.

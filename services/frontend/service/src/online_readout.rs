@@ -96,28 +96,6 @@ fn write_details(out: &Path, e: &ReadoutEstimate) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Frames after which the keyframes held for the estimate (readout_hold.rs) are looked
-/// at early: 1 s at 30 fps, enough for the estimator's 20 frame pairs.
-pub const PROBE_FRAMES: usize = 30;
-
-/// Whether an early estimate over the frames collected so far finds no clear readout (or
-/// none at all): the held keyframes then go out uncorrected instead of waiting for the
-/// full estimate, which still corrects from then on if it finds one. A global shutter
-/// thus delays the first window by a second, not by the estimation's frames.
-pub fn probe_finds_none(online: &OnlineReadoutEstimator, tracker: &Tracker) -> bool {
-    match online.probe(&tracker.camera()) {
-        Ok(e) => {
-            tracing::debug!(
-                best_ms = e.best_s * 1e3,
-                significant = e.significant,
-                "early rolling-shutter readout look"
-            );
-            !e.significant
-        }
-        Err(_) => true,
-    }
-}
-
 /// At the end of a stream shorter than the estimation's frames: the estimate from what
 /// was collected (as reading the recording ahead would make), set on the tracker and saved.
 pub fn finish_online(
