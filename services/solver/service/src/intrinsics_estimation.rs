@@ -44,12 +44,11 @@ pub struct IntrinsicsRequest {
 /// estimation's thread as soon as it is complete (so that little is left to solve when
 /// the first frames end, often with the stream), and pools them at the end.
 pub struct IntrinsicsEstimation {
-    state_dir: PathBuf,
     first_frame: Option<u64>,
     keyframes: Vec<KeyframeObservations>,
     windows: Option<FirstWindows>,
     to_solve: Option<mpsc::Sender<Vec<KeyframeObservations>>>,
-    worker: Option<JoinHandle<serde_json::Value>>,
+    worker: Option<JoinHandle<()>>,
 }
 
 impl IntrinsicsEstimation {
@@ -62,11 +61,11 @@ impl IntrinsicsEstimation {
             }
         };
         let (to_solve, solve) = mpsc::channel();
+        let path = state_dir.join(FILE_NAME);
         let worker = windows
             .is_some()
-            .then(|| std::thread::spawn(move || solve_and_pool(&request, solve)));
+            .then(|| std::thread::spawn(move || write(&path, &solve_and_pool(&request, solve))));
         Self {
-            state_dir,
             first_frame: None,
             keyframes: Vec::new(),
             windows,
@@ -109,30 +108,26 @@ impl IntrinsicsEstimation {
         }
     }
 
-    /// At the end of the stream: the last window, the estimates pooled and written.
+    /// At the end of the stream: the last window, if the first frames lasted that long;
+    /// waits until the estimates are written.
     pub fn finish(mut self) {
         if self.to_solve.is_some() {
             self.end();
         }
-        let Some(worker) = self.worker.take() else {
-            return;
-        };
-        let estimates = match worker.join() {
-            Ok(estimates) => estimates,
-            Err(_) => {
-                tracing::error!("the intrinsics estimation panicked: no estimate");
-                return;
-            }
-        };
-        let path = self.state_dir.join(FILE_NAME);
-        if let Err(e) =
-            egoslam_durability::write_atomically(&path, estimates.to_string().as_bytes())
-        {
-            tracing::error!(
-                "{}: {e}; the run keeps the calibration as given",
-                path.display()
-            );
+        if self.worker.take().is_some_and(|w| w.join().is_err()) {
+            tracing::error!("the intrinsics estimation panicked: no estimate");
         }
+    }
+}
+
+/// Writes the estimates to `path` (the thread's last step: once the first frames' windows
+/// are solved, while the stream goes on, so that the run can start again early).
+fn write(path: &std::path::Path, estimates: &serde_json::Value) {
+    if let Err(e) = egoslam_durability::write_atomically(path, estimates.to_string().as_bytes()) {
+        tracing::error!(
+            "{}: {e}; the run keeps the calibration as given",
+            path.display()
+        );
     }
 }
 
