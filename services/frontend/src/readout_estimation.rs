@@ -390,13 +390,7 @@ impl OnlineReadoutEstimator {
         camera: &PinholeRadtan,
     ) -> Result<ReadoutEstimate, ReadoutEstimationError> {
         let collected = std::mem::take(&mut self.collected);
-        if collected.len() < self.options.min_pairs + 3 {
-            return Err(ReadoutEstimationError::TooFewPairs {
-                pairs: collected.len().saturating_sub(2),
-                min_tracks: self.options.min_tracks,
-                needed: self.options.min_pairs,
-            });
-        }
+        // Too few frames make too few pairs: `estimate_readout` says so.
         estimate_readout(&collected, camera, &self.options)
     }
 }
@@ -565,6 +559,23 @@ mod tests {
             "{:?}",
             outcomes[59]
         );
+        // A stream that ends first: the estimate of what came, an error for none or one.
+        let mut short = OnlineReadoutEstimator::new(ReadoutEstimationOptions::default(), 60, 2);
+        frames
+            .iter()
+            .for_each(|f| assert_eq!(short.push(f.clone(), &camera), OnlineReadout::Collecting));
+        let e = short.finish(&camera).expect("40 frames estimate");
+        assert!((e.readout_s - 0.025).abs() <= 0.002, "{e:?}");
+        for n in 0..2 {
+            let mut empty = OnlineReadoutEstimator::new(ReadoutEstimationOptions::default(), 60, 2);
+            frames[..n].iter().for_each(|f| {
+                empty.push(f.clone(), &camera);
+            });
+            assert!(matches!(
+                empty.finish(&camera),
+                Err(ReadoutEstimationError::TooFewPairs { .. })
+            ));
+        }
     }
 
     #[test]

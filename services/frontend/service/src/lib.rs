@@ -438,10 +438,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
                 msg.frames_since_previous = std::mem::take(&mut skipped);
                 if correct_this_keyframe {
                     let readout_s = tracker.rolling_shutter_s();
-                    for (m, t) in msg.tracks.iter_mut().zip(&mut k.tracks) {
-                        tracker.recorrect(t, readout_s);
-                        (m.x, m.y) = (t.undistorted.x, t.undistorted.y);
-                    }
+                    readout_hold::recorrect(&tracker, readout_s, &mut k.tracks, &mut msg.tracks);
                 }
                 // Held keyframes wait for the next frame too: it centres their velocity.
                 if tracker.rolling_shutter_s() > 0.0 || hold.is_some() {

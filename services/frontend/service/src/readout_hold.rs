@@ -12,7 +12,6 @@
 //! corrects from then on. A frontend that dies while holding loses those keyframes (its
 //! restart begins a new stream: docs/durability.md).
 
-use crate::keyframe_message::track_message;
 use egoslam_frontend::{KeyframeTracks, TrackPoint, Tracker};
 use egoslam_messages::internal::v1 as internal;
 
@@ -80,17 +79,7 @@ impl ReadoutHold {
         let mut uncorrected = 0usize;
         let mut correct = |points: &mut [TrackPoint],
                            messages: &mut [internal::TrackObservation]| {
-            debug_assert_eq!(points.len(), messages.len());
-            for (point, message) in points.iter_mut().zip(messages) {
-                if !tracker.recorrect(point, readout_s) {
-                    uncorrected += 1;
-                }
-                *message = internal::TrackObservation {
-                    descriptor: std::mem::take(&mut message.descriptor),
-                    patch: std::mem::take(&mut message.patch),
-                    ..track_message(point)
-                };
-            }
+            uncorrected += recorrect(tracker, readout_s, points, messages);
         };
         let mut released = Vec::with_capacity(self.held.len());
         for mut held in self.held {
@@ -113,4 +102,24 @@ impl ReadoutHold {
         }
         released
     }
+}
+
+/// Recorrects `points` for `readout_s` (`Tracker::recorrect`) and moves their messages'
+/// undistorted positions with them (`messages[i]` is `points[i]`'s); returns how many the
+/// camera could not undistort once moved (they keep their position).
+pub fn recorrect(
+    tracker: &Tracker,
+    readout_s: f64,
+    points: &mut [TrackPoint],
+    messages: &mut [internal::TrackObservation],
+) -> usize {
+    debug_assert_eq!(points.len(), messages.len());
+    let mut uncorrected = 0;
+    for (point, message) in points.iter_mut().zip(messages) {
+        if !tracker.recorrect(point, readout_s) {
+            uncorrected += 1;
+        }
+        (message.x, message.y) = (point.undistorted.x, point.undistorted.y);
+    }
+    uncorrected
 }
