@@ -48,8 +48,6 @@ pub struct StreamCalibration {
     readout_ms: Option<f64>,
     /// Rounds started again for an estimate.
     pub restarts: u32,
-    /// The last [`Self::check`] that asked for a new round did for a readout.
-    again_for_readout: bool,
 }
 
 /// What the services of the next round are told.
@@ -79,7 +77,6 @@ impl StreamCalibration {
             radial: off(),
             readout_ms: None,
             restarts: 0,
-            again_for_readout: false,
         }
     }
 
@@ -105,7 +102,6 @@ impl StreamCalibration {
             radial: asked(radial),
             readout_ms: None,
             restarts: 0,
-            again_for_readout: false,
         }
     }
 
@@ -154,12 +150,12 @@ impl StreamCalibration {
                 "estimated_by": "the frontend, from the stream's first frames",
             }));
             if ms > 0.0 {
-                // The intrinsics of this round were estimated on uncorrected keyframes.
+                // The intrinsics of this round, estimated on uncorrected keyframes, are
+                // not read: they stay asked of the next round.
                 tracing::info!(
                     readout_ms = ms,
                     "a rolling-shutter readout: the run starts again with it"
                 );
-                self.again_for_readout = true;
                 return Some(RoundSettings {
                     readout: Readout::Millis(ms),
                     camera: current.camera,
@@ -211,17 +207,9 @@ impl StreamCalibration {
         self.readout_ms.map_or(current.readout, Readout::Millis)
     }
 
-    /// Before a round started again: a readout found makes the intrinsics asked of that
-    /// round (estimated on uncorrected keyframes) asked again.
+    /// Counts a round started again (its services number their poses above the last's).
     pub fn start_again(&mut self) {
         self.restarts += 1;
-        if std::mem::take(&mut self.again_for_readout) {
-            for e in [&mut self.focal, &mut self.radial] {
-                if matches!(e, Estimate::Done(_)) {
-                    *e = Estimate::Asked;
-                }
-            }
-        }
     }
 
     /// The report's rolling_shutter, focal_calibration and radial_calibration entries.
