@@ -164,6 +164,13 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.output.out.display()))?;
     drop(source);
     drop(first);
+    if let Some(path) = &args.map.map_in {
+        // Read once here, so that a map this egoslam cannot use stops the run before it
+        // starts, with the reason.
+        let vocabulary =
+            egoslam_durability::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
+        egoslam_durability::map_file::read_map(path, &vocabulary)?;
+    }
     // The self-calibrations come from the stream (stream_calibration.rs): the services
     // start with the calibration as given.
     let mut calibrations = if matches!(layout, Layout::Camera { .. }) {

@@ -111,11 +111,6 @@ impl Services<'_> {
         }
         let mut frontend_args = common.clone();
         if let Some(path) = &args.map.map_in {
-            // Read once here, so that a map this egoslam cannot use stops the run before it
-            // starts, with the reason.
-            let vocabulary =
-                egoslam_durability::map_file::load_vocabulary(args.map.vocabulary.as_deref())?;
-            egoslam_durability::map_file::read_map(path, &vocabulary)?;
             merger_args.push(format!("--map-in={}", path.display()));
             frontend_args.push(format!("--map-in={}", path.display()));
         }
