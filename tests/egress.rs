@@ -261,7 +261,7 @@ fn live_poses_come_first(pose_messages: &[pb::Pose], report: &serde_json::Value)
     }
     // A round started again (with an estimated calibration) numbers its poses from
     // round << 24: a frame's first pose in it is live too.
-    let round_first = |p: &pb::Pose| p.revision & 0x00FF_FFFF == 0;
+    let round_first = |p: &pb::Pose| egoslam_messages::first_of_round(p.revision);
     assert!(pose_messages
         .iter()
         .filter(|p| !round_first(p))

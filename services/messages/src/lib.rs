@@ -19,5 +19,27 @@ pub mod internal {
     }
 }
 
+/// A run started again from its first frame numbers round r's poses from
+/// `r << ROUND_REVISION_BITS` (`v1::Pose::revision`): above every revision of the rounds
+/// before (a frame is revised a few times, not 16 million), so that clients, which keep a
+/// frame's highest revision, take the last round's.
+pub const ROUND_REVISION_BITS: u32 = 24;
+
+/// Whether a pose's `revision` is a frame's first pose in its round (the live pose).
+pub fn first_of_round(revision: u32) -> bool {
+    revision & ((1 << ROUND_REVISION_BITS) - 1) == 0
+}
+
 /// The encoded `FileDescriptorSet` of every egoslam `.proto` (public and internal).
 pub const DESCRIPTORS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/descriptors.bin"));
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_rounds_first_pose_has_the_low_bits_zero() {
+        assert!(first_of_round(0) && first_of_round(1 << 24) && first_of_round(3 << 24));
+        assert!(!first_of_round(1) && !first_of_round((2 << 24) + 5));
+    }
+}

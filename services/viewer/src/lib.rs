@@ -192,7 +192,7 @@ impl Viewer {
     /// bits 0, see the proto) also moves the camera frame.
     pub fn pose(&self, pose: &pb::Pose) {
         self.channels.pose.log(&convert::pose_in_frame(pose));
-        if pose.revision & 0x00FF_FFFF == 0 {
+        if egoslam_messages::first_of_round(pose.revision) {
             self.channels.tf.log(&convert::camera_transform(pose));
         }
     }

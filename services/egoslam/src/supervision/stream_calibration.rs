@@ -23,11 +23,6 @@ use egoslam_solver_service::intrinsics_estimation::FILE_NAME as INTRINSICS_FILE;
 use serde_json::json;
 use std::path::Path;
 
-/// A round's poses are numbered from `round << 24` (`--first-revision`): above every
-/// revision of the rounds before (a frame is revised a few times, not 16 million), so that
-/// clients, which keep a frame's highest revision, take the last round's.
-const REVISIONS_PER_ROUND_BITS: u32 = 24;
-
 /// Where an estimate stands.
 #[derive(Debug, Clone, PartialEq)]
 enum Estimate {
@@ -113,7 +108,7 @@ impl StreamCalibration {
         if self.restarts > 0 {
             flags.push(format!(
                 "--first-revision={}",
-                self.restarts << REVISIONS_PER_ROUND_BITS
+                self.restarts << egoslam_messages::ROUND_REVISION_BITS
             ));
         }
         if self.readout == Estimate::Asked {
