@@ -130,7 +130,8 @@ pub fn structure(
         })
         .collect();
     let step = entries.len().div_ceil(40).max(1);
-    let (mut views, mut depths) = (Vec::new(), Vec::new());
+    let mut views = Vec::new();
+    let mut paths = Vec::new();
     for (t, file) in entries.iter().step_by(step) {
         let Some(pose) = gt
             .iter()
@@ -141,7 +142,29 @@ pub fn structure(
         if (pose.timestamp - t).abs() > 0.02 {
             continue;
         }
-        let path = sequence.join(file);
+        views.push(*pose);
+        paths.push(sequence.join(file));
+    }
+    let depths = read_depth_images(&paths)?;
+    let points: Vec<Vector3<f64>> = read_ply(map)?.iter().map(|x| alignment.apply(x)).collect();
+    // Slices of the decoded images: the lookup runs ~10^6-10^7 times.
+    let grids: Vec<(&[u16], usize)> = depths
+        .iter()
+        .map(|m| Ok((m.data_typed::<u16>()?, m.cols() as usize)))
+        .collect::<opencv::Result<_>>()?;
+    Ok(structure_error(camera, &points, &views, |v, x, y| {
+        let (grid, width) = grids[v];
+        let d = *grid.get(y as usize * width + x as usize)?;
+        (d > 0).then(|| f64::from(d) / 5000.0)
+    }))
+}
+
+/// Decodes 16-bit depth images on every core: the run's outputs wait for this at its end,
+/// after the services have stopped, so the cores are free.
+fn read_depth_images(paths: &[PathBuf]) -> anyhow::Result<Vec<opencv::core::Mat>> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let chunk = paths.len().div_ceil(threads).max(1);
+    let read = |path: &PathBuf| -> anyhow::Result<opencv::core::Mat> {
         let image = opencv::imgcodecs::imread(
             path.to_str().context("non-UTF-8 path")?,
             opencv::imgcodecs::IMREAD_ANYDEPTH,
@@ -149,14 +172,24 @@ pub fn structure(
         if image.empty() || image.typ() != opencv::core::CV_16UC1 {
             anyhow::bail!("{}: not a 16-bit depth image", path.display());
         }
-        views.push(*pose);
-        depths.push(image);
-    }
-    let points: Vec<Vector3<f64>> = read_ply(map)?.iter().map(|x| alignment.apply(x)).collect();
-    Ok(structure_error(camera, &points, &views, |v, x, y| {
-        let d = *depths[v].at_2d::<u16>(y as i32, x as i32).ok()?;
-        (d > 0).then(|| f64::from(d) / 5000.0)
-    }))
+        Ok(image)
+    };
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = paths
+            .chunks(chunk)
+            .map(|part| scope.spawn(move || part.iter().map(read).collect::<Vec<_>>()))
+            .collect();
+        let mut images = Vec::with_capacity(paths.len());
+        for worker in workers {
+            let part = worker
+                .join()
+                .map_err(|_| anyhow::anyhow!("a depth reader panicked"))?;
+            for image in part {
+                images.push(image?);
+            }
+        }
+        Ok(images)
+    })
 }
 
 /// Fewest keyframes a segment needs to be aligned on its own.
