@@ -7,7 +7,11 @@
 //! pass over the recording would track: the same tracker, frames and readout), solves
 //! their first windows with the intrinsics free on a thread of its own as each is complete
 //! (`egoslam_solver::focal_calibration`) while the stream goes on, and writes the estimates
-//! to [`FILE_NAME`] in the state folder. The run goes on when none applies; when one does, `egoslam run` starts it again
+//! to [`FILE_NAME`] in the state folder. A window is handed to the thread after the
+//! solver's own window over the same keyframes, with the relative poses that window
+//! computed ([`IntrinsicsEstimation::share_edges`]): the view graph does not depend on the
+//! intrinsics left free, so the estimates skip the five-point stage the solver already ran.
+//! The run goes on when none applies; when one does, `egoslam run` starts it again
 //! with the corrected camera, so that every process and the saved camera use it from the
 //! first frame.
 
@@ -18,7 +22,7 @@ use egoslam_solver::focal_calibration::{
     pool_focal_scales, pool_radial_terms, solve_first_window, FirstWindows,
     FocalCalibrationOptions, Intrinsic,
 };
-use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
+use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations, ViewGraphOptions};
 use egoslam_solver::window_solver::WindowSolverOptions;
 use serde_json::json;
 use std::path::PathBuf;
@@ -41,14 +45,27 @@ pub struct IntrinsicsRequest {
 }
 
 /// Collects the first frames' keyframes into the estimates' windows, each solved on the
-/// estimation's thread as soon as it is complete (so that little is left to solve when
-/// the first frames end, often with the stream), and pools them at the end.
+/// estimation's thread once the solver has solved its window over them (so that little is
+/// left to solve when the first frames end, often with the stream), and pools them at the
+/// end.
 pub struct IntrinsicsEstimation {
     first_frame: Option<u64>,
     keyframes: Vec<KeyframeObservations>,
     windows: Option<FirstWindows>,
-    to_solve: Option<mpsc::Sender<Vec<KeyframeObservations>>>,
+    /// Complete windows waiting for the solver's relative poses.
+    waiting: Vec<Vec<KeyframeObservations>>,
+    /// What the estimates' view graph is built with: edges are shared only when the
+    /// solver's are built with the same.
+    camera: PinholeRadtan,
+    view_graph: ViewGraphOptions,
+    to_solve: Option<mpsc::Sender<WindowToSolve>>,
     worker: Option<JoinHandle<()>>,
+}
+
+/// A window of the estimates and the relative poses already known between its keyframes.
+struct WindowToSolve {
+    keyframes: Vec<KeyframeObservations>,
+    edges: EdgeCache,
 }
 
 impl IntrinsicsEstimation {
@@ -60,6 +77,7 @@ impl IntrinsicsEstimation {
                 None
             }
         };
+        let (camera, view_graph) = (request.camera, request.solver.view_graph);
         let (to_solve, solve) = mpsc::channel();
         let path = state_dir.join(FILE_NAME);
         let worker = windows
@@ -69,6 +87,9 @@ impl IntrinsicsEstimation {
             first_frame: None,
             keyframes: Vec::new(),
             windows,
+            waiting: Vec::new(),
+            camera,
+            view_graph,
             to_solve: Some(to_solve),
             worker,
         }
@@ -80,7 +101,7 @@ impl IntrinsicsEstimation {
     /// is not one the estimates would take from a recording's first frames, and is left
     /// out.
     pub fn observe(&mut self, k: &internal::Keyframe) {
-        if self.to_solve.is_none() || k.reason() == internal::KeyframeReason::Last {
+        if self.windows.is_none() || k.reason() == internal::KeyframeReason::Last {
             return;
         }
         let first = *self.first_frame.get_or_insert(k.frame_id);
@@ -90,30 +111,80 @@ impl IntrinsicsEstimation {
         }
         self.keyframes.push(crate::valid_observations(k).0);
         let window = self.windows.as_mut().and_then(FirstWindows::push);
-        self.send(window);
+        self.hold(window);
     }
 
     /// The last window, and no more.
     fn end(&mut self) {
         let window = self.windows.take().and_then(FirstWindows::finish);
-        self.send(window);
-        self.to_solve = None;
+        self.hold(window);
         self.keyframes = Vec::new();
     }
 
-    fn send(&mut self, window: Option<std::ops::RangeInclusive<usize>>) {
-        if let (Some(range), Some(to_solve)) = (window, &self.to_solve) {
-            // The worker is gone only after a panic, which `finish` reports.
-            let _ = to_solve.send(self.keyframes[range].to_vec());
+    fn hold(&mut self, window: Option<std::ops::RangeInclusive<usize>>) {
+        if let Some(range) = window {
+            self.waiting.push(self.keyframes[range].to_vec());
         }
     }
 
-    /// At the end of the stream: the last window, if the first frames lasted that long;
-    /// waits until the estimates are written.
-    pub fn finish(mut self) {
-        if self.to_solve.is_some() {
+    /// Hands the complete windows to the estimation's thread with the relative poses the
+    /// solver computed between their keyframes (`cache`, after the solver's window; built
+    /// on `camera` with `view_graph`: none are taken when either differs from the
+    /// estimates'). Called after each of the solver's windows.
+    pub fn share_edges(
+        &mut self,
+        cache: &EdgeCache,
+        camera: &PinholeRadtan,
+        view_graph: &ViewGraphOptions,
+    ) {
+        let same_graph = (camera.fx, camera.fy, camera.cx, camera.cy)
+            == (
+                self.camera.fx,
+                self.camera.fy,
+                self.camera.cx,
+                self.camera.cy,
+            )
+            && *view_graph == self.view_graph;
+        for keyframes in std::mem::take(&mut self.waiting) {
+            let edges = if same_graph {
+                let ids: std::collections::HashSet<u64> = keyframes.iter().map(|k| k.id).collect();
+                cache
+                    .iter()
+                    .filter(|((a, b), _)| ids.contains(a) && ids.contains(b))
+                    .map(|(key, edge)| (*key, edge.clone()))
+                    .collect()
+            } else {
+                EdgeCache::new()
+            };
+            if let Some(to_solve) = &self.to_solve {
+                // The worker is gone only after a panic, which `finish` reports.
+                let _ = to_solve.send(WindowToSolve { keyframes, edges });
+            }
+        }
+        if self.windows.is_none() {
+            self.to_solve = None;
+        }
+    }
+
+    /// The stream ended (before the solver's last window): the last window, if the first
+    /// frames lasted that long, waits for that window's relative poses.
+    pub fn stream_ended(&mut self) {
+        if self.windows.is_some() {
             self.end();
         }
+    }
+
+    /// After the solver's last window: hands over what still waits (without relative
+    /// poses) and waits until the estimates are written.
+    pub fn finish(mut self) {
+        self.stream_ended();
+        for keyframes in std::mem::take(&mut self.waiting) {
+            if let Some(to_solve) = &self.to_solve {
+                let edges = EdgeCache::new();
+                let _ = to_solve.send(WindowToSolve { keyframes, edges });
+            }
+        }
+        self.to_solve = None;
         if self.worker.take().is_some_and(|w| w.join().is_err()) {
             tracing::error!("the intrinsics estimation panicked: no estimate");
         }
@@ -135,7 +206,7 @@ fn write(path: &std::path::Path, estimates: &serde_json::Value) {
 /// (one edge cache each, as `focal_calibration::first_windows`), then pools them.
 fn solve_and_pool(
     request: &IntrinsicsRequest,
-    windows: mpsc::Receiver<Vec<KeyframeObservations>>,
+    windows: mpsc::Receiver<WindowToSolve>,
 ) -> serde_json::Value {
     let asked: Vec<Intrinsic> = [
         (request.focal, Intrinsic::Focal),
@@ -156,10 +227,15 @@ fn solve_and_pool(
         })
         .collect();
     let mut keyframes = 0;
-    for window in windows {
+    for WindowToSolve {
+        keyframes: window,
+        edges,
+    } in windows
+    {
         let _span = tracing::info_span!("estimate_intrinsics", keyframes = window.len()).entered();
         keyframes += window.len();
         for (what, solver, cache, terms) in &mut solvers {
+            cache.extend(edges.iter().map(|(key, edge)| (*key, edge.clone())));
             let solved = solve_first_window(&request.camera, &window, solver, cache);
             terms.extend(solved.as_ref().and_then(|s| what.term(s)));
         }

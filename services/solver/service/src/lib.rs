@@ -461,6 +461,9 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
         let end_of_stream = k.end_of_stream;
         let window = if end_of_stream {
             trailing = k.trailing_frames;
+            if let Some(estimation) = &mut estimation {
+                estimation.stream_ended();
+            }
             builder.finish()
         } else {
             stats.keyframes += 1;
@@ -479,6 +482,13 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
                 dump_window(std::path::Path::new(&dir), stats.windows, &window)?;
             }
             let solution = solve(stats.windows, &window, &mut cache, &options, &mut stats)?;
+            if let Some(estimation) = &mut estimation {
+                estimation.share_edges(
+                    &cache,
+                    &pinhole(&window.keyframes[0])?,
+                    &options.view_graph,
+                );
+            }
             publish(solution)?;
             stats.windows += 1;
         }
