@@ -1,6 +1,6 @@
 //! What a person sees: under a terminal (a pseudo-terminal made by `script`) the run draws
 //! progress bars with frames done of the total and the time left; into a pipe or a file
-//! it writes plain lines, no terminal escape codes.
+//! it writes plain lines, no terminal escape codes, and no error when nothing failed.
 
 mod common;
 
@@ -48,4 +48,11 @@ fn a_terminal_shows_progress_and_a_pipe_gets_plain_lines() {
         "escape codes in a piped log:\n{log}"
     );
     assert!(!log.contains(" left"), "a bar in a piped log:\n{log}");
+    // The clip starts again with its estimated readout: the services stopped for it are
+    // not reported as errors.
+    assert!(log.contains("the run starts again"), "log lines: {log}");
+    assert!(
+        !log.contains("error:") && !log.contains("ERROR"),
+        "an error in a run that succeeded:\n{log}"
+    );
 }

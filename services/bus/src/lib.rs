@@ -25,7 +25,9 @@ pub use channel::{Channel, Delivery, FRAMES, KEYFRAMES, LIVE_FRAMES, WINDOWS};
 pub use error::{BusOpenError, ReceiveError, SendError};
 pub use frame::{unix_now_ns, FrameMeta, FramePublisher, FrameSubscriber, ReceivedFrame};
 pub use message::{MessagePublisher, MessageSubscriber};
-pub use stop::{stop_requested, watch_stop_requests, STOP_DEADLINE_EXIT, STOP_GRACE};
+pub use stop::{
+    stop_requested, watch_stop_requests, StoppedBySignal, STOP_DEADLINE_EXIT, STOP_GRACE,
+};
 
 use iceoryx2::prelude::*;
 use std::time::Duration;

@@ -63,3 +63,12 @@ pub fn watch_stop_requests() {
         tracing::warn!("cannot start the stop deadline: {e}");
     }
 }
+
+/// A service's loop ended because SIGINT or SIGTERM asked it to stop: the way a service is
+/// stopped (systemd, the launcher ending or starting a run again), reported as such rather
+/// than as a failure. `during` says what was cut short ("" when nothing was).
+#[derive(Debug, thiserror::Error)]
+#[error("stopped by a signal{during}")]
+pub struct StoppedBySignal {
+    pub during: &'static str,
+}

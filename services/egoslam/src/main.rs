@@ -63,6 +63,12 @@ fn main() -> std::process::ExitCode {
                 eprintln!("{stop}");
                 std::process::ExitCode::from(u8::try_from(128 + stop.signal).unwrap_or(1))
             }
+            None if e.downcast_ref::<egoslam_bus::StoppedBySignal>().is_some() => {
+                // A service stopped as services are (systemd, the launcher): not an error
+                // to print, but still not a finished stream (the exit status says so).
+                tracing::info!("{e:#}");
+                std::process::ExitCode::FAILURE
+            }
             None => {
                 eprintln!("error: {e:#}");
                 std::process::ExitCode::FAILURE

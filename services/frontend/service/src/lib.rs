@@ -331,7 +331,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
     let started = Instant::now();
     loop {
         let Some(frame) = frames.receive()? else {
-            bail!("terminated by signal")
+            bail!(egoslam_bus::StoppedBySignal { during: "" })
         };
         let meta = *frame.meta();
         if meta.is_end_of_stream() {
@@ -518,7 +518,9 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
     }
     // Stay until the solver has read everything (see MessagePublisher::finish).
     if !keyframes.finish() {
-        bail!("terminated by signal while the solver was reading the last keyframes")
+        bail!(egoslam_bus::StoppedBySignal {
+            during: " while the solver was reading the last keyframes"
+        })
     }
     Ok(())
 }

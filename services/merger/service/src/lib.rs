@@ -476,7 +476,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
         let stream = merger.session.state.stream_id;
         if backlog.is_empty(stream, merger.session.state.next_sequence()) {
             let Some(next) = windows.receive_numbered()? else {
-                bail!("terminated by signal")
+                bail!(egoslam_bus::StoppedBySignal { during: "" })
             };
             backlog.take(next, stream);
         }
@@ -497,7 +497,7 @@ pub fn run(options: MergerServiceOptions) -> anyhow::Result<()> {
             from_journal.is_some() || backlog.front().is_some_and(|(_, w)| !w.end_of_stream);
         if next_is_window && merger.session.holds_next_window() {
             if !bus.idle(std::time::Duration::from_millis(20)) {
-                bail!("terminated by signal")
+                bail!(egoslam_bus::StoppedBySignal { during: "" })
             }
             continue;
         }

@@ -449,7 +449,7 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
             Some(k) => k,
             None => {
                 let Some(k) = keyframes.receive()? else {
-                    bail!("terminated by signal")
+                    bail!(egoslam_bus::StoppedBySignal { during: "" })
                 };
                 // Keyframes the replay already took (sent before this solver started).
                 if !k.end_of_stream && skip_up_to.is_some_and(|last| k.keyframe_id <= last) {
@@ -476,7 +476,7 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
             // SIGTERM means stop now (a Ctrl-C ends the stream at the replay instead): a
             // backlog of windows is not solved first.
             if egoslam_bus::stop_requested() {
-                bail!("terminated by signal")
+                bail!(egoslam_bus::StoppedBySignal { during: "" })
             }
             if let Some(dir) = std::env::var_os("EGOSLAM_DUMP_WINDOWS") {
                 dump_window(std::path::Path::new(&dir), stats.windows, &window)?;
@@ -513,7 +513,9 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
     stats.write(&args.out)?;
     // Stay until the merger has read everything (see MessagePublisher::finish).
     if !windows.finish() {
-        bail!("terminated by signal while the merger was reading the last windows")
+        bail!(egoslam_bus::StoppedBySignal {
+            during: " while the merger was reading the last windows"
+        })
     }
     Ok(())
 }
