@@ -18,6 +18,7 @@ use egoslam_relocalization::{
     Relocalizer, RelocalizerOptions, Vocabulary,
 };
 use nalgebra::{Point2, Vector3};
+use rayon::prelude::*;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 /// When a link is accepted; defaults commented with their reason.
@@ -309,10 +310,21 @@ pub(crate) fn relocalize_consistently(
         },
         candidate_bags,
     );
+    // The queries are relocalized independently, on every core: an attempt relocalizes
+    // up to a window of keyframes (~20 ms each), and the end of a stream waits for its
+    // last window's attempt with the other core idle.
+    let relocalized: Vec<Option<_>> = described
+        .par_iter()
+        .map(|(_, _, kf_features, bow)| {
+            let query = query_of(kf_features);
+            relocalizer
+                .relocalize_bag(&query, bow, &options.relocalizer)
+                .ok()
+        })
+        .collect();
     let mut found: Vec<Relocalized> = Vec::new();
-    for (id, in_new, kf_features, bow) in described {
-        let query = query_of(&kf_features);
-        let Ok(r) = relocalizer.relocalize_bag(&query, &bow, &options.relocalizer) else {
+    for ((id, in_new, kf_features, _), r) in described.into_iter().zip(relocalized) {
+        let Some(r) = r else {
             continue;
         };
         let pairs = r
