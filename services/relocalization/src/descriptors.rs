@@ -205,19 +205,20 @@ fn intensity_centroid_angles(
         .iter()
         .map(|&i| {
             let (cx, cy) = (corners[i].x.round() as i32, corners[i].y.round() as i32);
-            // Per row: the sum of the intensities and of dx times them, in i32 (at most
-            // 31 * 255 * 15 per row): m01 takes dy times the first, m10 the second. The
-            // contiguous slice lets the compiler vectorise the inner sums.
+            // Per row: the sum of the intensities and of their offsets from the row's
+            // start times them, in i32 (at most 31 * 255 * 30 per row); the moment about
+            // the centre is the second minus `half` times the first. m01 takes dy times
+            // the sum. A plain slice walk, which the compiler vectorises.
             let (mut m01, mut m10) = (0i64, 0i64);
             for (dy, &half) in (-R..=R).zip(&half) {
                 let start = (cy + dy) as usize * step + (cx - half) as usize;
-                let row = &data[start..=start + 2 * half as usize];
+                let row = &data[start..start + 2 * half as usize + 1];
                 let (mut sum, mut moment) = (0i32, 0i32);
-                for (dx, &v) in (-half..=half).zip(row) {
+                for (k, &v) in row.iter().enumerate() {
                     sum += i32::from(v);
-                    moment += dx * i32::from(v);
+                    moment += k as i32 * i32::from(v);
                 }
-                m10 += i64::from(moment);
+                m10 += i64::from(moment - half * sum);
                 m01 += i64::from(dy) * i64::from(sum);
             }
             let a = (m01 as f32).atan2(m10 as f32).to_degrees();
