@@ -244,6 +244,8 @@ impl LiveTracker {
             last: Some(origin),
             ..Self::default()
         };
+        // The origin anchors the first walk, as a map's newest keyframe does (set_map).
+        self.recent.extend(self.previous.clone());
         self.history.push_back((timestamp, tracks.to_vec()));
         LivePose {
             pose: origin,
@@ -314,9 +316,14 @@ impl LiveTracker {
                     inliers: l.inliers,
                 }
             }
-            Err(e) => match self.turned(&camera, timestamp, &rays_now) {
-                Some((pose, inliers)) => match self.walked(&camera, &pose, &rays_now) {
-                    Some(walked) => {
+            Err(e) => {
+                // Where the rays fit no rotation alone (walking on with parallax, as a car
+                // or a wearer looking ahead does), the frame may still be moved on from an
+                // earlier one: the walk needs only the frame's time.
+                let turned = self.turned(&camera, timestamp, &rays_now);
+                let now = turned.map_or(prior, |(pose, _)| pose);
+                match (self.walked(&camera, &now, &rays_now), turned) {
+                    (Some(walked), _) => {
                         // Moving on at the pace: the velocity from the frame it was measured from.
                         self.local_points.extend(walked.points);
                         self.before_last = Some(walked.anchor);
@@ -329,7 +336,7 @@ impl LiveTracker {
                             inliers: walked.inliers,
                         }
                     }
-                    None => {
+                    (None, Some((pose, inliers))) => {
                         // The velocity restarts here: a turn in place has none to extrapolate.
                         self.before_last = None;
                         self.last = Some(pose);
@@ -341,22 +348,22 @@ impl LiveTracker {
                             inliers,
                         }
                     }
-                },
-                None => {
-                    tracing::debug!(
-                        error = %e,
-                        correspondences = correspondences.len(),
-                        local_points = self.local_points.len(),
-                        tracks = tracks.len(),
-                        // Counted only when the debug level is on.
-                        shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
-                            rays_now.keys().filter(|t| before.contains_key(t)).count()
-                        }),
-                        "live frame not tracked"
-                    );
-                    self.unsupported(timestamp, prior)
+                    (None, None) => {
+                        tracing::debug!(
+                            error = %e,
+                            correspondences = correspondences.len(),
+                            local_points = self.local_points.len(),
+                            tracks = tracks.len(),
+                            // Counted only when the debug level is on.
+                            shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
+                                rays_now.keys().filter(|t| before.contains_key(t)).count()
+                            }),
+                            "live frame not tracked"
+                        );
+                        self.unsupported(timestamp, prior)
+                    }
                 }
-            },
+            }
         };
         while self
             .recent
