@@ -12,7 +12,8 @@ use crate::frame_localization::{localize_frame, LocalizationOptions};
 use egoslam_geometry::{rotation_aligning, BearingPair, PinholeRadtan, StampedPose};
 use egoslam_relocalization::absolute_pose::PnpOptions;
 use nalgebra::{Point2, UnitQuaternion, Vector3};
-use std::collections::{HashMap, VecDeque};
+use rustc_hash::FxHashMap;
+use std::collections::VecDeque;
 
 mod walked_on;
 
@@ -128,7 +129,7 @@ pub struct LivePose {
 pub struct MapView {
     pub camera: Option<PinholeRadtan>,
     pub segment: u32,
-    pub points: HashMap<u64, Vector3<f64>>,
+    pub points: FxHashMap<u64, Vector3<f64>>,
     pub newest_keyframe: Option<StampedPose>,
     /// The segment's recent walking pace, map units per second (`MapBuilder::recent_walking_pace`).
     pub pace: Option<f64>,
@@ -150,8 +151,8 @@ struct Sighting {
 pub struct LiveTracker {
     options: LiveTrackerOptions,
     map: MapView,
-    local_points: HashMap<u64, Vector3<f64>>,
-    sightings: HashMap<u64, Sighting>,
+    local_points: FxHashMap<u64, Vector3<f64>>,
+    sightings: FxHashMap<u64, Sighting>,
     /// The last tracked pose and the one before it (for the velocity).
     last: Option<StampedPose>,
     before_last: Option<StampedPose>,
@@ -159,9 +160,9 @@ pub struct LiveTracker {
     history: VecDeque<(f64, FrameTracks)>,
     /// The last frame posed from its tracks (PnP or rotation): its pose and its tracks'
     /// rays in the camera frame.
-    previous: Option<(StampedPose, HashMap<u64, Vector3<f64>>)>,
+    previous: Option<(StampedPose, FxHashMap<u64, Vector3<f64>>)>,
     /// The frames posed from their tracks over the last `walk_anchor_s`, oldest first.
-    recent: VecDeque<(StampedPose, HashMap<u64, Vector3<f64>>)>,
+    recent: VecDeque<(StampedPose, FxHashMap<u64, Vector3<f64>>)>,
 }
 
 impl LiveTracker {
@@ -382,7 +383,7 @@ impl LiveTracker {
 
     /// The frame posed from its tracks last: the rotation's reference for the next frame,
     /// and a walk's anchor for the next `walk_anchor_s`.
-    fn remember(&mut self, pose: StampedPose, rays: HashMap<u64, Vector3<f64>>) {
+    fn remember(&mut self, pose: StampedPose, rays: FxHashMap<u64, Vector3<f64>>) {
         self.recent.push_back((pose, rays.clone()));
         self.previous = Some((pose, rays));
     }
@@ -410,7 +411,7 @@ impl LiveTracker {
         &self,
         camera: &PinholeRadtan,
         timestamp: f64,
-        rays_now: &HashMap<u64, Vector3<f64>>,
+        rays_now: &FxHashMap<u64, Vector3<f64>>,
     ) -> Option<(StampedPose, usize)> {
         let (previous, previous_rays) = self.previous.as_ref()?;
         let threshold = self.options.rotation_threshold_px / camera.fx;
@@ -438,7 +439,7 @@ impl LiveTracker {
         &self,
         camera: &PinholeRadtan,
         turned: &StampedPose,
-        rays_now: &HashMap<u64, Vector3<f64>>,
+        rays_now: &FxHashMap<u64, Vector3<f64>>,
     ) -> Option<walked_on::Walked> {
         let pace = self.map.pace?;
         let o = &self.options;
@@ -518,7 +519,7 @@ impl LiveTracker {
 }
 
 /// Unit rays in the camera frame of tracks `(id, undistorted pixel)`.
-fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> HashMap<u64, Vector3<f64>> {
+fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> FxHashMap<u64, Vector3<f64>> {
     tracks
         .iter()
         .map(|(t, px)| (*t, camera.bearing_from_undistorted(*px)))
@@ -532,8 +533,8 @@ fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> HashMap<u64, V
 /// moving object) would pull a least-squares fit over all of them off every track.
 /// `None` with fewer than 3 shared tracks.
 fn rotation_between(
-    before: &HashMap<u64, Vector3<f64>>,
-    now: &HashMap<u64, Vector3<f64>>,
+    before: &FxHashMap<u64, Vector3<f64>>,
+    now: &FxHashMap<u64, Vector3<f64>>,
     threshold_rad: f64,
 ) -> Option<(UnitQuaternion<f64>, usize)> {
     /// Pairs drawn: with half the tracks agreeing, 64 draws all miss a good pair with

@@ -79,7 +79,7 @@ impl LiveTracking {
         let view = MapView {
             camera: camera.copied(),
             segment,
-            points: map.points_seen_since(*first, segment),
+            points: map.points_seen_since(*first, segment).into_iter().collect(),
             newest_keyframe: Some(*newest),
             pace: map.recent_walking_pace(segment, *last),
         };

@@ -214,13 +214,13 @@ fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
 fn the_rotation_from_rays_ignores_tracks_that_moved_on_their_own() {
     let points = scene();
     let turn = UnitQuaternion::from_euler_angles(0.02, -0.05, 0.01);
-    let before: HashMap<u64, Vector3<f64>> = points
+    let before: FxHashMap<u64, Vector3<f64>> = points
         .iter()
         .enumerate()
         .map(|(i, x)| (i as u64, x.normalize()))
         .collect();
     // Camera now = camera before turned by `turn`; a third of the tracks slid elsewhere.
-    let now: HashMap<u64, Vector3<f64>> = before
+    let now: FxHashMap<u64, Vector3<f64>> = before
         .iter()
         .map(|(t, b)| {
             let r = turn.inverse() * b;

@@ -20,10 +20,10 @@ use super::{closest_point, Sighting};
 use egoslam_geometry::{rotation_aligning, PinholeRadtan, StampedPose};
 use egoslam_solver::relative_pose::{estimate_relative_pose, RelativePoseOptions};
 use nalgebra::{UnitQuaternion, Vector3};
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 
 /// A posed frame: its pose and its tracks' rays in its camera frame.
-pub(super) type PosedRays<'a> = (&'a StampedPose, &'a HashMap<u64, Vector3<f64>>);
+pub(super) type PosedRays<'a> = (&'a StampedPose, &'a FxHashMap<u64, Vector3<f64>>);
 
 /// What [`walked_on`] found: the frame's pose, the tracks triangulated on the baseline, and
 /// how many tracks agree with the relative pose.
@@ -48,8 +48,8 @@ pub(super) struct WalkCheck {
 /// (the window solver's test for a translation edge, on rays); `None` with fewer than
 /// `min_shared` shared tracks.
 pub(super) fn rotation_residual(
-    anchor_rays: &HashMap<u64, Vector3<f64>>,
-    now_rays: &HashMap<u64, Vector3<f64>>,
+    anchor_rays: &FxHashMap<u64, Vector3<f64>>,
+    now_rays: &FxHashMap<u64, Vector3<f64>>,
     min_shared: usize,
 ) -> Option<f64> {
     let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = now_rays
