@@ -236,6 +236,13 @@ pub fn frame_poses(
         .collect()
 }
 
+/// A localized frame's position may depart from the one interpolated between its keyframes
+/// by at most this fraction of the distance between them: between two keyframes (at most
+/// 30 frames apart) a head's path stays near their chord, and where the keyframes barely
+/// moved (a stop, a turn in place) the interpolation is the better position, while a PnP
+/// on a few dozen points there can land many brackets off.
+const MAX_DEPARTURE_OF_BRACKET: f64 = 1.0;
+
 /// Tries every pending frame whose bracketing keyframes are both posed in one segment;
 /// frames whose next keyframe is not yet in the map stay pending, unless that keyframe is
 /// older than `oldest_live_keyframe` (no later window can pose it: it stays unposed).
@@ -287,9 +294,26 @@ pub fn localize_pending(
                 _ => None,
             })
             .collect();
-        match localize_frame(camera, &correspondences, &prior, &options) {
+        let bracket_length = (next.position - anchor.position).norm();
+        // A position off the bracket keeps the frame's rotation (PnP's rotation is sound
+        // where its position is not: a few dozen points, little parallax) at the
+        // interpolated position.
+        let located = localize_frame(camera, &correspondences, &prior, &options).map(|mut l| {
+            let departure = (l.pose.position - prior.position).norm();
+            if departure > MAX_DEPARTURE_OF_BRACKET * bracket_length {
+                tracing::debug!(
+                    frame = frame_id,
+                    departure,
+                    bracket = bracket_length,
+                    "localized position off the bracket: interpolated"
+                );
+                stats.count("frames_position_interpolated", 1);
+                l.pose.position = prior.position;
+            }
+            l
+        });
+        match located {
             Ok(l) => {
-                let bracket_length = (next.position - anchor.position).norm();
                 tracing::debug!(
                     frame = frame_id,
                     from_prior = (l.pose.position - prior.position).norm(),
