@@ -295,12 +295,8 @@ pub fn localize_pending(
             })
             .collect();
         let bracket_length = (next.position - anchor.position).norm();
-        // A position off the bracket keeps the frame's rotation (PnP's rotation is sound
-        // where its position is not: a few dozen points, little parallax) at the
-        // interpolated position.
         let located = localize_frame(camera, &correspondences, &prior, &options).map(|mut l| {
-            let departure = (l.pose.position - prior.position).norm();
-            if departure > MAX_DEPARTURE_OF_BRACKET * bracket_length {
+            if let Some(departure) = keep_within_bracket(&mut l.pose, &prior, bracket_length) {
                 tracing::debug!(
                     frame = frame_id,
                     departure,
@@ -308,7 +304,6 @@ pub fn localize_pending(
                     "localized position off the bracket: interpolated"
                 );
                 stats.count("frames_position_interpolated", 1);
-                l.pose.position = prior.position;
             }
             l
         });
@@ -341,10 +336,49 @@ pub fn localize_pending(
     }
 }
 
+/// A localized `pose` whose position departs from the interpolated `prior`'s by more than
+/// [`MAX_DEPARTURE_OF_BRACKET`] times `bracket` (the distance between the keyframes) takes
+/// the prior's position and keeps its rotation (PnP's rotation is sound where its
+/// position is not: a few dozen points, little parallax); returns the departure then.
+fn keep_within_bracket(pose: &mut StampedPose, prior: &StampedPose, bracket: f64) -> Option<f64> {
+    let departure = (pose.position - prior.position).norm();
+    (departure > MAX_DEPARTURE_OF_BRACKET * bracket).then(|| {
+        pose.position = prior.position;
+        departure
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use nalgebra::{UnitQuaternion, Vector3};
+
+    #[test]
+    fn a_position_off_its_bracket_is_interpolated_and_its_rotation_kept() {
+        let prior = StampedPose {
+            timestamp: 1.0,
+            position: Vector3::new(1.0, 0.0, 0.0),
+            rotation: UnitQuaternion::identity(),
+        };
+        let turned = UnitQuaternion::from_euler_angles(0.0, 0.05, 0.0);
+        let near = StampedPose {
+            position: Vector3::new(1.0, 0.004, 0.0),
+            rotation: turned,
+            ..prior
+        };
+        // Keyframes 5 mm apart: 4 mm off is kept, 6 mm is not.
+        let mut kept = near;
+        assert_eq!(keep_within_bracket(&mut kept, &prior, 0.005), None);
+        assert_eq!(kept, near);
+        let mut far = StampedPose {
+            position: Vector3::new(1.0, 0.006, 0.0),
+            ..near
+        };
+        let departure = keep_within_bracket(&mut far, &prior, 0.005).expect("off");
+        assert!((departure - 0.006).abs() < 1e-12);
+        assert_eq!(far.position, prior.position);
+        assert_eq!(far.rotation, turned);
+    }
 
     #[test]
     fn a_keyframe_ages_with_the_newest_frame() {
