@@ -434,11 +434,12 @@ impl LiveTracker {
 
     /// [`walked_on::walked_on`] from the newest recent posed frame whose shared tracks'
     /// rays differ by the walk's parallax (the oldest such frame would take a stop before
-    /// the walk for walking), when the map has a pace.
+    /// the walk for walking), when the map has a pace. Of `now` (the frame's turned pose,
+    /// or its prior) only the time is used.
     fn walked(
         &self,
         camera: &PinholeRadtan,
-        turned: &StampedPose,
+        now: &StampedPose,
         rays_now: &FxHashMap<u64, Vector3<f64>>,
     ) -> Option<walked_on::Walked> {
         let pace = self.map.pace?;
@@ -453,13 +454,7 @@ impl LiveTracker {
             walked_on::rotation_residual(rays, rays_now, o.rotation_min_inliers)
                 .is_some_and(|p| p >= min_parallax)
         })?;
-        walked_on::walked_on(
-            camera,
-            (anchor, anchor_rays),
-            (turned, rays_now),
-            pace,
-            &check,
-        )
+        walked_on::walked_on(camera, (anchor, anchor_rays), (now, rays_now), pace, &check)
     }
 
     /// Constant velocity from the last two tracked poses; the last tracked pose when there
