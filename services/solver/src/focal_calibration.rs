@@ -168,15 +168,8 @@ pub fn estimate_focal_scale(
     solver: &WindowSolverOptions,
 ) -> Result<FocalEstimate, FocalCalibrationError> {
     let _span = tracing::debug_span!("focal_calibration", keyframes = keyframes.len()).entered();
-    let solver = Intrinsic::Focal.solver(solver);
-    let solved = first_windows(camera, keyframes, options, &solver)?;
-    pool_focal_scales(
-        solved
-            .iter()
-            .filter_map(|s| Intrinsic::Focal.term(s))
-            .collect(),
-        options,
-    )
+    let terms = first_window_terms(Intrinsic::Focal, camera, keyframes, options, solver)?;
+    pool_focal_scales(terms, options)
 }
 
 /// The focal estimate of the windows' scales (`per_window`, in order).
@@ -210,15 +203,8 @@ pub fn estimate_radial_term(
     solver: &WindowSolverOptions,
 ) -> Result<RadialEstimate, FocalCalibrationError> {
     let _span = tracing::debug_span!("radial_calibration", keyframes = keyframes.len()).entered();
-    let solver = Intrinsic::Radial.solver(solver);
-    let solved = first_windows(camera, keyframes, options, &solver)?;
-    pool_radial_terms(
-        solved
-            .iter()
-            .filter_map(|s| Intrinsic::Radial.term(s))
-            .collect(),
-        options,
-    )
+    let terms = first_window_terms(Intrinsic::Radial, camera, keyframes, options, solver)?;
+    pool_radial_terms(terms, options)
 }
 
 /// The radial estimate of the windows' terms (`per_window`, in order).
@@ -335,21 +321,24 @@ pub fn solve_first_window(
     (s.status == WindowStatus::Solved).then_some(s)
 }
 
-/// The run's first windows of `keyframes`, solved with `solver`; those solved with
-/// translation, in order.
-fn first_windows(
+/// The value of `what` in each of the run's first windows of `keyframes` solved with it
+/// free (those solved with translation, in order).
+fn first_window_terms(
+    what: Intrinsic,
     camera: &PinholeRadtan,
     keyframes: &[KeyframeObservations],
     options: &FocalCalibrationOptions,
     solver: &WindowSolverOptions,
-) -> Result<Vec<WindowSolution>, FocalCalibrationError> {
+) -> Result<Vec<f64>, FocalCalibrationError> {
+    let solver = what.solver(solver);
     let mut windows = FirstWindows::new(options)?;
     let mut ranges: Vec<_> = keyframes.iter().filter_map(|_| windows.push()).collect();
     ranges.extend(windows.finish());
     let mut cache = EdgeCache::new();
     Ok(ranges
         .into_iter()
-        .filter_map(|r| solve_first_window(camera, &keyframes[r], solver, &mut cache))
+        .filter_map(|r| solve_first_window(camera, &keyframes[r], &solver, &mut cache))
+        .filter_map(|s| what.term(&s))
         .collect())
 }
 
