@@ -145,24 +145,30 @@ impl IntrinsicsEstimation {
                 self.camera.cy,
             )
             && *view_graph == self.view_graph;
+        self.hand_over(|keyframes| {
+            if !same_graph {
+                return EdgeCache::new();
+            }
+            let ids: std::collections::HashSet<u64> = keyframes.iter().map(|k| k.id).collect();
+            cache
+                .iter()
+                .filter(|((a, b), _)| ids.contains(a) && ids.contains(b))
+                .map(|(key, edge)| (*key, edge.clone()))
+                .collect()
+        });
+        if self.windows.is_none() {
+            self.to_solve = None;
+        }
+    }
+
+    /// Sends the waiting windows to the estimation's thread, each with `edges_of` it.
+    fn hand_over(&mut self, edges_of: impl Fn(&[KeyframeObservations]) -> EdgeCache) {
         for keyframes in std::mem::take(&mut self.waiting) {
-            let edges = if same_graph {
-                let ids: std::collections::HashSet<u64> = keyframes.iter().map(|k| k.id).collect();
-                cache
-                    .iter()
-                    .filter(|((a, b), _)| ids.contains(a) && ids.contains(b))
-                    .map(|(key, edge)| (*key, edge.clone()))
-                    .collect()
-            } else {
-                EdgeCache::new()
-            };
             if let Some(to_solve) = &self.to_solve {
+                let edges = edges_of(&keyframes);
                 // The worker is gone only after a panic, which `finish` reports.
                 let _ = to_solve.send(WindowToSolve { keyframes, edges });
             }
-        }
-        if self.windows.is_none() {
-            self.to_solve = None;
         }
     }
 
@@ -178,12 +184,7 @@ impl IntrinsicsEstimation {
     /// poses) and waits until the estimates are written.
     pub fn finish(mut self) {
         self.stream_ended();
-        for keyframes in std::mem::take(&mut self.waiting) {
-            if let Some(to_solve) = &self.to_solve {
-                let edges = EdgeCache::new();
-                let _ = to_solve.send(WindowToSolve { keyframes, edges });
-            }
-        }
+        self.hand_over(|_| EdgeCache::new());
         self.to_solve = None;
         if self.worker.take().is_some_and(|w| w.join().is_err()) {
             tracing::error!("the intrinsics estimation panicked: no estimate");
@@ -203,7 +204,7 @@ fn write(path: &std::path::Path, estimates: &serde_json::Value) {
 }
 
 /// The estimation's thread: solves each window as it comes, for each intrinsic asked
-/// (one edge cache each, as `focal_calibration::first_windows`), then pools them.
+/// (one edge cache each, as `focal_calibration::first_window_terms`), then pools them.
 fn solve_and_pool(
     request: &IntrinsicsRequest,
     windows: mpsc::Receiver<WindowToSolve>,
