@@ -138,7 +138,7 @@ fn egoslam_view_records_a_run_it_follows() {
     let dir = tempfile::tempdir().expect("tempdir");
     let recording = dir.path().join("view.mcap");
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let view = egoslam()
+    let mut view = egoslam()
         .args([
             "view",
             "--device",
@@ -149,9 +149,10 @@ fn egoslam_view_records_a_run_it_follows() {
         ])
         .arg("--record")
         .arg(&recording)
-        .stderr(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("view");
+    wait_until_following(&mut view);
     let out = dir.path().join("out");
     let report = run_report_with(
         &tum_fixture(),
@@ -177,15 +178,34 @@ fn egoslam_view_records_a_run_it_follows() {
     assert!(frames >= posed, "{frames} frames, {posed} posed");
 }
 
-/// One camera transform per frame's first pose in each round of the run: the clip's run
-/// starts again once with the rolling-shutter readout it estimates (docs/config.md,
-/// "Calibration from the stream"), and its first round may end before the last frame.
+/// Blocks until `egoslam view` says it follows (its subscribers and listener are up, so
+/// a run started now reaches it before publishing), then drains its log on a thread.
+fn wait_until_following(view: &mut std::process::Child) {
+    use std::io::BufRead;
+    let log = view.stderr.take().expect("piped stderr");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(log).lines().map_while(Result::ok) {
+            if line.contains("following egoslam") {
+                let _ = tx.send(());
+            }
+        }
+    });
+    rx.recv_timeout(Duration::from_secs(30))
+        .expect("egoslam view never said it follows");
+}
+
+/// One camera transform per frame's first pose, and never two: the clip runs once (it is
+/// shorter than the readout's estimation frames, so its keyframes are held for the readout
+/// instead of the run starting again: docs/config.md, "Calibration from the stream"). A
+/// live pose the lossy live channel dropped leaves its frame without one (its window's
+/// pose comes as a later revision, which moves no camera): at most 1 in 20.
 fn assert_one_transform_per_first_pose(tf: u64, frames: u64, report: &serde_json::Value) {
     let rounds = 1 + report["calibration_restarts"].as_u64().expect("restarts");
-    assert_eq!(rounds, 2, "the clip's readout starts its run again once");
+    assert_eq!(rounds, 1, "the clip's readout is held, not a second run");
     assert!(
-        frames < tf && tf <= rounds * frames,
-        "{tf} camera transforms for {frames} frames in {rounds} rounds"
+        tf <= frames && tf * 20 >= frames * 19,
+        "{tf} camera transforms for {frames} frames"
     );
 }
 

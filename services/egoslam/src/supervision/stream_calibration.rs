@@ -41,6 +41,9 @@ pub struct StreamCalibration {
     radial: Estimate,
     /// The readout the frontend estimated, ms, once it has.
     readout_ms: Option<f64>,
+    /// The frontend holds the keyframes of the readout's frames and corrects them with
+    /// the estimate (readout_hold.rs): the run goes on with it.
+    readout_held: bool,
     /// Rounds started again for an estimate.
     pub restarts: u32,
 }
@@ -71,6 +74,7 @@ impl StreamCalibration {
             focal: off(),
             radial: off(),
             readout_ms: None,
+            readout_held: false,
             restarts: 0,
         }
     }
@@ -96,7 +100,20 @@ impl StreamCalibration {
             focal: asked(focal),
             radial: asked(radial),
             readout_ms: None,
+            readout_held: false,
             restarts: 0,
+        }
+    }
+
+    /// The readout estimated by the frontend's hold instead of a run started again (for
+    /// a recording no longer than the estimate's frames, which a second run would
+    /// process twice over): the held keyframes are corrected as a run told the readout
+    /// would have tracked them, with no second pass, but no window is solved before the
+    /// estimate.
+    pub fn holding_the_readout(self) -> Self {
+        Self {
+            readout_held: true,
+            ..self
         }
     }
 
@@ -111,7 +128,7 @@ impl StreamCalibration {
                 self.restarts << egoslam_messages::ROUND_REVISION_BITS
             ));
         }
-        if self.readout == Estimate::Asked {
+        if self.readout == Estimate::Asked && !self.readout_held {
             flags.push("--hold-for-readout=false".to_string());
         }
         let asked: Vec<&str> = [("focal", &self.focal), ("radial", &self.radial)]
@@ -142,9 +159,13 @@ impl StreamCalibration {
                 "setting": "auto",
                 "readout_ms": ms,
                 "estimate": details,
-                "estimated_by": "the frontend, from the stream's first frames",
+                "estimated_by": if self.readout_held {
+                    "the frontend, from the stream's first frames (their keyframes held and corrected)"
+                } else {
+                    "the frontend, from the stream's first frames"
+                },
             }));
-            if ms > 0.0 {
+            if ms > 0.0 && !self.readout_held {
                 // The intrinsics of this round, estimated on uncorrected keyframes, are
                 // not read: they stay asked of the next round.
                 tracing::info!(
@@ -306,6 +327,23 @@ mod tests {
         assert_eq!(focal["applied_scale"], 0.97);
         assert_eq!(radial["applied_k"], 0.0);
         assert_eq!(plan.restarts, 2);
+    }
+
+    /// A short recording's readout is the frontend's to hold: found, the run goes on.
+    #[test]
+    fn a_held_readout_never_starts_the_run_again() {
+        let out = tempfile::tempdir().expect("tempdir");
+        let out = out.path();
+        let mut plan = StreamCalibration::new(Readout::Auto, false, false).holding_the_readout();
+        let round = RoundSettings {
+            readout: Readout::Auto,
+            camera: camera(),
+        };
+        assert!(plan.flags().is_empty(), "the frontend holds");
+        egoslam_durability::estimated_readout::write(out, 21.0).expect("readout");
+        assert!(plan.check(out, &round).is_none());
+        assert_eq!(plan.reports()[0]["readout_ms"], 21.0);
+        assert_eq!(plan.restarts, 0);
     }
 
     /// A global shutter and nothing to correct: the first round is the run.
