@@ -423,8 +423,7 @@ pub struct ServiceArgs {
     #[arg(long, hide = true, value_delimiter = ',')]
     pub estimate_intrinsics: Vec<EstimatedIntrinsic>,
     /// Keyframes wait while the frontend estimates an `auto` readout, and go out
-    /// corrected (`false`: they go out uncorrected; `egoslam run` starts a recorded input
-    /// again with the readout when it finds one).
+    /// corrected (`false`: they go out uncorrected at once).
     #[arg(long, hide = true, default_value_t = true, action = clap::ArgAction::Set)]
     pub hold_for_readout: bool,
     /// The revision of a frame's first published pose (the merger's; `egoslam run` numbers

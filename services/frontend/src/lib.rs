@@ -11,8 +11,8 @@ pub mod tracker_options;
 
 pub use keyframe_policy::{KeyframeDecision, KeyframePolicy, KeyframeReason};
 pub use readout_estimation::{
-    estimate_readout, FrameTracks, OnlineReadout, OnlineReadoutEstimator, ReadoutEstimate,
-    ReadoutEstimationError, ReadoutEstimationOptions,
+    estimate_readout, EarlyGlobalShutter, FrameTracks, OnlineReadout, OnlineReadoutEstimator,
+    ReadoutEstimate, ReadoutEstimationError, ReadoutEstimationOptions,
 };
 pub use tracker::{
     FrameOutcome, KeyframeTracks, TrackPoint, Tracker, TrackerError, TrackerOptions,

@@ -176,18 +176,11 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let mut calibrations = if matches!(layout, Layout::Camera { .. }) {
         StreamCalibration::live(args.pipeline.rolling_shutter_ms)
     } else {
-        let plan = StreamCalibration::new(
+        StreamCalibration::new(
             args.pipeline.rolling_shutter_ms,
             args.pipeline.calibrate_focal,
             args.pipeline.calibrate_radial.applies_to(&camera),
-        );
-        // A recording no longer than the readout's frames would be processed twice over
-        // by a run started again for the readout: its keyframes are held instead.
-        if total_frames.is_some_and(|n| n <= args.pipeline.readout_frames as usize) {
-            plan.holding_the_readout()
-        } else {
-            plan
-        }
+        )
     };
     let mut round = RoundSettings {
         readout: args.pipeline.rolling_shutter_ms,

@@ -4,17 +4,18 @@
 //! before starting the services, to estimate the rolling-shutter readout (`auto`) and the
 //! radial or focal correction (`--calibrate-radial`, `--calibrate-focal`): a pass that
 //! blocked the start for 1.8 s of the rendered 10 s walk's 5.4 s. Now the services start at
-//! once with the calibration as given; the frontend estimates the readout from the first
-//! frames it tracks anyway (`--hold-for-readout false`: their keyframes go out uncorrected)
-//! and the solver the intrinsics from the first keyframes it receives
-//! (`--estimate-intrinsics`). Most inputs need neither (a global shutter, no distortion
-//! left), and their run is the one a pre-pass would have started. When an estimate
-//! applies, the run starts again from the input's first frame with it, so that every
-//! process and the saved camera use it from the start: the final results are those of a
-//! run told the estimate, at the cost of the frames processed before it came (150 frames
-//! for a readout, 300 for the intrinsics). The estimates are made in this order, as the
-//! pre-pass made them: the readout, then the focal length, then the radial term, each on
-//! the camera corrected by the ones before.
+//! once with the calibration as given. The frontend estimates the readout from the first
+//! frames it tracks anyway and holds their keyframes until then, correcting them with the
+//! estimate (readout_hold.rs, as on a live stream; a global shutter is decided early,
+//! `EarlyGlobalShutter`), so a readout never starts the run again. The solver estimates
+//! the intrinsics from the first keyframes it receives (`--estimate-intrinsics`). Most
+//! inputs need no intrinsic correction, and their run is the one a pre-pass would have
+//! started. When one applies, the run starts again from the input's first frame with it,
+//! so that every process and the saved camera use it from the start: the final results
+//! are those of a run told the estimate, at the cost of the frames processed before it
+//! came (300 frames). The estimates are made in this order, as the pre-pass made them:
+//! the readout, then the focal length, then the radial term, each on the camera corrected
+//! by the ones before.
 
 use crate::calibration::focal::{scaled, with_radial};
 use crate::calibration::settings::Readout;
@@ -41,9 +42,6 @@ pub struct StreamCalibration {
     radial: Estimate,
     /// The readout the frontend estimated, ms, once it has.
     readout_ms: Option<f64>,
-    /// The frontend holds the keyframes of the readout's frames and corrects them with
-    /// the estimate (readout_hold.rs): the run goes on with it.
-    readout_held: bool,
     /// Rounds started again for an estimate.
     pub restarts: u32,
 }
@@ -74,7 +72,6 @@ impl StreamCalibration {
             focal: off(),
             radial: off(),
             readout_ms: None,
-            readout_held: false,
             restarts: 0,
         }
     }
@@ -100,26 +97,13 @@ impl StreamCalibration {
             focal: asked(focal),
             radial: asked(radial),
             readout_ms: None,
-            readout_held: false,
             restarts: 0,
         }
     }
 
-    /// The readout estimated by the frontend's hold instead of a run started again (for
-    /// a recording no longer than the estimate's frames, which a second run would
-    /// process twice over): the held keyframes are corrected as a run told the readout
-    /// would have tracked them, with no second pass, but no window is solved before the
-    /// estimate.
-    pub fn holding_the_readout(self) -> Self {
-        Self {
-            readout_held: true,
-            ..self
-        }
-    }
-
-    /// The services' flags for this round: the frontend's hold (off while the readout is
-    /// estimated here) and the intrinsics the solver estimates (in the same round as the
-    /// readout; not used when the readout turns out to matter).
+    /// The services' flags for this round: the first revision of a round started again,
+    /// and the intrinsics the solver estimates (in the same round as the readout, on the
+    /// keyframes the frontend corrected with it).
     pub fn flags(&self) -> Vec<String> {
         let mut flags = Vec::new();
         if self.restarts > 0 {
@@ -127,9 +111,6 @@ impl StreamCalibration {
                 "--first-revision={}",
                 self.restarts << egoslam_messages::ROUND_REVISION_BITS
             ));
-        }
-        if self.readout == Estimate::Asked && !self.readout_held {
-            flags.push("--hold-for-readout=false".to_string());
         }
         let asked: Vec<&str> = [("focal", &self.focal), ("radial", &self.radial)]
             .into_iter()
@@ -159,24 +140,8 @@ impl StreamCalibration {
                 "setting": "auto",
                 "readout_ms": ms,
                 "estimate": details,
-                "estimated_by": if self.readout_held {
-                    "the frontend, from the stream's first frames (their keyframes held and corrected)"
-                } else {
-                    "the frontend, from the stream's first frames"
-                },
+                "estimated_by": "the frontend, from the stream's first frames (their keyframes held and corrected)",
             }));
-            if ms > 0.0 && !self.readout_held {
-                // The intrinsics of this round, estimated on uncorrected keyframes, are
-                // not read: they stay asked of the next round.
-                tracing::info!(
-                    readout_ms = ms,
-                    "a rolling-shutter readout: the run starts again with it"
-                );
-                return Some(RoundSettings {
-                    readout: Readout::Millis(ms),
-                    camera: current.camera,
-                });
-            }
         }
         if self.focal != Estimate::Asked && self.radial != Estimate::Asked {
             return None;
@@ -258,11 +223,12 @@ mod tests {
         std::fs::write(path, estimates.to_string()).expect("written");
     }
 
-    /// The estimates are taken in the order they depend on each other: a readout found
-    /// starts the run again and asks the intrinsics again; a focal correction starts it
-    /// again and asks the radial term again; nothing found ends the rounds.
+    /// The estimates are taken in the order they depend on each other: the intrinsics
+    /// wait for the readout (the frontend holds its keyframes for it, so it never starts
+    /// the run again); a focal correction starts the run again, told the readout, and
+    /// asks the radial term again; nothing found ends the rounds.
     #[test]
-    fn a_run_starts_again_for_each_estimate_that_applies_in_order() {
+    fn a_run_starts_again_for_each_intrinsic_that_applies_in_order() {
         let out = tempfile::tempdir().expect("tempdir");
         let out = out.path();
         let mut plan = StreamCalibration::new(Readout::Auto, true, true);
@@ -270,13 +236,7 @@ mod tests {
             readout: Readout::Auto,
             camera: camera(),
         };
-        assert_eq!(
-            plan.flags(),
-            vec![
-                "--hold-for-readout=false",
-                "--estimate-intrinsics=focal,radial"
-            ]
-        );
+        assert_eq!(plan.flags(), vec!["--estimate-intrinsics=focal,radial"]);
         // Nothing estimated yet.
         assert!(plan.check(out, &round).is_none());
         // The intrinsics come first but wait for the readout.
@@ -286,23 +246,6 @@ mod tests {
         );
         assert!(plan.check(out, &round).is_none());
         egoslam_durability::estimated_readout::write(out, 21.0).expect("readout");
-        let next = plan.check(out, &round).expect("again for the readout");
-        assert_eq!(next.readout, Readout::Millis(21.0));
-        assert_eq!(next.camera, camera());
-        plan.start_again();
-        round = next;
-        let _ = std::fs::remove_dir_all(egoslam_durability::state_dir(out));
-        assert_eq!(
-            plan.flags(),
-            vec![
-                "--first-revision=16777216",
-                "--estimate-intrinsics=focal,radial"
-            ]
-        );
-        write_intrinsics(
-            out,
-            json!({ "focal": { "applied_scale": 0.97 }, "radial": { "applied_k": 0.02 } }),
-        );
         let next = plan.check(out, &round).expect("again for the focal length");
         assert_eq!(next.readout, Readout::Millis(21.0));
         assert!((next.camera.fx - 485.0).abs() < 1e-9);
@@ -315,7 +258,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(egoslam_durability::state_dir(out));
         assert_eq!(
             plan.flags(),
-            vec!["--first-revision=33554432", "--estimate-intrinsics=radial"]
+            vec!["--first-revision=16777216", "--estimate-intrinsics=radial"]
         );
         write_intrinsics(
             out,
@@ -326,15 +269,15 @@ mod tests {
         assert_eq!(readout["readout_ms"], 21.0);
         assert_eq!(focal["applied_scale"], 0.97);
         assert_eq!(radial["applied_k"], 0.0);
-        assert_eq!(plan.restarts, 2);
+        assert_eq!(plan.restarts, 1);
     }
 
-    /// A short recording's readout is the frontend's to hold: found, the run goes on.
+    /// A readout found never starts the run again: the frontend held its keyframes.
     #[test]
-    fn a_held_readout_never_starts_the_run_again() {
+    fn a_readout_never_starts_the_run_again() {
         let out = tempfile::tempdir().expect("tempdir");
         let out = out.path();
-        let mut plan = StreamCalibration::new(Readout::Auto, false, false).holding_the_readout();
+        let mut plan = StreamCalibration::new(Readout::Auto, false, false);
         let round = RoundSettings {
             readout: Readout::Auto,
             camera: camera(),

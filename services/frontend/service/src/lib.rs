@@ -42,8 +42,7 @@ pub struct FrontendServiceOptions {
     /// Frames the online readout estimate is made from.
     pub readout_frames: u32,
     /// Hold the keyframes of those frames until the estimate and correct them
-    /// (readout_hold.rs); else they go out uncorrected (a recorded input, which `egoslam
-    /// run` starts again with the readout when it finds one).
+    /// (readout_hold.rs); else they go out uncorrected at once.
     pub hold_for_readout: bool,
     /// A saved map the run extends: keyframe and track ids start above its own.
     pub map_in: Option<PathBuf>,

@@ -5,8 +5,8 @@
 //! state folder for a restarted frontend and for the merger's saved map.
 
 use egoslam_frontend::{
-    FrameTracks, OnlineReadout, OnlineReadoutEstimator, ReadoutEstimate, ReadoutEstimationOptions,
-    Tracker,
+    EarlyGlobalShutter, FrameTracks, OnlineReadout, OnlineReadoutEstimator, ReadoutEstimate,
+    ReadoutEstimationOptions, Tracker,
 };
 use std::path::Path;
 
@@ -41,7 +41,8 @@ pub fn service_readout(
                 ReadoutEstimationOptions::default(),
                 readout_frames as usize,
                 ONLINE_ATTEMPTS,
-            );
+            )
+            .deciding_global_shutter_early(EarlyGlobalShutter::default());
             (0.0, Some(estimator))
         }
     }
