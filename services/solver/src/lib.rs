@@ -18,7 +18,7 @@ pub mod schur;
 pub mod sparse_schur;
 pub mod translation_averaging;
 pub mod triangulation;
-pub mod unobserved_centres;
+pub mod unobserved_keyframes;
 pub mod view_graph;
 pub mod window_solver;
 pub mod windowing;

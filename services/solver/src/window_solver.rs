@@ -12,7 +12,9 @@ use crate::translation_averaging::{
     average_translations, DirectionConstraint, Endpoints, TranslationAveragingOptions,
 };
 use crate::triangulation::{CameraPose, TriangulationOptions};
-use crate::unobserved_centres::{place_unobserved_centres, UnobservedCentreOptions};
+use crate::unobserved_keyframes::{
+    place_unobserved_centres, restore_unobserved_rotations, UnobservedCentreOptions,
+};
 use crate::view_graph::{
     build_view_graph, EdgeCache, KeyframeObservations, ViewEdge, ViewGraphOptions,
 };
@@ -65,7 +67,7 @@ pub struct WindowSolverOptions {
     /// failed whole while 4-11 % more frames get a pose).
     pub min_piece_fraction: f64,
     /// Keyframes the points barely see get their centres from the motion around them
-    /// (unobserved_centres.rs).
+    /// (unobserved_keyframes.rs).
     pub unobserved_centres: UnobservedCentreOptions,
 }
 
@@ -512,7 +514,7 @@ fn solve_connected(
         outlier[n] = true;
     }
     let mut counts = vec![0u32; points.len()];
-    // Inlier observations per keyframe, for place_unobserved_centres.
+    // Inlier observations per keyframe, for the unobserved keyframes' poses.
     let mut seen = vec![0usize; n];
     let mut kept = Vec::with_capacity(observations.len());
     for (o, _) in observations.iter().zip(&outlier).filter(|(_, out)| !**out) {
@@ -522,6 +524,13 @@ fn solve_connected(
     }
     let mut adjusted_poses = adjusted.poses;
     let timestamps: Vec<f64> = keyframes.iter().map(|k| k.timestamp).collect();
+    let restored = restore_unobserved_rotations(
+        &mut adjusted_poses,
+        &timestamps,
+        &seen,
+        rot,
+        &options.unobserved_centres,
+    );
     let placed = place_unobserved_centres(
         &mut adjusted_poses,
         &timestamps,
@@ -531,7 +540,8 @@ fn solve_connected(
     if placed > 0 {
         tracing::debug!(
             placed,
-            "centres of unobserved keyframes placed from the motion"
+            restored,
+            "unobserved keyframes: centres placed from the motion, rotations from the averaging"
         );
     }
     let solved_points = points
