@@ -22,6 +22,7 @@ use egoslam_solver::bundle_adjustment::{
     bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
 };
 use egoslam_solver::triangulation::CameraPose;
+use egoslam_solver::unobserved_keyframes::{restore_unobserved_rotations, UnobservedCentreOptions};
 use nalgebra::{UnitQuaternion, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -71,8 +72,10 @@ pub struct RefinementJob {
     segment: u32,
     camera: PinholeRadtan,
     options: RefinementOptions,
-    /// Keyframe ids in order, with their poses (BA convention) when the job was made.
+    /// Keyframe ids in order, with their times and poses (BA convention) when the job was
+    /// made.
     ids: Vec<u64>,
+    timestamps: Vec<f64>,
     poses: Vec<CameraPose>,
     tracks: Vec<u64>,
     points: Vec<Vector3<f64>>,
@@ -125,13 +128,18 @@ impl RefinementJob {
     }
 
     /// Runs the bundle adjustment (seconds for a thousand keyframes; call it off the
-    /// merger's thread). `None` when the solver rejects the problem.
+    /// merger's thread). `None` when the solver rejects the problem. A keyframe that kept
+    /// too few inlier observations to hold its rotation keeps the one it had relative to its
+    /// well-observed neighbours when the adjustment turned it away
+    /// (`egoslam_solver::unobserved_keyframes`, as a window's): on a rendered 300 deg/s head
+    /// shake, whose windows barely translate, refinements turned such keyframes up to
+    /// 106 deg.
     pub fn solve(self) -> Option<RefinementOutcome> {
         let options = BundleAdjustmentOptions {
             fixed_cameras: self.options.fixed.min(self.ids.len() - 1),
             ..self.options.bundle_adjustment
         };
-        let result = bundle_adjust(
+        let mut result = bundle_adjust(
             &self.camera,
             &self.poses,
             &self.points,
@@ -139,6 +147,27 @@ impl RefinementJob {
             &options,
         )
         .ok()?;
+        let mut inliers = vec![0usize; self.poses.len()];
+        let outliers: std::collections::HashSet<usize> = result.outliers.iter().copied().collect();
+        for (i, o) in self.observations.iter().enumerate() {
+            if !outliers.contains(&i) {
+                inliers[o.camera] += 1;
+            }
+        }
+        let before: Vec<_> = self.poses.iter().map(|p| p.rotation).collect();
+        let restored = restore_unobserved_rotations(
+            &mut result.poses,
+            &self.timestamps,
+            &inliers,
+            &before,
+            &UnobservedCentreOptions::default(),
+        );
+        if restored > 0 {
+            tracing::debug!(
+                restored,
+                "refinement: rotations of unobserved keyframes kept"
+            );
+        }
         Some(RefinementOutcome { job: self, result })
     }
 }
@@ -174,6 +203,10 @@ impl MapBuilder {
         let poses: Vec<CameraPose> = ids
             .iter()
             .map(|id| camera_pose(&self.keyframes[id].1))
+            .collect();
+        let timestamps = ids
+            .iter()
+            .map(|id| self.keyframes[id].1.timestamp)
             .collect();
         let (first, last) = (ids[0], ids[ids.len() - 1]);
         let mut by_track: BTreeMap<u64, Vec<(usize, nalgebra::Point2<f64>)>> = BTreeMap::new();
@@ -217,6 +250,7 @@ impl MapBuilder {
             camera: *camera,
             options: *options,
             ids,
+            timestamps,
             poses,
             tracks,
             points,
