@@ -1,5 +1,6 @@
 //! A service that dies is noticed: its consumer fails instead of hanging, and the launcher
-//! stops the whole pipeline with an error naming the service.
+//! stops the whole pipeline with an error naming the service; a killed launcher's bus
+//! folder is removed by the next run.
 
 mod common;
 
@@ -117,9 +118,13 @@ fn launcher_stops_everything_when_a_service_dies() {
     assert_eq!(services_writing_to(out.path()), 0, "services left running");
 }
 
+/// The launcher killed, its services stop; the bus folder it could not remove is removed
+/// by the next run (its process is gone), which leaves none of its own.
 #[test]
 fn services_stop_when_the_launcher_is_killed() {
     let out = tempfile::tempdir().expect("tempdir");
+    // The runs' temporary folder: their iceoryx2 folders go there.
+    let tmp = tempfile::tempdir().expect("tempdir");
     // The clip's images as a folder replayed at 1 frame/s: two minutes of run, so services
     // still running after 15 s are orphans, not a run that ended by itself.
     let mut run = egoslam_with_calibration_given()
@@ -129,9 +134,11 @@ fn services_stop_when_the_launcher_is_killed() {
         .arg(tum_fixture().join("camera.yaml"))
         .arg("--out")
         .arg(out.path())
+        .env("TMPDIR", tmp.path())
         .stderr(std::process::Stdio::null())
         .spawn()
         .expect("run");
+    let bus_folder = tmp.path().join(format!("egoslam-run{}", run.id()));
     let services = || services_writing_to(out.path());
     let start = Instant::now();
     while services() < 4 {
@@ -152,6 +159,25 @@ fn services_stop_when_the_launcher_is_killed() {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+    assert!(bus_folder.is_dir(), "the killed run's bus folder");
+    let next = tempfile::tempdir().expect("tempdir");
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(next.path())
+        .env("TMPDIR", tmp.path())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .expect("next run");
+    assert!(status.success());
+    let left: Vec<_> = std::fs::read_dir(tmp.path())
+        .expect("tmp")
+        .flatten()
+        .map(|e| e.file_name())
+        .filter(|n| n.to_string_lossy().starts_with("egoslam-run"))
+        .collect();
+    assert!(left.is_empty(), "bus folders left: {left:?}");
 }
 
 /// Processes whose command line has `--out=<out>`: the services of one run. (`--` before

@@ -80,6 +80,46 @@ fn check_listen_endpoints(endpoints: &[String]) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The folder of a run's iceoryx2 files (in the temporary folder, named after the
+/// launcher's process id); removed when dropped, so that a run ending in an error leaves
+/// none behind.
+struct BusRoot(PathBuf);
+
+impl BusRoot {
+    const PREFIX: &'static str = "egoslam-run";
+
+    fn of_this_process() -> Self {
+        Self(std::env::temp_dir().join(format!("{}{}", Self::PREFIX, std::process::id())))
+    }
+
+    /// Removes the folders of runs whose launcher is gone without removing its own (killed
+    /// by SIGKILL or the OOM killer): nothing else ever would, one per such run.
+    fn remove_stale() {
+        let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+            return;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let pid = name
+                .to_str()
+                .and_then(|n| n.strip_prefix(Self::PREFIX))
+                .and_then(|p| p.parse::<u32>().ok());
+            if let Some(pid) = pid {
+                if !Path::new(&format!("/proc/{pid}")).exists() {
+                    tracing::debug!(folder = %entry.path().display(), "bus folder of a dead run removed");
+                    let _ = std::fs::remove_dir_all(entry.path());
+                }
+            }
+        }
+    }
+}
+
+impl Drop for BusRoot {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// Writes the iceoryx2 configuration of this run (egoslam's, with its root `dir`) into
 /// `dir` and returns its path. The root is kept short (in the temporary folder, not under
 /// the output): iceoryx2 names Unix sockets after it, whose paths may not pass 108 bytes.
@@ -191,8 +231,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let namespace = format!("run{}", std::process::id());
     // The services' iceoryx2 files in a folder of this run's, not the shared /tmp/iceoryx2:
     // runs never see each other's services or clean up each other's nodes.
-    let bus_root = std::env::temp_dir().join(format!("egoslam-{namespace}"));
-    let bus_config = per_run_bus_config(&bus_root)?;
+    BusRoot::remove_stale();
+    let bus_root = BusRoot::of_this_process();
+    let bus_config = per_run_bus_config(&bus_root.0)?;
     std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
     catch_stop_signals()?;
@@ -263,7 +304,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     };
     let camera = round.camera;
     // Every service has ended (or was stopped): their bus files are of no further use.
-    let _ = std::fs::remove_dir_all(&bus_root);
+    drop(bus_root);
     let Supervision {
         restarts,
         interrupted_by,
