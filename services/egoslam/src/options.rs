@@ -30,10 +30,9 @@ pub struct PipelineArgs {
     #[arg(long, help_heading = "frontend", default_value_t = true, action = clap::ArgAction::Set)]
     pub predict_motion: bool,
     /// Rolling-shutter readout of the camera, ms from the first row to the last (0: a
-    /// global shutter), or `auto`: estimated by the frontend from the first frames (a
-    /// recorded input's run starts again with it when there is one; a live stream's
-    /// keyframes wait for it); observations are moved to the middle row's time
-    /// (docs/config.md).
+    /// global shutter), or `auto`: estimated by the frontend from the first frames, whose
+    /// keyframes wait for it (a global shutter is decided after 75 when they clearly show
+    /// one); observations are moved to the middle row's time (docs/config.md).
     #[arg(
         long,
         help_heading = "frontend",
@@ -42,8 +41,8 @@ pub struct PipelineArgs {
     )]
     pub rolling_shutter_ms: crate::calibration::settings::Readout,
     /// Frames `--rolling-shutter-ms auto` estimates the readout from (23-10000): the
-    /// stream's first (a live stream's keyframes wait for the estimate: its first window
-    /// comes that much later).
+    /// stream's first (their keyframes wait for the estimate: the first window comes that
+    /// much later).
     #[arg(long, help_heading = "frontend", default_value_t = crate::calibration::settings::AUTO_FRAMES, value_parser = clap::value_parser!(u32).range(23..=10_000))]
     pub readout_frames: u32,
     /// Self-calibrate the focal length: the solver solves the first windows of a recorded
