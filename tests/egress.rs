@@ -156,10 +156,9 @@ fn a_zenoh_client_gets_poses_trajectory_status_and_a_snapshot() {
     assert!(statuses.iter().any(|s| s.service == "merger"
         && s.state == pb::ServiceState::Running as i32
         && s.windows >= 1));
-    // Every status names its run, the one report.json names: the clip is shorter than the
-    // readout's estimation frames, so its keyframes are held for the readout rather than
-    // the run starting again (docs/config.md, "Calibration from the stream"), which would
-    // be a new run to a client.
+    // Every status names its run, the one report.json names: the clip's keyframes are held
+    // for its readout rather than the run starting again (docs/config.md, "Calibration
+    // from the stream"), which would be a new run to a client.
     let run_id = report(out.path())["run_id"]
         .as_str()
         .expect("run_id")

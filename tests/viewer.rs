@@ -195,9 +195,9 @@ fn wait_until_following(view: &mut std::process::Child) {
         .expect("egoslam view never said it follows");
 }
 
-/// One camera transform per frame's first pose, and never two: the clip runs once (it is
-/// shorter than the readout's estimation frames, so its keyframes are held for the readout
-/// instead of the run starting again: docs/config.md, "Calibration from the stream"). A
+/// One camera transform per frame's first pose, and never two: the clip runs once (its
+/// keyframes are held for the readout instead of the run starting again: docs/config.md,
+/// "Calibration from the stream"). A
 /// live pose the lossy live channel dropped leaves its frame without one (its window's
 /// pose comes as a later revision, which moves no camera): at most 1 in 20.
 fn assert_one_transform_per_first_pose(tf: u64, frames: u64, report: &serde_json::Value) {

@@ -22,7 +22,9 @@ use egoslam_solver::bundle_adjustment::{
     bundle_adjust, BundleAdjustmentOptions, BundleAdjustmentResult, Observation,
 };
 use egoslam_solver::triangulation::CameraPose;
-use egoslam_solver::unobserved_keyframes::{restore_unobserved_rotations, UnobservedCentreOptions};
+use egoslam_solver::unobserved_keyframes::{
+    restore_unobserved_rotations, UnobservedKeyframeOptions,
+};
 use nalgebra::{UnitQuaternion, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -147,20 +149,14 @@ impl RefinementJob {
             &options,
         )
         .ok()?;
-        let mut inliers = vec![0usize; self.poses.len()];
-        let outliers: std::collections::HashSet<usize> = result.outliers.iter().copied().collect();
-        for (i, o) in self.observations.iter().enumerate() {
-            if !outliers.contains(&i) {
-                inliers[o.camera] += 1;
-            }
-        }
+        let inliers = result.inliers_per_camera(&self.observations, self.poses.len());
         let before: Vec<_> = self.poses.iter().map(|p| p.rotation).collect();
         let restored = restore_unobserved_rotations(
             &mut result.poses,
             &self.timestamps,
             &inliers,
             &before,
-            &UnobservedCentreOptions::default(),
+            &UnobservedKeyframeOptions::default(),
         );
         if restored > 0 {
             tracing::debug!(

@@ -144,6 +144,20 @@ pub struct BundleAdjustmentResult {
     pub iterations: usize,
 }
 
+impl BundleAdjustmentResult {
+    /// Inlier observations of each of `cameras` cameras, of the `observations` adjusted.
+    pub fn inliers_per_camera(&self, observations: &[Observation], cameras: usize) -> Vec<usize> {
+        let mut seen = vec![0usize; cameras];
+        for o in observations {
+            seen[o.camera] += 1;
+        }
+        for &n in &self.outliers {
+            seen[observations[n].camera] -= 1;
+        }
+        seen
+    }
+}
+
 struct State {
     poses: Vec<CameraPose>,
     points: Vec<Vector3<f64>>,

@@ -26,9 +26,10 @@
 use crate::triangulation::CameraPose;
 use nalgebra::{Rotation3, Vector3};
 
-/// When a centre counts as unobserved; defaults commented with their reason.
+/// When a keyframe counts as unobserved, and when its adjusted rotation is replaced;
+/// defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct UnobservedCentreOptions {
+pub struct UnobservedKeyframeOptions {
     /// A keyframe with fewer inlier observations after bundle adjustment has its centre
     /// replaced (default 20: the turn keyframes of the rendered walks had 0-10; a keyframe
     /// that sees 20 points spread over the image is placed to well within its step).
@@ -43,7 +44,7 @@ pub struct UnobservedCentreOptions {
     pub max_rotation_departure_deg: f64,
 }
 
-impl Default for UnobservedCentreOptions {
+impl Default for UnobservedKeyframeOptions {
     fn default() -> Self {
         Self {
             min_observations: 20,
@@ -71,7 +72,7 @@ pub fn restore_unobserved_rotations(
     timestamps: &[f64],
     observations: &[usize],
     averaged: &[Rotation3<f64>],
-    options: &UnobservedCentreOptions,
+    options: &UnobservedKeyframeOptions,
 ) -> usize {
     let strong: Vec<usize> = (0..poses.len())
         .filter(|&k| observations.get(k).copied().unwrap_or(0) >= options.min_observations)
@@ -111,7 +112,7 @@ pub fn place_unobserved_centres(
     poses: &mut [CameraPose],
     timestamps: &[f64],
     observations: &[usize],
-    options: &UnobservedCentreOptions,
+    options: &UnobservedKeyframeOptions,
 ) -> usize {
     let strong: Vec<usize> = (0..poses.len())
         .filter(|&k| observations.get(k).copied().unwrap_or(0) >= options.min_observations)
@@ -196,7 +197,7 @@ mod tests {
             &timestamps,
             &observations,
             &averaged,
-            &UnobservedCentreOptions::default(),
+            &UnobservedKeyframeOptions::default(),
         );
         assert_eq!(n, 1);
         for (p, t) in poses.iter().zip(&truth) {
@@ -220,7 +221,7 @@ mod tests {
             &mut poses,
             &timestamps,
             &observations,
-            &UnobservedCentreOptions::default(),
+            &UnobservedKeyframeOptions::default(),
         );
         assert_eq!(n, 4);
         for (k, p) in poses.iter().enumerate() {
@@ -243,7 +244,7 @@ mod tests {
             &mut poses,
             &timestamps,
             &[0, 100, 0],
-            &UnobservedCentreOptions::default(),
+            &UnobservedKeyframeOptions::default(),
         );
         assert_eq!(n, 0);
         assert_eq!(poses, before);

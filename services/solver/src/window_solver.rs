@@ -13,7 +13,7 @@ use crate::translation_averaging::{
 };
 use crate::triangulation::{CameraPose, TriangulationOptions};
 use crate::unobserved_keyframes::{
-    place_unobserved_centres, restore_unobserved_rotations, UnobservedCentreOptions,
+    place_unobserved_centres, restore_unobserved_rotations, UnobservedKeyframeOptions,
 };
 use crate::view_graph::{
     build_view_graph, EdgeCache, KeyframeObservations, ViewEdge, ViewGraphOptions,
@@ -66,9 +66,10 @@ pub struct WindowSolverOptions {
     /// map segment, 5 instead of 2 on the shake; at 0.5 the breaks stay as when the window
     /// failed whole while 4-11 % more frames get a pose).
     pub min_piece_fraction: f64,
-    /// Keyframes the points barely see get their centres from the motion around them
+    /// Keyframes the points barely see get their centres from the motion around them and,
+    /// when bundle adjustment turned them away, their rotations from the averaging
     /// (unobserved_keyframes.rs).
-    pub unobserved_centres: UnobservedCentreOptions,
+    pub unobserved_keyframes: UnobservedKeyframeOptions,
 }
 
 impl Default for WindowSolverOptions {
@@ -87,7 +88,7 @@ impl Default for WindowSolverOptions {
             min_translation_edges: 5,
             min_translation_edge_fraction: 0.1,
             min_piece_fraction: 0.5,
-            unobserved_centres: UnobservedCentreOptions::default(),
+            unobserved_keyframes: UnobservedKeyframeOptions::default(),
         }
     }
 }
@@ -514,14 +515,13 @@ fn solve_connected(
         outlier[n] = true;
     }
     let mut counts = vec![0u32; points.len()];
-    // Inlier observations per keyframe, for the unobserved keyframes' poses.
-    let mut seen = vec![0usize; n];
     let mut kept = Vec::with_capacity(observations.len());
     for (o, _) in observations.iter().zip(&outlier).filter(|(_, out)| !**out) {
         counts[o.point] += 1;
-        seen[o.camera] += 1;
         kept.push((o.camera, points[o.point].0, o.pixel));
     }
+    // Inlier observations per keyframe, for the unobserved keyframes' poses.
+    let seen = adjusted.inliers_per_camera(&observations, n);
     let mut adjusted_poses = adjusted.poses;
     let timestamps: Vec<f64> = keyframes.iter().map(|k| k.timestamp).collect();
     let restored = restore_unobserved_rotations(
@@ -529,15 +529,15 @@ fn solve_connected(
         &timestamps,
         &seen,
         rot,
-        &options.unobserved_centres,
+        &options.unobserved_keyframes,
     );
     let placed = place_unobserved_centres(
         &mut adjusted_poses,
         &timestamps,
         &seen,
-        &options.unobserved_centres,
+        &options.unobserved_keyframes,
     );
-    if placed > 0 {
+    if placed > 0 || restored > 0 {
         tracing::debug!(
             placed,
             restored,
