@@ -350,18 +350,22 @@ impl LiveTracker {
                         }
                     }
                     (None, None) => {
+                        let shared = self.previous.as_ref().map_or(0, |(_, before)| {
+                            rays_now.keys().filter(|t| before.contains_key(t)).count()
+                        });
                         tracing::debug!(
                             error = %e,
                             correspondences = correspondences.len(),
                             local_points = self.local_points.len(),
                             tracks = tracks.len(),
-                            // Counted only when the debug level is on.
-                            shared_with_previous = self.previous.as_ref().map_or(0, |(_, before)| {
-                                rays_now.keys().filter(|t| before.contains_key(t)).count()
-                            }),
+                            shared_with_previous = shared,
                             "live frame not tracked"
                         );
-                        self.unsupported(timestamp, prior)
+                        let live = self.unsupported(timestamp, prior);
+                        if shared < self.options.rotation_min_inliers {
+                            self.reanchor(live.pose, rays_now);
+                        }
+                        live
                     }
                 }
             }
@@ -386,6 +390,18 @@ impl LiveTracker {
     fn remember(&mut self, pose: StampedPose, rays: FxHashMap<u64, Vector3<f64>>) {
         self.recent.push_back((pose, rays.clone()));
         self.previous = Some((pose, rays));
+    }
+
+    /// After frames lost to the stream (dropped by a loaded frontend, a camera stall) or a
+    /// frontend that started its tracks afresh, the last posed frame shares too few tracks
+    /// with this one to ever turn a later frame from, and ids never come back: this frame's
+    /// predicted (or held) pose becomes the reference the next frames are turned and walked
+    /// from, so that a gap costs the turn made during it rather than every pose until the
+    /// next map. The motion prior stays with the last tracked pose: PnP's allowance for
+    /// the turn since grows with the time from it.
+    fn reanchor(&mut self, pose: StampedPose, rays: FxHashMap<u64, Vector3<f64>>) {
+        self.recent.clear();
+        self.remember(pose, rays);
     }
 
     /// A frame neither PnP nor a rotation places: the prior while the last tracked pose is

@@ -211,6 +211,45 @@ fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
 }
 
 #[test]
+fn after_a_gap_that_ended_every_track_the_turn_is_followed_again() {
+    let points = scene();
+    let turning = |frame: u32| StampedPose {
+        timestamp: f64::from(frame) / 30.0,
+        position: Vector3::zeros(),
+        rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * f64::from(frame), 0.0),
+    };
+    // After frames 5-16 were dropped, the frontend tracks afresh: new ids.
+    let retracked = |frame: u32| -> Vec<(u64, Point2<f64>)> {
+        observe(&points, &turning(frame))
+            .into_iter()
+            .map(|(t, px)| (t + 1000, px))
+            .collect()
+    };
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning(0)));
+    for frame in 1..5 {
+        tracker.track(turning(frame).timestamp, &observe(&points, &turning(frame)));
+    }
+    let resumed = tracker
+        .track(turning(17).timestamp, &retracked(17))
+        .expect("the origin");
+    assert_ne!(resumed.state, TrackingState::Rotation, "nothing shared");
+    for frame in 18..40 {
+        let truth = turning(frame);
+        let live = tracker
+            .track(truth.timestamp, &retracked(frame))
+            .expect("the origin");
+        assert_eq!(live.state, TrackingState::Rotation, "frame {frame}");
+        // Turned from the first frame after the gap: off by what that frame missed of the
+        // turn during the gap, no more.
+        let turned = resumed.pose.rotation.inverse() * live.pose.rotation;
+        let truly_turned = turning(17).rotation.inverse() * truth.rotation;
+        let da = turned.angle_to(&truly_turned).to_degrees();
+        assert!(da < 0.01, "frame {frame}: {da} deg");
+    }
+}
+
+#[test]
 fn the_rotation_from_rays_ignores_tracks_that_moved_on_their_own() {
     let points = scene();
     let turn = UnitQuaternion::from_euler_angles(0.02, -0.05, 0.01);
