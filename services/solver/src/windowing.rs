@@ -53,7 +53,13 @@ pub struct WindowBuilder<K> {
     carried: usize,
     /// See [`WindowBuilder::with_adaptive_end`].
     adaptive: Option<fn(&[K]) -> usize>,
+    /// See [`WindowBuilder::with_track_breaks`]: the shared tracks of two keyframes, and
+    /// the fewest that are not a break.
+    breaks: Option<(SharedTracks<K>, usize)>,
 }
+
+/// Counts the tracks two keyframes share.
+type SharedTracks<K> = fn(&K, &K) -> usize;
 
 /// One window: its keyframes and how many of the leading ones the previous window had.
 #[derive(Debug, Clone, PartialEq)]
@@ -76,6 +82,7 @@ impl<K: Clone> WindowBuilder<K> {
             pending: Vec::new(),
             carried: 0,
             adaptive: None,
+            breaks: None,
         })
     }
 
@@ -95,6 +102,21 @@ impl<K: Clone> WindowBuilder<K> {
         self
     }
 
+    /// Ends a window at a track break: a keyframe sharing fewer than `min_shared` tracks
+    /// with the one before (`shared` counts them) after frames lost to the stream (a
+    /// camera stall, a frontend that could not keep up) or a blackout. Tracks only end,
+    /// so no keyframe after the break shares more with any before it: no relative pose
+    /// can cross it (`RelativePoseOptions::min_matches`), and a window across it falls
+    /// into pieces of which only the largest is solved, losing the keyframes of the other
+    /// (up to 15 of 20). The keyframes before the break are handed out as a window at once
+    /// (if there are at least two, and any the previous window did not have), and the next
+    /// window starts at the break with nothing carried: the merger begins a new segment
+    /// there and links it back by relocalization.
+    pub fn with_track_breaks(mut self, shared: SharedTracks<K>, min_shared: usize) -> Self {
+        self.breaks = Some((shared, min_shared));
+        self
+    }
+
     /// Adds a keyframe; returns a window when K keyframes are collected.
     /// A builder that continues after a window already emitted (by a predecessor process):
     /// `tail` are that window's last `overlap` keyframes, shared with the next window.
@@ -106,6 +128,20 @@ impl<K: Clone> WindowBuilder<K> {
     }
 
     pub fn push(&mut self, keyframe: K) -> Option<Window<K>> {
+        if let (Some((shared, min_shared)), Some(last)) = (self.breaks, self.pending.last()) {
+            if shared(last, &keyframe) < min_shared {
+                let before =
+                    (self.pending.len() >= 2 && self.pending.len() > self.carried).then(|| {
+                        Window {
+                            keyframes: std::mem::take(&mut self.pending),
+                            overlap: self.carried,
+                        }
+                    });
+                self.pending = vec![keyframe];
+                self.carried = 0;
+                return before;
+            }
+        }
         self.pending.push(keyframe);
         let Some(strength) = self.adaptive else {
             return (self.pending.len() >= self.options.size).then(|| self.emit());
@@ -195,6 +231,52 @@ mod tests {
         .expect("valid");
         let again: Vec<Window<u32>> = (17..33).filter_map(|k| resumed.push(k)).collect();
         assert_eq!(again[0], windows[2]);
+    }
+
+    #[test]
+    fn a_track_break_ends_the_window_and_the_next_starts_at_it() {
+        // Keyframes are numbers; 13 and 30 share nothing with the keyframe before them
+        // (frames lost), 31 nothing with 30 (a lone keyframe between two breaks).
+        fn shared(a: &u32, b: &u32) -> usize {
+            if [13, 30, 31].contains(b) && *a + 1 == *b {
+                0
+            } else {
+                100
+            }
+        }
+        let mut b = WindowBuilder::new(WindowOptions {
+            size: 10,
+            overlap: 3,
+            end_slack: 0,
+            ..WindowOptions::default()
+        })
+        .expect("valid")
+        .with_track_breaks(shared, 30);
+        let mut windows: Vec<Window<u32>> = (0..45).filter_map(|k| b.push(k)).collect();
+        windows.extend(b.finish());
+        let spans: Vec<(u32, u32, usize)> = windows
+            .iter()
+            .map(|w| (w.keyframes[0], *w.keyframes.last().expect("kf"), w.overlap))
+            .collect();
+        assert_eq!(
+            spans,
+            [
+                (0, 9, 0),
+                (7, 12, 3), // cut short before the break
+                (13, 22, 0),
+                (20, 29, 3),
+                // 27-29 at the break before 30: nothing new, not handed out.
+                (31, 40, 0),
+                (38, 44, 3),
+            ]
+        );
+        // Keyframe 30 alone between two breaks is in no window; every other keyframe is
+        // new in exactly one.
+        let new: Vec<u32> = windows
+            .iter()
+            .flat_map(|w| w.keyframes[w.overlap..].to_vec())
+            .collect();
+        assert_eq!(new, (0..45).filter(|k| *k != 30).collect::<Vec<_>>());
     }
 
     #[test]

@@ -67,11 +67,25 @@ fn pinhole(k: &internal::Keyframe) -> anyhow::Result<PinholeRadtan> {
     )?)
 }
 
-/// The keyframe's tracks as the solver takes them. Tracks with a non-finite or absurd
-/// position (a corrupted message; the frontend never sends them) are dropped and counted.
-/// Windows whose end moves out of a fast turn (`WindowBuilder::with_adaptive_end`).
-fn adaptive(builder: WindowBuilder<internal::Keyframe>) -> WindowBuilder<internal::Keyframe> {
-    builder.with_adaptive_end(overlap_strength)
+/// Windows whose end moves out of a fast turn (`WindowBuilder::with_adaptive_end`) and that
+/// end at a track break (`WindowBuilder::with_track_breaks`): a keyframe sharing fewer
+/// tracks with the one before than a relative pose needs (`min_matches`).
+fn windows(
+    builder: WindowBuilder<internal::Keyframe>,
+    min_matches: usize,
+) -> WindowBuilder<internal::Keyframe> {
+    builder
+        .with_adaptive_end(overlap_strength)
+        .with_track_breaks(shared_tracks, min_matches)
+}
+
+/// Tracks two keyframes both see.
+fn shared_tracks(a: &internal::Keyframe, b: &internal::Keyframe) -> usize {
+    let seen: std::collections::HashSet<u64> = a.tracks.iter().map(|t| t.track_id).collect();
+    b.tracks
+        .iter()
+        .filter(|t| seen.contains(&t.track_id))
+        .count()
 }
 
 /// Tracks seen by every keyframe of `overlap`: how firmly the keyframes two windows share
@@ -380,7 +394,10 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
             (
                 r.journal.stream_id,
                 JournalWriter::resume(&journal_path, &r.journal)?,
-                adaptive(WindowBuilder::resume(window_options, r.tail)?),
+                windows(
+                    WindowBuilder::resume(window_options, r.tail)?,
+                    options.view_graph.relative_pose.min_matches,
+                ),
                 r.journal.next_sequence(),
                 r.replay,
                 last,
@@ -391,7 +408,10 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
             (
                 stream_id,
                 JournalWriter::create(&journal_path, stream_id)?,
-                adaptive(WindowBuilder::new(window_options)?),
+                windows(
+                    WindowBuilder::new(window_options)?,
+                    options.view_graph.relative_pose.min_matches,
+                ),
                 0,
                 Vec::new(),
                 None,
