@@ -1,7 +1,8 @@
 //! Faults during a live run (issue: faults never stop the pipeline): a frontend killed
 //! mid-stream continues into the same map, a second of frames lost mid-stream leaves one
-//! map, and Ctrl-C stops everything within 5 s with the results of what was processed. Both on a rendered 10 s, 30 fps corridor walk replayed in
-//! real time, with ground truth.
+//! map, and Ctrl-C stops everything within 5 s with the results of what was processed. All
+//! on a rendered 10 s, 30 fps corridor walk with ground truth, replayed in real time but
+//! the lost frames' run.
 
 mod common;
 
