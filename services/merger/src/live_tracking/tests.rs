@@ -34,6 +34,15 @@ fn pose_at(frame: u32) -> StampedPose {
     }
 }
 
+/// The camera turning in place at 0.3 rad/s, at 30 fps.
+fn turning_in_place(frame: u32) -> StampedPose {
+    StampedPose {
+        timestamp: f64::from(frame) / 30.0,
+        position: Vector3::zeros(),
+        rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * f64::from(frame), 0.0),
+    }
+}
+
 fn observe(points: &[Vector3<f64>], pose: &StampedPose) -> Vec<(u64, Point2<f64>)> {
     let cam = camera();
     let r_cw = pose.rotation.inverse();
@@ -183,16 +192,11 @@ fn after_frames_not_posed_a_turn_found_by_pnp_is_taken() {
 #[test]
 fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
     let points = scene();
-    let turning = |frame: u32| StampedPose {
-        timestamp: f64::from(frame) / 30.0,
-        position: Vector3::zeros(),
-        rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * f64::from(frame), 0.0),
-    };
     let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
-    let first = tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning(0)));
+    let first = tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning_in_place(0)));
     assert_eq!(first.state, TrackingState::Rotation);
     for frame in 1..20 {
-        let truth = turning(frame);
+        let truth = turning_in_place(frame);
         let live = tracker
             .track(truth.timestamp, &observe(&points, &truth))
             .expect("the origin");
@@ -213,29 +217,27 @@ fn before_the_first_window_a_turn_is_followed_from_the_first_frame() {
 #[test]
 fn after_a_gap_that_ended_every_track_the_turn_is_followed_again() {
     let points = scene();
-    let turning = |frame: u32| StampedPose {
-        timestamp: f64::from(frame) / 30.0,
-        position: Vector3::zeros(),
-        rotation: UnitQuaternion::from_euler_angles(0.0, 0.01 * f64::from(frame), 0.0),
-    };
     // After frames 5-16 were dropped, the frontend tracks afresh: new ids.
     let retracked = |frame: u32| -> Vec<(u64, Point2<f64>)> {
-        observe(&points, &turning(frame))
+        observe(&points, &turning_in_place(frame))
             .into_iter()
             .map(|(t, px)| (t + 1000, px))
             .collect()
     };
     let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
-    tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning(0)));
+    tracker.begin_at_origin(camera(), 0, 0.0, &observe(&points, &turning_in_place(0)));
     for frame in 1..5 {
-        tracker.track(turning(frame).timestamp, &observe(&points, &turning(frame)));
+        tracker.track(
+            turning_in_place(frame).timestamp,
+            &observe(&points, &turning_in_place(frame)),
+        );
     }
     let resumed = tracker
-        .track(turning(17).timestamp, &retracked(17))
+        .track(turning_in_place(17).timestamp, &retracked(17))
         .expect("the origin");
     assert_ne!(resumed.state, TrackingState::Rotation, "nothing shared");
     for frame in 18..40 {
-        let truth = turning(frame);
+        let truth = turning_in_place(frame);
         let live = tracker
             .track(truth.timestamp, &retracked(frame))
             .expect("the origin");
@@ -243,7 +245,7 @@ fn after_a_gap_that_ended_every_track_the_turn_is_followed_again() {
         // Turned from the first frame after the gap: off by what that frame missed of the
         // turn during the gap, no more.
         let turned = resumed.pose.rotation.inverse() * live.pose.rotation;
-        let truly_turned = turning(17).rotation.inverse() * truth.rotation;
+        let truly_turned = turning_in_place(17).rotation.inverse() * truth.rotation;
         let da = turned.angle_to(&truly_turned).to_degrees();
         assert!(da < 0.01, "frame {frame}: {da} deg");
     }
