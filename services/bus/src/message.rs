@@ -74,6 +74,13 @@ impl<'a, M: prost::Message> MessagePublisher<'a, M> {
         Ok(())
     }
 
+    /// On a lossy channel: waits up to `patience` for a consumer to connect; whether one
+    /// did. A producer that must not lose a lossy consumer's first messages waits for it
+    /// before it takes its own input.
+    pub fn wait_for_consumer(&self, patience: std::time::Duration) -> bool {
+        self.outbox.wait_for_consumer(self.bus, patience)
+    }
+
     /// On a lossy channel: sends, and sends again until a consumer took it or `patience`
     /// has passed; whether one did. For the one message a consumer must not miss while it
     /// may still be connecting (iceoryx2 connects a subscriber at its first receive).

@@ -361,6 +361,22 @@ impl<H: Debug + ZeroCopySend + Default + Copy> Outbox<H> {
         })
     }
 
+    /// Waits up to `patience` for a consumer to connect; whether one did (`false` too when
+    /// the process is asked to terminate meanwhile).
+    pub(crate) fn wait_for_consumer(&self, bus: &Bus, patience: std::time::Duration) -> bool {
+        let connected = crate::poll_until(
+            bus,
+            Some(patience),
+            || {
+                Ok::<_, ()>(
+                    (self._service.dynamic_config().number_of_subscribers() > 0).then_some(()),
+                )
+            },
+            || (),
+        );
+        matches!(connected, Ok(Some(())))
+    }
+
     /// Waits until every consumer has disconnected (finished, or died and was cleaned up).
     /// A producer must not exit while a consumer may still read: samples that grew the
     /// publisher's data segment live in memory the consumer maps lazily, and vanish with

@@ -230,3 +230,33 @@ fn a_frame_whose_header_does_not_match_its_pixels_is_dropped() {
     publisher.finish(2).expect("eos");
     assert_eq!(consumer.join().expect("consumer thread"), vec![0, 2]);
 }
+
+#[test]
+fn a_lossy_producer_can_wait_for_its_consumer_before_it_sends() {
+    let opts = options("lossy_wait");
+    let bus = Bus::open("producer", opts.clone()).expect("bus");
+    let mut publisher =
+        MessagePublisher::<Keyframe>::create_lossy(&bus, LIVE_FRAMES).expect("publisher");
+    assert!(
+        !publisher.wait_for_consumer(Duration::from_millis(100)),
+        "no consumer yet"
+    );
+    // The consumer starts late; the producer waits for it, then its first message arrives.
+    let consumer = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(300));
+        let bus = Bus::open("consumer", opts).expect("bus");
+        let mut sub = MessageSubscriber::<Keyframe>::create(&bus, LIVE_FRAMES).expect("sub");
+        sub.receive_lossy_within(Duration::from_secs(5))
+            .expect("receive")
+            .map(|k| k.keyframe_id)
+    });
+    let waited = std::time::Instant::now();
+    assert!(publisher.wait_for_consumer(Duration::from_secs(5)));
+    assert!(waited.elapsed() >= Duration::from_millis(200));
+    let first = Keyframe {
+        keyframe_id: 7,
+        ..Keyframe::default()
+    };
+    publisher.send(&first).expect("send");
+    assert_eq!(consumer.join().expect("consumer"), Some(7));
+}

@@ -204,6 +204,11 @@ fn continue_tracks(
     }
 }
 
+/// How long a starting frontend waits for the merger's live tracker before it takes
+/// frames: the merger starts beside it (the launcher, systemd) and connects within a
+/// second; a frontend run without a merger goes on after this.
+const LIVE_TRACKER_PATIENCE: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Sends the frame's live tracks to the merger's live tracker. A failed send costs that
 /// frame's live pose only (its refined pose comes with its keyframe): counted, not fatal.
 fn send_live_frame(
@@ -316,9 +321,19 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
             ..BusOptions::default()
         },
     )?;
-    let frames = FrameSubscriber::create(&bus)?;
+    // The outputs first, the frames last: the camera (or replay) starts sending when the
+    // frames' subscriber appears, and a frontend still waiting for a consumer then would
+    // let a real-time stream's first frames overflow its 4-frame buffer (12 frames of a
+    // replay were dropped so on a loaded machine, the live tracker connecting late).
     let mut keyframes = MessagePublisher::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut live_frames = MessagePublisher::<internal::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
+    if !live_frames.wait_for_consumer(LIVE_TRACKER_PATIENCE) {
+        tracing::info!(
+            waited_s = LIVE_TRACKER_PATIENCE.as_secs_f64(),
+            "no live tracker connected: frames go on without live poses until one does"
+        );
+    }
+    let frames = FrameSubscriber::create(&bus)?;
     egoslam_runtime::systemd::ready("frontend");
     let mut skipped: Vec<internal::FrameStamp> = Vec::new();
     let mut last_stamp: Option<internal::FrameStamp> = None;
