@@ -323,8 +323,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
     )?;
     // The outputs first, the frames last: the camera (or replay) starts sending when the
     // frames' subscriber appears, and a frontend still waiting for a consumer then would
-    // let a real-time stream's first frames overflow its 4-frame buffer (12 frames of a
-    // replay were dropped so on a loaded machine, the live tracker connecting late).
+    // let a real-time stream's first frames overflow its 4-frame buffer and be dropped.
     let mut keyframes = MessagePublisher::<internal::Keyframe>::create(&bus, KEYFRAMES)?;
     let mut live_frames = MessagePublisher::<internal::LiveFrame>::create_lossy(&bus, LIVE_FRAMES)?;
     if !live_frames.wait_for_consumer(LIVE_TRACKER_PATIENCE) {
