@@ -83,6 +83,14 @@ impl Default for ReadoutEstimationOptions {
     }
 }
 
+impl ReadoutEstimationOptions {
+    /// [`Self::min_relative_gain`] for a lens of `focal_px` pixels per radian (scaled down
+    /// below [`Self::gain_focal_px`]).
+    pub fn significant_gain(&self, focal_px: f64) -> f64 {
+        self.min_relative_gain * (focal_px / self.gain_focal_px).min(1.0)
+    }
+}
+
 /// The tracks of one frame, as the tracker reports them with no readout correction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameTracks {
@@ -309,7 +317,7 @@ pub fn estimate_readout(
         }
     }
     let best_s = best_k as f64 * step;
-    let min_gain = options.min_relative_gain * (focal / options.gain_focal_px).min(1.0);
+    let min_gain = options.significant_gain(focal);
     // A residual still falling at the longest readout searched (1.5 frame intervals) has
     // no minimum there: something else than a readout is being fitted (the rendered
     // egomotion profile through a global-shutter fisheye: its parallax gained 1.2 % at
@@ -410,8 +418,7 @@ impl OnlineReadoutEstimator {
             return None;
         }
         let estimate = estimate_readout(&self.collected, camera, &self.options).ok()?;
-        let min_gain =
-            self.options.min_relative_gain * (camera.fx / self.options.gain_focal_px).min(1.0);
+        let min_gain = self.options.significant_gain(camera.fx);
         let gain = 1.0 - estimate.residual_px / estimate.residual_at_zero_px;
         tracing::info!(
             frames = at,

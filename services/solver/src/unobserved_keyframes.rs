@@ -62,11 +62,23 @@ fn velocity(poses: &[CameraPose], timestamps: &[f64], strong: &[usize]) -> Optio
     (dt > 0.0).then(|| (poses[b].centre - poses[a].centre) / dt)
 }
 
+/// Indices of the keyframes (of `n`) with at least `options.min_observations` inlier
+/// observations, in order.
+fn well_observed(
+    n: usize,
+    observations: &[usize],
+    options: &UnobservedKeyframeOptions,
+) -> Vec<usize> {
+    (0..n)
+        .filter(|&k| observations.get(k).copied().unwrap_or(0) >= options.min_observations)
+        .collect()
+}
+
 /// Replaces the rotations of the keyframes with fewer than `options.min_observations`
 /// observations by their `averaged` rotations relative to the nearest well-observed keyframe
 /// in time, where the two differ by more than `options.max_rotation_departure_deg` (module
-/// doc); returns how many were replaced (none with no well-observed
-/// keyframe, or when the lengths disagree).
+/// doc); returns how many were replaced (none with no well-observed keyframe, or when the
+/// lengths disagree).
 pub fn restore_unobserved_rotations(
     poses: &mut [CameraPose],
     timestamps: &[f64],
@@ -74,9 +86,7 @@ pub fn restore_unobserved_rotations(
     averaged: &[Rotation3<f64>],
     options: &UnobservedKeyframeOptions,
 ) -> usize {
-    let strong: Vec<usize> = (0..poses.len())
-        .filter(|&k| observations.get(k).copied().unwrap_or(0) >= options.min_observations)
-        .collect();
+    let strong = well_observed(poses.len(), observations, options);
     if strong.is_empty() || timestamps.len() != poses.len() || averaged.len() != poses.len() {
         return 0;
     }
@@ -114,9 +124,7 @@ pub fn place_unobserved_centres(
     observations: &[usize],
     options: &UnobservedKeyframeOptions,
 ) -> usize {
-    let strong: Vec<usize> = (0..poses.len())
-        .filter(|&k| observations.get(k).copied().unwrap_or(0) >= options.min_observations)
-        .collect();
+    let strong = well_observed(poses.len(), observations, options);
     if strong.len() < 2 || timestamps.len() != poses.len() {
         return 0;
     }

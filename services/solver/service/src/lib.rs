@@ -81,21 +81,24 @@ fn windows(
 
 /// Tracks two keyframes both see.
 fn shared_tracks(a: &internal::Keyframe, b: &internal::Keyframe) -> usize {
-    let seen: std::collections::HashSet<u64> = a.tracks.iter().map(|t| t.track_id).collect();
-    b.tracks
-        .iter()
-        .filter(|t| seen.contains(&t.track_id))
-        .count()
+    tracks_seen_by_all(a, std::iter::once(b))
 }
 
 /// Tracks seen by every keyframe of `overlap`: how firmly the keyframes two windows share
 /// are tied to both windows' points.
 fn overlap_strength(overlap: &[internal::Keyframe]) -> usize {
-    let Some((first, rest)) = overlap.split_first() else {
-        return 0;
-    };
+    overlap
+        .split_first()
+        .map_or(0, |(first, rest)| tracks_seen_by_all(first, rest))
+}
+
+/// Tracks of `first` that every keyframe of `rest` sees too.
+fn tracks_seen_by_all<'a>(
+    first: &internal::Keyframe,
+    rest: impl IntoIterator<Item = &'a internal::Keyframe>,
+) -> usize {
     let sets: Vec<std::collections::HashSet<u64>> = rest
-        .iter()
+        .into_iter()
         .map(|k| k.tracks.iter().map(|t| t.track_id).collect())
         .collect();
     first
