@@ -288,8 +288,9 @@ fn live_poses_come_first(pose_messages: &[pb::Pose], report: &serde_json::Value)
     // The orientation is what the live poses give on this clip: measured 2.6 deg (refined:
     // 1.3 deg; ignoring the rotation: 35 deg; with frames 5-16 dropped by a loaded
     // machine, 5.1 deg). Their positions (3.5 cm) are barely better than a constant
-    // position (3.9 cm): the first 1.3 s come before any map, and the
-    // map's points rarely outlive its lag here (docs/merger.md, "Live poses").
+    // position (3.9 cm): the clip's keyframes are held for its readout to its end, so its
+    // live poses come before any map, on the tracker's own points (docs/merger.md, "Live
+    // poses").
     let orientation = report["accuracy"]["live"]["orientation_rmse_deg"]
         .as_f64()
         .expect("orientation");

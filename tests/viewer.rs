@@ -197,9 +197,9 @@ fn wait_until_following(view: &mut std::process::Child) {
 
 /// One camera transform per frame's first pose, and never two: the clip runs once (its
 /// keyframes are held for the readout instead of the run starting again: docs/config.md,
-/// "Calibration from the stream"). A
-/// live pose the lossy live channel dropped leaves its frame without one (its window's
-/// pose comes as a later revision, which moves no camera): at most 1 in 20.
+/// "Calibration from the stream"). A live pose the lossy live channel dropped leaves its
+/// frame without one (its window's pose comes as a later revision, which moves no
+/// camera): at most 1 in 20.
 fn assert_one_transform_per_first_pose(tf: u64, frames: u64, report: &serde_json::Value) {
     let rounds = 1 + report["calibration_restarts"].as_u64().expect("restarts");
     assert_eq!(rounds, 1, "the clip's readout is held, not a second run");
