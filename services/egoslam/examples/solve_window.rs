@@ -5,7 +5,8 @@
 //! `cargo run --example solve_window -- DIR GROUND_TRUTH`
 //!
 //! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
-//! REFINE_EDGES, LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
+//! OPENCV_USAC (1: OpenCV's five-point RANSAC, 0: the own LO-RANSAC), REFINE_EDGES,
+//! LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
 //! MIN_TRACK_VIEWS, REFINE_INTRINSICS.
 //!
 //! Input knobs (what the data contributes): FOCAL_SCALE (calibrated focal times this),
@@ -55,6 +56,13 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(v) = env("RANSAC_PX") {
         options.view_graph.relative_pose.ransac_threshold_px = v;
+    }
+    if let Some(v) = env("OPENCV_USAC") {
+        options.view_graph.relative_pose.estimator = if v != 0.0 {
+            egoslam_solver::relative_pose::EssentialEstimator::OpenCvUsac
+        } else {
+            egoslam_solver::relative_pose::EssentialEstimator::LoRansac
+        };
     }
     if let Some(v) = env("REFINE_EDGES") {
         options.view_graph.relative_pose.refine = v != 0.0;

@@ -1,10 +1,12 @@
 //! Time to solve one window of 20 keyframes, per stage, one core: a synthetic window
 //! (~1000 tracks per keyframe, 1 px noise) and a real one (KITTI 00, keyframes from the
-//! real tracker). Median of 7 runs, each with an empty edge cache. Method in
+//! real tracker). Median of 7 runs, each with an empty edge cache, once per five-point
+//! RANSAC (own LO-RANSAC, OpenCV's USAC). Method in
 //! docs/benchmarks.md. `cargo bench -p egoslam-solver --bench window_solve`
 
 use egoslam_frontend::{Tracker, TrackerOptions};
 use egoslam_geometry::PinholeRadtan;
+use egoslam_solver::relative_pose::EssentialEstimator;
 use egoslam_solver::triangulation::CameraPose;
 use egoslam_solver::view_graph::{EdgeCache, KeyframeObservations};
 use egoslam_solver::window_solver::{solve_window, WindowSolverOptions};
@@ -118,17 +120,30 @@ fn kitti() -> Option<(PinholeRadtan, Vec<KeyframeObservations>)> {
 }
 
 fn bench(name: &str, camera: &PinholeRadtan, keyframes: &[KeyframeObservations]) {
+    for estimator in [EssentialEstimator::LoRansac, EssentialEstimator::OpenCvUsac] {
+        let mut options = WindowSolverOptions::default();
+        options.view_graph.relative_pose.estimator = estimator;
+        bench_with(
+            &format!("{name} [{estimator:?}]"),
+            camera,
+            keyframes,
+            &options,
+        );
+    }
+}
+
+fn bench_with(
+    name: &str,
+    camera: &PinholeRadtan,
+    keyframes: &[KeyframeObservations],
+    options: &WindowSolverOptions,
+) {
     let tracks: usize = keyframes.iter().map(|k| k.tracks.len()).sum::<usize>() / keyframes.len();
     let mut totals = Vec::new();
     let mut stages: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
     for _ in 0..7 {
         let start = Instant::now();
-        let s = solve_window(
-            camera,
-            keyframes,
-            &WindowSolverOptions::default(),
-            &mut EdgeCache::new(),
-        );
+        let s = solve_window(camera, keyframes, options, &mut EdgeCache::new());
         totals.push(start.elapsed().as_secs_f64() * 1e3);
         for (stage, ms) in s.timings_ms {
             stages.entry(stage).or_default().push(ms);

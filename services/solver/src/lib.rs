@@ -6,7 +6,10 @@
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
 pub mod bundle_adjustment;
+pub mod essential_decomposition;
+pub mod essential_ransac;
 pub mod essential_refinement;
+pub mod five_point;
 pub mod focal_calibration;
 mod huber;
 mod normal_equations;
