@@ -76,8 +76,16 @@ pub(crate) fn sampson_distance(
     num * num / (ea.x * ea.x + ea.y * ea.y + etb.x * etb.x + etb.y * etb.y).max(1e-300)
 }
 
-/// MSAC cost (sum of squared distances truncated at the threshold) and inlier count.
-fn score(e: &Matrix3<f64>, pi: &[(f64, f64)], pj: &[(f64, f64)], threshold: f64) -> (f64, usize) {
+/// MSAC cost (sum of squared distances truncated at the threshold) and inlier count; `None`
+/// as soon as the cost reaches `bound` (the best model's: this one cannot win, and most
+/// hypotheses are rejected after a fraction of the matches).
+fn score(
+    e: &Matrix3<f64>,
+    pi: &[(f64, f64)],
+    pj: &[(f64, f64)],
+    threshold: f64,
+    bound: f64,
+) -> Option<(f64, usize)> {
     let t2 = threshold * threshold;
     let (mut cost, mut inliers) = (0.0, 0);
     for (a, b) in pi.iter().zip(pj) {
@@ -88,8 +96,11 @@ fn score(e: &Matrix3<f64>, pi: &[(f64, f64)], pj: &[(f64, f64)], threshold: f64)
         } else {
             cost += t2;
         }
+        if cost >= bound {
+            return None;
+        }
     }
-    (cost, inliers)
+    Some((cost, inliers))
 }
 
 /// Hypotheses needed for `confidence` at the inlier ratio `ratio` with samples of five.
@@ -171,15 +182,14 @@ pub fn estimate_essential(
         let bi = sample.map(|m| bearing(&pi[m]));
         let bj = sample.map(|m| bearing(&pj[m]));
         for e in essential_matrices(&bi, &bj) {
-            let (cost, inliers) = score(&e, pi, pj, options.threshold);
-            if best.as_ref().is_some_and(|(c, _)| cost >= *c) {
+            let bound = best.as_ref().map_or(f64::INFINITY, |(c, _)| *c);
+            let Some((cost, inliers)) = score(&e, pi, pj, options.threshold, bound) else {
                 continue;
-            }
+            };
             let (mut e, mut cost, mut inliers) = (e, cost, inliers);
             if options.local_optimization && inliers >= 5 {
                 if let Some(refined) = locally_optimise(&e, pi, pj, options) {
-                    let (c, i) = score(&refined, pi, pj, options.threshold);
-                    if c < cost {
+                    if let Some((c, i)) = score(&refined, pi, pj, options.threshold, cost) {
                         (e, cost, inliers) = (refined, c, i);
                     }
                 }
