@@ -5,7 +5,8 @@
 //! `cargo run --example solve_window -- DIR GROUND_TRUTH`
 //!
 //! Environment knobs (estimator options): MIN_ANGLE_DEG, MIN_PARALLAX_PX, RANSAC_PX,
-//! OPENCV_USAC (1: OpenCV's five-point RANSAC, 0: the own LO-RANSAC), REFINE_EDGES,
+//! OPENCV_USAC (1: OpenCV's five-point RANSAC, 0: the own LO-RANSAC), LO_RANSAC_PX and
+//! LO_RANSAC_LO (its scoring threshold and local optimisation on/off), REFINE_EDGES,
 //! LOOP_CLOSURE_SPAN, RETRIANGULATION_PASSES, LUD_ITERS, REFINE_ITERS,
 //! MIN_TRACK_VIEWS, REFINE_INTRINSICS.
 //!
@@ -63,6 +64,15 @@ fn main() -> anyhow::Result<()> {
         } else {
             egoslam_solver::relative_pose::EssentialEstimator::LoRansac
         };
+    }
+    if let Some(v) = env("LO_RANSAC_PX") {
+        options.view_graph.relative_pose.lo_ransac_threshold_px = v;
+    }
+    if let Some(v) = env("LO_RANSAC_LO") {
+        options
+            .view_graph
+            .relative_pose
+            .lo_ransac_local_optimization = v != 0.0;
     }
     if let Some(v) = env("REFINE_EDGES") {
         options.view_graph.relative_pose.refine = v != 0.0;

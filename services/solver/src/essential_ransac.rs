@@ -6,9 +6,8 @@
 //! inlier, not from five of them.
 //!
 //! The number of hypotheses follows the best model's inlier ratio at the requested
-//! confidence (Fischler and Bolles, 1981); with the local optimisation the ratio is close
-//! to the true one early, so the loop stops after tens of hypotheses where a strict
-//! threshold alone needs hundreds.
+//! confidence (Fischler and Bolles, 1981), so it grows as the threshold tightens against
+//! the track noise (docs/solver.md, "Own five-point RANSAC", has the figures).
 
 use crate::essential_decomposition::decompose_essential;
 use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};

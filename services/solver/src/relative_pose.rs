@@ -83,6 +83,9 @@ pub struct RelativePoseOptions {
     /// a rendered 1500-frame walk went from 0.23 to 0.39 % of their path (mean; worst 1.2
     /// -> 8.3 %): near-degenerate edges of 2-6 px parallax take a wrong model).
     pub lo_ransac_threshold_px: f64,
+    /// Local optimisation of [`EssentialEstimator::LoRansac`]'s best models (default true;
+    /// without it its windows and walks score as in docs/solver.md's last column).
+    pub lo_ransac_local_optimization: bool,
 }
 
 /// Which five-point RANSAC fits an edge's essential matrix.
@@ -109,6 +112,7 @@ impl Default for RelativePoseOptions {
             refine: false,
             estimator: EssentialEstimator::OpenCvUsac,
             lo_ransac_threshold_px: 0.5,
+            lo_ransac_local_optimization: true,
         }
     }
 }
@@ -251,6 +255,7 @@ pub fn estimate_relative_pose(
                 &EssentialRansacOptions {
                     threshold: options.lo_ransac_threshold_px / focal_px,
                     confidence: options.ransac_confidence,
+                    local_optimization: options.lo_ransac_local_optimization,
                     ..Default::default()
                 },
             )
