@@ -75,6 +75,32 @@ pub(crate) fn sampson_distance(
     num * num / (ea.x * ea.x + ea.y * ea.y + etb.x * etb.x + etb.y * etb.y).max(1e-300)
 }
 
+/// Indices of the matches within `threshold` (Sampson distance) of `e`.
+pub(crate) fn matches_near(
+    e: &Matrix3<f64>,
+    pi: &[(f64, f64)],
+    pj: &[(f64, f64)],
+    threshold: f64,
+) -> Vec<usize> {
+    (0..pi.len().min(pj.len()))
+        .filter(|&m| sampson_distance(e, pi[m], pj[m]) < threshold * threshold)
+        .collect()
+}
+
+/// The matches `indices` as homogeneous normalised coordinates `(x, y, 1)`, the pairs the
+/// Sampson refinement takes.
+pub(crate) fn homogeneous_pairs(
+    pi: &[(f64, f64)],
+    pj: &[(f64, f64)],
+    indices: &[usize],
+) -> Vec<(Vector3<f64>, Vector3<f64>)> {
+    let homogeneous = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0);
+    indices
+        .iter()
+        .map(|&m| (homogeneous(&pi[m]), homogeneous(&pj[m])))
+        .collect()
+}
+
 /// MSAC cost (sum of squared distances truncated at the threshold) and inlier count; `None`
 /// as soon as the cost reaches `bound` (the best model's: this one cannot win, and most
 /// hypotheses are rejected after a fraction of the matches).
@@ -127,15 +153,9 @@ fn locally_optimise(
     options: &EssentialRansacOptions,
 ) -> Option<Matrix3<f64>> {
     let gate = options.threshold * options.local_optimization_gate;
-    let near: Vec<usize> = (0..pi.len())
-        .filter(|&m| sampson_distance(e, pi[m], pj[m]) < gate * gate)
-        .collect();
+    let near = matches_near(e, pi, pj, gate);
     let (r, t) = decompose_essential(e, pi, pj, &near)?;
-    let homogeneous = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0);
-    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = near
-        .iter()
-        .map(|&m| (homogeneous(&pi[m]), homogeneous(&pj[m])))
-        .collect();
+    let pairs = homogeneous_pairs(pi, pj, &near);
     let (r, t) = refine_relative_pose(
         r,
         t,

@@ -132,11 +132,11 @@ fn add_scaled<const N: usize>(out: &mut [f64; N], a: &[f64; N], scale: f64) {
 fn null_space(bi: &[Vector3<f64>; 5], bj: &[Vector3<f64>; 5]) -> Option<[Matrix3<f64>; 4]> {
     // Row m: coefficient of E[(r, c)] (row-major index 3r + c) in b_j^T E b_i is bj[r] bi[c].
     let rows = SMatrix::<f64, 5, 9>::from_fn(|m, k| bj[m][k / 3] * bi[m][k % 3]);
-    // [A1 | A2] n = 0 with A1 5x5: n = [-A1^-1 A2; I] spans the null space. Columns are
-    // permuted so that A1 is the best-conditioned choice among a few, cheaply: pick the
-    // five columns with the largest norms first.
+    // [A1 | A2] n = 0 with A1 5x5: n = [-A1^-1 A2; I] spans the null space. The five
+    // columns with the largest norms make A1: a cheap guard against a singular A1 built
+    // from columns of (near) zeros.
     let mut order: [usize; 9] = [0, 1, 2, 3, 4, 5, 6, 7, 8];
-    let norms: Vec<f64> = (0..9).map(|k| rows.column(k).norm_squared()).collect();
+    let norms: [f64; 9] = std::array::from_fn(|k| rows.column(k).norm_squared());
     order.sort_by(|&a, &b| norms[b].total_cmp(&norms[a]));
     let a1 = SMatrix::<f64, 5, 5>::from_fn(|m, k| rows[(m, order[k])]);
     let a2 = SMatrix::<f64, 5, 4>::from_fn(|m, k| rows[(m, order[5 + k])]);

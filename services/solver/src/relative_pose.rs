@@ -5,8 +5,9 @@
 //! TPAMI 2013; `USAC_FAST`: half the time of plain RANSAC on KITTI windows, same accuracy)
 //! on normalised, undistorted coordinates, or (`estimator`) the own five-point solver in
 //! LO-RANSAC ([`crate::essential_ransac`]); the essential matrix is decomposed here
-//! ([`crate::essential_decomposition`]), which is 50x cheaper than `recoverPose`. The RANSAC fits on 200 matches; rotation and direction can
-//! then be refined on every inlier ([`crate::essential_refinement`], off by default).
+//! ([`crate::essential_decomposition`]), which is 50x cheaper than `recoverPose`. The
+//! RANSAC fits on 200 matches; rotation and direction can then be refined on every inlier
+//! ([`crate::essential_refinement`], off by default).
 //! Egocentric video often turns the head without moving it; then the essential matrix is
 //! degenerate (its rotation unreliable, its translation noise). Each edge is
 //! therefore also fitted with a rotation-only model (Kabsch on bearings, trimmed), and the
@@ -18,7 +19,9 @@
 //!   direction (translation weight 0), as the paper's treatment of low-parallax pairs.
 
 use crate::essential_decomposition::decompose_essential;
-use crate::essential_ransac::{estimate_essential, sampson_distance, EssentialRansacOptions};
+use crate::essential_ransac::{
+    estimate_essential, homogeneous_pairs, matches_near, EssentialRansacOptions,
+};
 use crate::essential_refinement::{refine_relative_pose, skew, EssentialRefinementOptions};
 use egoslam_geometry::{median, rotation_aligning_trimmed};
 use nalgebra::{Matrix3, Rotation3, Vector3};
@@ -263,15 +266,12 @@ pub fn estimate_relative_pose(
             .essential
         }
     };
-    let inlier_idx: Vec<usize> = (0..n)
-        .filter(|&m| sampson_distance(&essential, points_i[m], points_j[m]) < threshold * threshold)
-        .collect();
+    let inlier_idx = matches_near(&essential, points_i, points_j, threshold);
     let (rotation_e, t) = decompose_essential(&essential, points_i, points_j, &inlier_idx)
         .ok_or_else(|| {
             RelativePoseError::OpenCv("essential matrix has no valid decomposition".into())
         })?;
     let (rotation_e, t, inliers) = if options.refine {
-        let homogeneous = |&(x, y): &(f64, f64)| Vector3::new(x, y, 1.0);
         let inlier_threshold = options.inlier_threshold_px / focal_px;
         let gate = options.refine_gate_px / focal_px;
         let (mut r, mut t) = (rotation_e, t);
@@ -280,10 +280,8 @@ pub fn estimate_relative_pose(
         // cannot leave it. Twice: the second gate is around the refined model.
         for _ in 0..2 {
             let model = skew(&t) * r.matrix();
-            let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n)
-                .filter(|&m| sampson_distance(&model, points_i[m], points_j[m]) < gate * gate)
-                .map(|m| (homogeneous(&points_i[m]), homogeneous(&points_j[m])))
-                .collect();
+            let near = matches_near(&model, points_i, points_j, gate);
+            let pairs = homogeneous_pairs(points_i, points_j, &near);
             (r, t) = refine_relative_pose(
                 r,
                 t,
@@ -295,12 +293,7 @@ pub fn estimate_relative_pose(
             );
         }
         let refined = skew(&t) * r.matrix();
-        let inliers = (0..n)
-            .filter(|&m| {
-                sampson_distance(&refined, points_i[m], points_j[m])
-                    < inlier_threshold * inlier_threshold
-            })
-            .count();
+        let inliers = matches_near(&refined, points_i, points_j, inlier_threshold).len();
         (r, t, inliers)
     } else {
         (rotation_e, t, inlier_idx.len())
