@@ -180,6 +180,15 @@ impl LiveTracker {
     /// young tracks on the way. Everything the tracker built on the previous map goes (it
     /// drifted with the tracker; the new map is refined).
     pub fn set_map(&mut self, map: MapView) {
+        if self.cannot_retrack_from(&map) {
+            // The map's newest keyframe is older than the frames kept (a solver far behind
+            // the frontend, as in a lossless replay of a fast stream): starting again from
+            // it would pose the current frame from a keyframe seconds away. The tracker
+            // goes on from its own last poses, its points replaced by the map's where the
+            // map has them.
+            self.map = map;
+            return;
+        }
         self.local_points.clear();
         self.sightings.clear();
         self.last = None;
@@ -214,6 +223,19 @@ impl LiveTracker {
             self.locate(*timestamp, tracks);
         }
         self.history = history;
+    }
+
+    /// Whether `map` continues the current segment but its newest keyframe's frame has left
+    /// the history, while the tracker has a pose of its own to go on from.
+    fn cannot_retrack_from(&self, map: &MapView) -> bool {
+        let tolerance = 1e-6;
+        let continues = self.map.camera.is_some() && map.segment == self.map.segment;
+        let keyframe_gone = map.newest_keyframe.is_some_and(|k| {
+            self.history
+                .front()
+                .is_some_and(|(t, _)| *t > k.timestamp + tolerance)
+        });
+        continues && keyframe_gone && self.last.is_some()
     }
 
     /// The first frame of a new map's stream, before any window: the map's frame is its
@@ -381,7 +403,7 @@ impl LiveTracker {
         let alive: std::collections::HashSet<u64> = tracks.iter().map(|(t, _)| *t).collect();
         self.local_points.retain(|t, _| alive.contains(t));
         self.sightings.retain(|t, _| alive.contains(t));
-        tracing::trace!(timestamp, state = ?live.state, inliers = live.inliers, "live pose");
+        tracing::trace!(timestamp, state = ?live.state, inliers = live.inliers, position = ?live.pose.position.as_slice(), "live pose");
         Some(live)
     }
 

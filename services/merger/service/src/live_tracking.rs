@@ -87,6 +87,7 @@ impl LiveTracking {
             segment,
             points = view.points.len(),
             pace = ?view.pace,
+            newest_keyframe_s = newest.timestamp,
             "map for the live tracker"
         );
         // A tracker that ended (its error comes out at `finish`) no longer takes maps.

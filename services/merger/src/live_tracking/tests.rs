@@ -132,6 +132,30 @@ fn a_late_map_is_carried_to_the_present_through_the_frames_since_its_keyframe() 
 }
 
 #[test]
+fn a_map_older_than_the_frames_kept_does_not_take_the_tracker_back_to_its_keyframe() {
+    let points = scene();
+    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    tracker.set_map(map_of(&points, 0..400, pose_at(0)));
+    // Four seconds tracked: the camera 4 m and 23 deg from where the map began.
+    for frame in 1..=120 {
+        let truth = pose_at(frame);
+        tracker.track(truth.timestamp, &observe(&points, &truth));
+    }
+    // A solver far behind hands over a map whose newest keyframe is 3.8 s old, older than
+    // the frames the tracker keeps to re-track from.
+    tracker.set_map(map_of(&points, 0..400, pose_at(5)));
+    for frame in 121..125 {
+        let truth = pose_at(frame);
+        let live = tracker
+            .track(truth.timestamp, &observe(&points, &truth))
+            .expect("a map");
+        assert_eq!(live.state, TrackingState::Tracking, "frame {frame}");
+        let (dx, da) = error(&live.pose, &truth);
+        assert!(dx < 1e-3 && da < 0.01, "frame {frame}: {dx} m, {da} deg");
+    }
+}
+
+#[test]
 fn without_points_in_view_the_pose_is_predicted_then_lost() {
     let points = scene();
     let mut tracker = tracking_three_frames(&points, LiveTrackerOptions::default());
