@@ -9,13 +9,25 @@
 //! the state is bounded by what is in view.
 
 use crate::frame_localization::{localize_frame, LocalizationOptions};
-use egoslam_geometry::{rotation_aligning, BearingPair, PinholeRadtan, StampedPose};
+use egoslam_geometry::{PinholeRadtan, StampedPose};
 use egoslam_relocalization::absolute_pose::PnpOptions;
 use nalgebra::{Point2, UnitQuaternion, Vector3};
 use rustc_hash::FxHashMap;
 use std::collections::VecDeque;
 
+mod local_adjustment;
+pub mod recording;
+mod rotation_from_rays;
 mod walked_on;
+
+use rotation_from_rays::rotation_between;
+
+pub use local_adjustment::LocalAdjustmentOptions;
+
+/// Frames re-tracked on a new map between two local adjustments (a map re-tracks about a
+/// second of frames at once, 30-120 ms more with an adjustment on each, while the stream's
+/// next frame waits).
+const RETRACK_ADJUSTMENT_STRIDE: usize = 2;
 
 /// Defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -67,6 +79,11 @@ pub struct LiveTrackerOptions {
     /// pose, the prior holds the orientation of before the turn, and a PnP pose on hundreds
     /// of correspondences was refused as 30-60 deg away while the head had turned that far.
     pub max_turn_rate_deg_s: f64,
+    /// The tracked frames of the last `local_window_s` seconds are adjusted with their
+    /// points after each tracked frame (local_adjustment.rs; default 1 s, the span a
+    /// walking head's tracks live; `None`: no adjustment).
+    pub local_adjustment: Option<LocalAdjustmentOptions>,
+    pub local_window_s: f64,
 }
 
 impl Default for LiveTrackerOptions {
@@ -91,6 +108,8 @@ impl Default for LiveTrackerOptions {
             rotation_min_inliers: 20,
             rotation_min_inlier_share: 0.5,
             max_turn_rate_deg_s: 300.0,
+            local_adjustment: Some(LocalAdjustmentOptions::default()),
+            local_window_s: 1.0,
         }
     }
 }
@@ -163,6 +182,8 @@ pub struct LiveTracker {
     previous: Option<(StampedPose, FxHashMap<u64, Vector3<f64>>)>,
     /// The frames posed from their tracks over the last `walk_anchor_s`, oldest first.
     recent: VecDeque<(StampedPose, FxHashMap<u64, Vector3<f64>>)>,
+    /// The frames tracked by PnP over the last `local_window_s`, oldest first.
+    tracked: VecDeque<local_adjustment::TrackedFrame>,
 }
 
 impl LiveTracker {
@@ -195,6 +216,7 @@ impl LiveTracker {
         self.before_last = None;
         self.previous = None;
         self.recent.clear();
+        self.tracked.clear();
         self.map = map;
         let Some(keyframe) = self.map.newest_keyframe else {
             return;
@@ -216,11 +238,15 @@ impl LiveTracker {
             .and_then(|(_, tracks)| Some((keyframe, rays(&self.map.camera?, tracks))));
         self.recent.extend(self.previous.clone());
         let history = std::mem::take(&mut self.history);
-        for (timestamp, tracks) in history
+        let since: Vec<&(f64, FrameTracks)> = history
             .iter()
             .filter(|(t, _)| *t > keyframe.timestamp + tolerance)
-        {
-            self.locate(*timestamp, tracks);
+            .collect();
+        // The frames since the keyframe are re-tracked while the stream waits: the local
+        // adjustment runs on every `RETRACK_ADJUSTMENT_STRIDE`th of them and the last.
+        for (i, (timestamp, tracks)) in since.iter().enumerate() {
+            let adjust = (i + 1) % RETRACK_ADJUSTMENT_STRIDE == 0 || i + 1 == since.len();
+            self.locate(*timestamp, tracks, adjust);
         }
         self.history = history;
     }
@@ -299,11 +325,16 @@ impl LiveTracker {
             self.history.pop_front();
         }
         self.history.push_back((timestamp, tracks.to_vec()));
-        self.locate(timestamp, tracks)
+        self.locate(timestamp, tracks, true)
     }
 
-    /// [`Self::track`] without the history.
-    fn locate(&mut self, timestamp: f64, tracks: &[(u64, Point2<f64>)]) -> Option<LivePose> {
+    /// [`Self::track`] without the history; the local adjustment only if `adjust`.
+    fn locate(
+        &mut self,
+        timestamp: f64,
+        tracks: &[(u64, Point2<f64>)],
+        adjust: bool,
+    ) -> Option<LivePose> {
         let camera = self.map.camera?;
         let prior = self.prior(timestamp)?;
         let correspondences: Vec<(Vector3<f64>, Point2<f64>)> = tracks
@@ -325,10 +356,15 @@ impl LiveTracker {
         let rays_now = rays(&camera, tracks);
         let live = match located {
             Ok(l) => {
-                let pose = StampedPose {
-                    timestamp,
-                    ..l.pose
-                };
+                let pose = self.adjusted(
+                    adjust,
+                    &camera,
+                    StampedPose {
+                        timestamp,
+                        ..l.pose
+                    },
+                    tracks,
+                );
                 self.before_last = self.last.replace(pose);
                 self.triangulate(&camera, &pose, tracks);
                 self.remember(pose, rays_now);
@@ -557,69 +593,6 @@ fn rays(camera: &PinholeRadtan, tracks: &[(u64, Point2<f64>)]) -> FxHashMap<u64,
         .iter()
         .map(|(t, px)| (*t, camera.bearing_from_undistorted(*px)))
         .collect()
-}
-
-/// The rotation `R` (camera now -> camera before) that best takes the rays of now onto the
-/// rays of before for the tracks both have, and how many agree within `threshold_rad`:
-/// RANSAC over pairs of tracks (two rays fix a rotation), then Kabsch on those that agree
-/// with the best pair, twice. A group of tracks moving together (a near surface, a
-/// moving object) would pull a least-squares fit over all of them off every track.
-/// `None` with fewer than 3 shared tracks.
-fn rotation_between(
-    before: &FxHashMap<u64, Vector3<f64>>,
-    now: &FxHashMap<u64, Vector3<f64>>,
-    threshold_rad: f64,
-) -> Option<(UnitQuaternion<f64>, usize)> {
-    /// Pairs drawn: with half the tracks agreeing, 64 draws all miss a good pair with
-    /// probability 0.75^64 < 1e-7.
-    const DRAWS: usize = 64;
-    // `(now, before)`: the pairs `rotation_aligning` turns the first onto the second of.
-    let mut pairs: Vec<(u64, BearingPair)> = now
-        .iter()
-        .filter_map(|(t, r)| before.get(t).map(|b| (*t, (*r, *b))))
-        .collect();
-    if pairs.len() < 3 {
-        return None;
-    }
-    // Track order, so that the draws (and the result) do not depend on the hash order.
-    pairs.sort_by_key(|(t, _)| *t);
-    let fit = |used: &[BearingPair]| UnitQuaternion::from_rotation_matrix(&rotation_aligning(used));
-    let min_cos = threshold_rad.cos();
-    let agreeing = |rotation: &UnitQuaternion<f64>| -> Vec<BearingPair> {
-        pairs
-            .iter()
-            .filter(|(_, (r, b))| b.dot(&(rotation * r)) >= min_cos)
-            .map(|(_, pair)| *pair)
-            .collect()
-    };
-    let mut state = pairs.len() as u64 ^ 0x9e37_79b9_7f4a_7c15;
-    let mut draw = || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (state >> 33) as usize % pairs.len()
-    };
-    let mut best: Option<(UnitQuaternion<f64>, usize)> = None;
-    for _ in 0..DRAWS {
-        let (i, j) = (draw(), draw());
-        if i == j {
-            continue;
-        }
-        let rotation = fit(&[pairs[i].1, pairs[j].1]);
-        let support = agreeing(&rotation).len();
-        if best.is_none_or(|(_, n)| support > n) {
-            best = Some((rotation, support));
-        }
-    }
-    let (mut rotation, _) = best?;
-    for _ in 0..2 {
-        let used = agreeing(&rotation);
-        if used.len() < 3 {
-            return None;
-        }
-        rotation = fit(&used);
-    }
-    Some((rotation, agreeing(&rotation).len()))
 }
 
 /// The midpoint of the shortest segment between two rays, if it lies in front of both.

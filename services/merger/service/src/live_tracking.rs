@@ -8,7 +8,8 @@ use anyhow::Context;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, LIVE_FRAMES};
 use egoslam_egress::Egress;
 use egoslam_merger::{
-    LivePose, LiveTracker, LiveTrackerOptions, MapBuilder, MapView, TrackingState,
+    live_tracking::recording, LivePose, LiveTracker, LiveTrackerOptions, MapBuilder, MapView,
+    TrackingState,
 };
 use egoslam_messages::internal::v1 as internal;
 use egoslam_messages::v1 as pb;
@@ -122,9 +123,11 @@ fn run(
     let mut frames = MessageSubscriber::<internal::LiveFrame>::create(&bus, LIVE_FRAMES)?;
     let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
     let mut file = LiveTrajectory::open(&out.join(LIVE_TRAJECTORY_FILE), fresh)?;
+    let mut record = LiveRecord::from_env();
     loop {
         // The last map first: a frame is posed on the newest one there is.
         if let Some(view) = maps.try_iter().last() {
+            record.add(|| recording::map_line(&view));
             tracker.set_map(view);
         }
         let stopping = stop.load(Ordering::Relaxed) || egoslam_bus::stop_requested();
@@ -148,6 +151,14 @@ fn run(
             (true, Some(segment), Some(camera)) if !tracker.has_map() => Some((segment, camera)),
             _ => None,
         };
+        record.add(|| {
+            Some(match origin {
+                Some((segment, camera)) => {
+                    recording::origin_line(segment, &camera, frame.timestamp_s, &tracks)
+                }
+                None => recording::frame_line(frame.timestamp_s, &tracks),
+            })
+        });
         let located = stats.time("live_track", || match origin {
             Some((segment, camera)) => {
                 Some(tracker.begin_at_origin(camera, segment, frame.timestamp_s, &tracks))
@@ -204,6 +215,38 @@ fn publish(publication: &Publication, frame_id: u64, live: &LivePose) -> anyhow:
         egress.publish_poses(&[pose])?;
     }
     Ok(())
+}
+
+/// `EGOSLAM_DUMP_LIVE=FILE`: the tracker's inputs in the order it took them, for
+/// `live_replay` (egoslam_merger::live_tracking::recording); off without the variable. A
+/// developer's tool, buffered: a crash loses the last lines.
+struct LiveRecord {
+    writer: Option<std::io::BufWriter<std::fs::File>>,
+}
+
+impl LiveRecord {
+    fn from_env() -> Self {
+        let writer = std::env::var_os("EGOSLAM_DUMP_LIVE").and_then(|path| {
+            std::fs::File::create(&path)
+                .map_err(|e| tracing::warn!(error = %e, ?path, "live tracker record not written"))
+                .ok()
+                .map(std::io::BufWriter::new)
+        });
+        Self { writer }
+    }
+
+    /// Appends the line `line` makes, if recording (the line is only made then).
+    fn add(&mut self, line: impl FnOnce() -> Option<String>) {
+        let Some(writer) = self.writer.as_mut() else {
+            return;
+        };
+        if let Some(line) = line() {
+            if let Err(e) = writeln!(writer, "{line}") {
+                tracing::warn!(error = %e, "live tracker record stopped");
+                self.writer = None;
+            }
+        }
+    }
 }
 
 /// `live_trajectory.tum`: appended per frame, flushed about once a second.
