@@ -4,7 +4,8 @@
 //! and ../shared/checks/ate.py read it) followed by the tracking state (0 tracking,
 //! 1 rotation, 2 predicted, 3 lost) and the inliers.
 //!
-//! `cargo run --release -p egoslam-merger --example live_replay RECORD > live.tum`
+//! `cargo run --release -p egoslam-merger --example live_replay RECORD [--no-local-adjustment]
+//! > live.tum`
 use anyhow::Context;
 use egoslam_merger::live_tracking::recording::{parse_line, Recorded};
 use egoslam_merger::{LiveTracker, LiveTrackerOptions};
@@ -14,7 +15,11 @@ fn main() -> anyhow::Result<()> {
         .nth(1)
         .context("usage: live_replay RECORD (written by EGOSLAM_DUMP_LIVE=RECORD egoslam run)")?;
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {path}"))?;
-    let mut tracker = LiveTracker::new(LiveTrackerOptions::default());
+    let mut options = LiveTrackerOptions::default();
+    if std::env::args().any(|a| a == "--no-local-adjustment") {
+        options.local_adjustment = None;
+    }
+    let mut tracker = LiveTracker::new(options);
     for (n, line) in text.lines().enumerate() {
         let live = match parse_line(line, n + 1)? {
             Recorded::Map(view) => {
