@@ -33,10 +33,14 @@ pub const FRAMES: Channel = Channel {
     restart_grace_s: 0,
 };
 
-/// Keyframes with their tracks, frontend -> solver (about 1000 tracks x 24 bytes).
+/// Keyframes with their tracks, frontend -> solver (about 1000 tracks x 24 bytes). Buffer
+/// of 256: the rolling-shutter hold releases the keyframes of its first 150 frames at once
+/// (`--readout-frames`, at most a keyframe per frame), and a frontend that had to wait for
+/// the solver to take them missed frames of a live camera meanwhile (64: 7-9 frames dropped
+/// in the rendered walk's turn in place, the map split there).
 pub const KEYFRAMES: Channel = Channel {
     name: "keyframes",
-    buffer: 64,
+    buffer: 256,
     initial_bytes: 64 * 1024,
     // A restarted frontend (launcher or systemd, RestartSec=1) comes back within seconds.
     restart_grace_s: 10,
