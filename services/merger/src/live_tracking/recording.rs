@@ -110,23 +110,27 @@ pub fn parse_line(text: &str, line: usize) -> Result<Recorded, RecordingError> {
         reason: reason.to_string(),
     };
     let fields: Vec<&str> = text.split_whitespace().collect();
-    let number = |i: usize| -> Result<f64, RecordingError> {
+    let field = |i: usize, what: &str| -> Result<&str, RecordingError> {
         fields
             .get(i)
-            .and_then(|f| f.parse::<f64>().ok())
-            .ok_or_else(|| malformed(&format!("field {i} is not a number")))
+            .copied()
+            .ok_or_else(|| malformed(&format!("field {i} ({what}) missing")))
     };
+    let parsed = |i: usize, what: &str| -> Result<f64, RecordingError> {
+        field(i, what)?
+            .parse::<f64>()
+            .map_err(|_| malformed(&format!("field {i} is not {what}")))
+    };
+    let number = |i: usize| parsed(i, "a number");
     let id = |i: usize| -> Result<u64, RecordingError> {
-        fields
-            .get(i)
-            .and_then(|f| f.parse::<u64>().ok())
-            .ok_or_else(|| malformed(&format!("field {i} is not a track id")))
+        field(i, "a track id")?
+            .parse()
+            .map_err(|_| malformed(&format!("field {i} is not a track id")))
     };
     let count = |i: usize| -> Result<usize, RecordingError> {
-        fields
-            .get(i)
-            .and_then(|f| f.parse::<usize>().ok())
-            .ok_or_else(|| malformed(&format!("field {i} is not a count")))
+        field(i, "a count")?
+            .parse()
+            .map_err(|_| malformed(&format!("field {i} is not a count")))
     };
     let camera = |i: usize| -> Result<PinholeRadtan, RecordingError> {
         PinholeRadtan::new(

@@ -4,15 +4,21 @@ fn camera() -> PinholeRadtan {
     PinholeRadtan::new(640, 480, [500.0, 500.0, 320.0, 240.0], [0.0; 5]).expect("camera")
 }
 
-/// 400 points on a wall 4-6 m ahead; track id = index.
-fn scene() -> Vec<Vector3<f64>> {
-    let mut state = 5u64;
-    let mut uniform = move || {
+/// Uniform numbers in [0, 1) from a seed (a 64-bit LCG: the tests need repeatable numbers,
+/// not good ones).
+fn uniform_from(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
         state = state
             .wrapping_mul(6364136223846793005)
             .wrapping_add(1442695040888963407);
         (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    }
+}
+
+/// 400 points on a wall 4-6 m ahead; track id = index.
+fn scene() -> Vec<Vector3<f64>> {
+    let mut uniform = uniform_from(5);
     (0..400)
         .map(|_| {
             Vector3::new(
@@ -396,13 +402,8 @@ fn walk_ahead_on_own_points(options: LiveTrackerOptions) -> (f64, f64) {
             rotation: UnitQuaternion::from_euler_angles(0.0, 0.1 * (2.0 * t).sin(), 0.0),
         }
     };
-    let mut state = 11u64;
-    let mut noise = move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-    };
+    let mut uniform = uniform_from(11);
+    let mut noise = move || uniform() - 0.5;
     let mut tracker = LiveTracker::new(options);
     tracker.set_map(map_of(&points, 0..50, ahead(0)));
     let (mut squares, mut worst) = (0.0, 0.0f64);
