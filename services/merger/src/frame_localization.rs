@@ -77,13 +77,32 @@ pub fn localize_frame(
         .filter(|(_, px)| camera.bearing_from_undistorted(*px).z >= min_cos)
         .copied()
         .collect();
-    let solution = solve_pnp(camera, &near_axis, Some(prior), &options.pnp)?;
-    let deviation = solution
-        .pose
-        .rotation
-        .angle_to(&prior.rotation)
-        .to_degrees();
-    if !deviation.is_finite() || deviation > options.max_rotation_from_prior_deg {
+    let deviation = |solution: &egoslam_relocalization::absolute_pose::PnpSolution| {
+        let d = solution
+            .pose
+            .rotation
+            .angle_to(&prior.rotation)
+            .to_degrees();
+        if d.is_finite() {
+            d
+        } else {
+            f64::INFINITY
+        }
+    };
+    let mut solution = solve_pnp(camera, &near_axis, Some(prior), &options.pnp)?;
+    if deviation(&solution) > options.max_rotation_from_prior_deg {
+        // Iterated from the prior, the RANSAC's models can settle in a flipped minimum
+        // (through a fisheye, 83-116 deg from the prior on 760-820 correspondences, where a
+        // rendered walk stopped): solved again without the prior, a true pose near it is
+        // found.
+        if let Ok(again) = solve_pnp(camera, &near_axis, None, &options.pnp) {
+            if deviation(&again) < deviation(&solution) {
+                solution = again;
+            }
+        }
+    }
+    let deviation = deviation(&solution);
+    if deviation > options.max_rotation_from_prior_deg {
         return Err(LocalizationError::FarFromPrior(deviation));
     }
     Ok(Localized {
