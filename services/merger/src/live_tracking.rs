@@ -247,7 +247,7 @@ impl LiveTracker {
         // adjustment runs on `RETRACK_ADJUSTMENTS` of them, evenly spread, the last included.
         let stride = since.len().div_ceil(RETRACK_ADJUSTMENTS).max(1);
         for (i, (timestamp, tracks)) in since.iter().enumerate() {
-            let adjust = (since.len() - 1 - i) % stride == 0;
+            let adjust = (since.len() - 1 - i).is_multiple_of(stride);
             self.locate(*timestamp, tracks, adjust);
         }
         self.history = history;
