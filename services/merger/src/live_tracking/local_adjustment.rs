@@ -5,10 +5,10 @@
 //! Between two maps the tracker poses frames by PnP on points it triangulated itself from
 //! two of its own poses. A small error in those poses goes into the points and from them
 //! into the next poses: in a sharp turn while walking, where a sideways step and a turn of
-//! the head move the image alike, the poses drifted 10 deg into turn in 0.7 s and the
+//! the head move the image alike, the poses turned 10 deg too far in 0.7 s and the
 //! position stood still. Adjusting the poses of the last second's frames together with the
-//! points they share ties every pose to many baselines at once; the two oldest frames are
-//! held, so the window keeps the gauge and scale it was tracked in.
+//! points they share ties every pose to many baselines at once; the older frames are held,
+//! so the window keeps the gauge and scale it was tracked in.
 
 use super::LiveTracker;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
@@ -69,8 +69,9 @@ impl Default for LocalAdjustmentOptions {
 }
 
 impl LiveTracker {
-    /// The tracked frame's pose after adjusting the last tracked frames with it
-    /// (local_adjustment.rs); the adjusted frames and points replace the tracker's.
+    /// The tracked frame's pose after adjusting the last tracked frames with it (when
+    /// `adjust` and the options have an adjustment); the adjusted frames and points replace
+    /// the tracker's.
     pub(super) fn adjusted(
         &mut self,
         adjust: bool,
