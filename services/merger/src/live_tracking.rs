@@ -30,6 +30,9 @@ pub use local_adjustment::LocalAdjustmentOptions;
 /// came 110-120 ms late at the 95th percentile, up to 0.7 s.
 const RETRACK_ADJUSTMENTS: usize = 6;
 
+/// Timestamps closer than this are the same frame, seconds.
+const SAME_FRAME_S: f64 = 1e-6;
+
 /// Defaults commented with their reason.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LiveTrackerOptions {
@@ -231,25 +234,20 @@ impl LiveTracker {
             return;
         };
         // The keyframe's own frame must be in the history: the re-tracking starts there.
-        let tolerance = 1e-6;
-        if self
-            .history
-            .front()
-            .is_none_or(|(t, _)| *t > keyframe.timestamp + tolerance)
-        {
+        if !self.history_reaches_back_to(keyframe.timestamp) {
             return;
         }
         self.last = Some(keyframe);
         self.previous = self
             .history
             .iter()
-            .find(|(t, _)| (t - keyframe.timestamp).abs() <= tolerance)
+            .find(|(t, _)| (t - keyframe.timestamp).abs() <= SAME_FRAME_S)
             .and_then(|(_, tracks)| Some((keyframe, rays(&self.map.camera?, tracks))));
         self.recent.extend(self.previous.clone());
         let history = std::mem::take(&mut self.history);
         let since: Vec<&(f64, FrameTracks)> = history
             .iter()
-            .filter(|(t, _)| *t > keyframe.timestamp + tolerance)
+            .filter(|(t, _)| *t > keyframe.timestamp + SAME_FRAME_S)
             .collect();
         // The frames since the keyframe are re-tracked while the stream waits: the local
         // adjustment runs on `RETRACK_ADJUSTMENTS` of them, evenly spread, the last included.
@@ -264,14 +262,18 @@ impl LiveTracker {
     /// Whether `map` continues the current segment but its newest keyframe's frame has left
     /// the history, while the tracker has a pose of its own to go on from.
     fn cannot_retrack_from(&self, map: &MapView) -> bool {
-        let tolerance = 1e-6;
         let continues = self.map.camera.is_some() && map.segment == self.map.segment;
         let keyframe_gone = map.newest_keyframe.is_some_and(|k| {
-            self.history
-                .front()
-                .is_some_and(|(t, _)| *t > k.timestamp + tolerance)
+            !self.history.is_empty() && !self.history_reaches_back_to(k.timestamp)
         });
         continues && keyframe_gone && self.last.is_some()
+    }
+
+    /// Whether the frames kept go back to `timestamp` (its frame or an older one is held).
+    fn history_reaches_back_to(&self, timestamp: f64) -> bool {
+        self.history
+            .front()
+            .is_some_and(|(t, _)| *t <= timestamp + SAME_FRAME_S)
     }
 
     /// The first frame of a new map's stream, before any window: the map's frame is its

@@ -149,12 +149,21 @@ pub(super) fn adjust_window(
         [0.0; 5],
     )
     .ok()?;
+    // Each frame's tracks near the axis, tested once per track.
     let min_axis_cos = options.max_ray_angle_deg.to_radians().cos();
-    let near_axis = |px: &Point2<f64>| pinhole.bearing_from_undistorted(*px).z >= min_axis_cos;
+    let near_axis: Vec<Vec<&(u64, Point2<f64>)>> = frames
+        .iter()
+        .map(|(_, tracks)| {
+            tracks
+                .iter()
+                .filter(|(_, px)| pinhole.bearing_from_undistorted(*px).z >= min_axis_cos)
+                .collect()
+        })
+        .collect();
     // Each track's views among the frames, and the first and last frame seeing it.
     let mut views: FxHashMap<u64, (usize, usize, usize)> = FxHashMap::default();
-    for (c, (_, tracks)) in frames.iter().enumerate() {
-        for (t, _) in tracks.iter().filter(|(_, px)| near_axis(px)) {
+    for (c, tracks) in near_axis.iter().enumerate() {
+        for (t, _) in tracks {
             let v = views.entry(*t).or_insert((0, c, c));
             v.0 += 1;
             v.2 = c;
@@ -186,8 +195,8 @@ pub(super) fn adjust_window(
     let ids: Vec<u64> = candidates.iter().map(|(_, t, _)| *t).collect();
     let points: Vec<Vector3<f64>> = candidates.iter().map(|(_, _, x)| *x).collect();
     let mut observations = Vec::new();
-    for (c, (_, tracks)) in frames.iter().enumerate() {
-        for (t, px) in tracks.iter().filter(|(_, px)| near_axis(px)) {
+    for (c, tracks) in near_axis.iter().enumerate() {
+        for (t, px) in tracks {
             if let Some(&point) = index.get(t) {
                 observations.push(Observation {
                     camera: c,
