@@ -103,6 +103,23 @@ pub fn frame_line(timestamp: f64, tracks: &[(u64, Point2<f64>)]) -> String {
     out
 }
 
+/// Field `i` of a record's `fields` read as a `T` (`what` it is, for the error).
+fn parse_field<T: std::str::FromStr>(
+    fields: &[&str],
+    i: usize,
+    what: &str,
+    line: usize,
+) -> Result<T, RecordingError> {
+    let reason = match fields.get(i) {
+        Some(field) => match field.parse() {
+            Ok(value) => return Ok(value),
+            Err(_) => format!("field {i} is not {what}"),
+        },
+        None => format!("field {i} ({what}) missing"),
+    };
+    Err(RecordingError::Malformed { line, reason })
+}
+
 /// Reads the record on line `line` (numbered for the error only).
 pub fn parse_line(text: &str, line: usize) -> Result<Recorded, RecordingError> {
     let malformed = |reason: &str| RecordingError::Malformed {
@@ -110,32 +127,14 @@ pub fn parse_line(text: &str, line: usize) -> Result<Recorded, RecordingError> {
         reason: reason.to_string(),
     };
     let fields: Vec<&str> = text.split_whitespace().collect();
-    let field = |i: usize, what: &str| -> Result<&str, RecordingError> {
-        fields
-            .get(i)
-            .copied()
-            .ok_or_else(|| malformed(&format!("field {i} ({what}) missing")))
-    };
-    let parsed = |i: usize, what: &str| -> Result<f64, RecordingError> {
-        field(i, what)?
-            .parse::<f64>()
-            .map_err(|_| malformed(&format!("field {i} is not {what}")))
-    };
-    let number = |i: usize| parsed(i, "a number");
-    let id = |i: usize| -> Result<u64, RecordingError> {
-        field(i, "a track id")?
-            .parse()
-            .map_err(|_| malformed(&format!("field {i} is not a track id")))
-    };
-    let count = |i: usize| -> Result<usize, RecordingError> {
-        field(i, "a count")?
-            .parse()
-            .map_err(|_| malformed(&format!("field {i} is not a count")))
-    };
+    let number = |i: usize| parse_field::<f64>(&fields, i, "a number", line);
+    let id = |i: usize| parse_field::<u64>(&fields, i, "a track id", line);
+    let count = |i: usize| parse_field::<usize>(&fields, i, "a count", line);
+    let small = |i: usize| parse_field::<u32>(&fields, i, "a segment or an image size", line);
     let camera = |i: usize| -> Result<PinholeRadtan, RecordingError> {
         PinholeRadtan::new(
-            count(i + 4)? as u32,
-            count(i + 5)? as u32,
+            small(i + 4)?,
+            small(i + 5)?,
             [number(i)?, number(i + 1)?, number(i + 2)?, number(i + 3)?],
             [0.0; 5],
         )
@@ -173,14 +172,14 @@ pub fn parse_line(text: &str, line: usize) -> Result<Recorded, RecordingError> {
                 .collect::<Result<_, RecordingError>>()?;
             Ok(Recorded::Map(MapView {
                 camera: Some(camera(3)?),
-                segment: count(1)? as u32,
+                segment: small(1)?,
                 points,
                 newest_keyframe: Some(newest_keyframe),
                 pace: (!pace.is_nan()).then_some(pace),
             }))
         }
         Some(&"O") => Ok(Recorded::Origin {
-            segment: count(1)? as u32,
+            segment: small(1)?,
             timestamp: number(2)?,
             camera: camera(3)?,
             tracks: tracks(9)?,
