@@ -429,7 +429,7 @@ fn the_local_adjustment_holds_a_walk_on_the_trackers_own_points() {
         local_adjustment: None,
         ..LiveTrackerOptions::default()
     });
-    // Measured: 0.015 / 0.024 m adjusted, 0.032 / 0.081 m without.
+    // Measured: 0.0046 / 0.0072 m adjusted (every second frame), 0.032 / 0.081 m without.
     assert!(
         adjusted_rms < 0.02 && adjusted_worst < 0.04,
         "adjusted: RMS {adjusted_rms} m, worst {adjusted_worst} m"
