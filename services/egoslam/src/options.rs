@@ -93,6 +93,12 @@ pub struct PipelineArgs {
     /// off.
     #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
+    /// Merger: match each new keyframe's corners to the points of older keyframes (up to
+    /// 300 before) that viewed the same place, and add them as observations of those
+    /// points, which the background refinement then adjusts across the revisit
+    /// (docs/merger.md, "Points seen again"); `false` turns it off.
+    #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
+    pub reassociate_points: bool,
     /// Merger: take out of the map the keyframes whose points nearly all (90 %) are seen
     /// by three other keyframes, once no window can bring them again (docs/merger.md,
     /// "Keyframe culling"); their frames stay in the trajectory. `false` keeps every
@@ -512,6 +518,7 @@ impl ServiceArgs {
                 refine_keyframes: pipeline.refine_keyframes,
                 refinement_lag: pipeline.refinement_lag,
                 loop_closure: pipeline.loop_closure,
+                reassociate_points: pipeline.reassociate_points,
                 cull_keyframes: pipeline.cull_keyframes,
                 max_map_keyframes: pipeline.max_map_keyframes,
                 patch_retention_s: match pipeline.patch_retention_min {

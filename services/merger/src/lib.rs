@@ -15,6 +15,7 @@ pub mod loop_closure;
 pub mod map;
 pub mod map_points;
 pub mod point_confidence;
+pub mod point_reassociation;
 pub mod provisional_scale;
 pub mod refinement;
 pub mod refinement_rebase;
