@@ -138,6 +138,16 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
             .collect(),
         revision_frame_ids: state.revisions.keys().copied().collect(),
         revision_numbers: state.revisions.values().copied().collect(),
+        seen_again: parts
+            .seen_again
+            .iter()
+            .map(|((kf, track), px)| internal::Observation {
+                keyframe_id: *kf,
+                track_id: *track,
+                x: px.x as f32,
+                y: px.y as f32,
+            })
+            .collect(),
         weak_observations: parts
             .weak
             .iter()
@@ -202,6 +212,14 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .collect(),
         observations: m
             .observations
+            .iter()
+            .map(|o| {
+                let px = Point2::new(f64::from(o.x), f64::from(o.y));
+                ((o.keyframe_id, o.track_id), px)
+            })
+            .collect(),
+        seen_again: m
+            .seen_again
             .iter()
             .map(|o| {
                 let px = Point2::new(f64::from(o.x), f64::from(o.y));
@@ -328,6 +346,7 @@ mod tests {
         });
         let mut parts = state.map.to_parts();
         parts.loop_pinned = Some((0, 3));
+        parts.seen_again.insert((4, 3), Point2::new(12.5, 40.75));
         state.map = MapBuilder::from_parts(parts);
         state.frames.frames.insert(4, 0.4);
         state.frames.keyframe_frames.insert(1, 4);

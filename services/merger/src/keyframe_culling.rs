@@ -203,6 +203,14 @@ impl MapBuilder {
     /// removed.
     fn remove_keyframe(&mut self, id: u64, views: &mut ViewCounts, min_views: usize) -> usize {
         self.keyframes.remove(&id);
+        let seen_again: Vec<(u64, u64)> = self
+            .seen_again
+            .range((id, 0)..=(id, u64::MAX))
+            .map(|(k, _)| *k)
+            .collect();
+        for key in seen_again {
+            self.seen_again.remove(&key);
+        }
         let keys: Vec<(u64, u64)> = self
             .observations
             .range((id, 0)..=(id, u64::MAX))

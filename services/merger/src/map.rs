@@ -109,6 +109,9 @@ pub struct MapParts {
     pub observations: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
     /// track id -> keyframe id -> undistorted pixel, of tracks not triangulated yet.
     pub weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
+    /// (keyframe id, track id) -> undistorted pixel: a keyframe's sightings of points of
+    /// older keyframes (point_reassociation.rs), for the refinement only.
+    pub seen_again: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
     /// Segment new windows are aligned to (`None` after a break).
     pub current_segment: Option<u32>,
     /// Segments created so far.
@@ -133,6 +136,10 @@ pub struct MapBuilder {
     /// track id -> keyframe id -> undistorted pixel: tracks not triangulated yet
     /// (retriangulation.rs).
     pub(crate) weak: BTreeMap<u64, BTreeMap<u64, nalgebra::Point2<f64>>>,
+    /// See [`MapParts::seen_again`]: kept apart from `observations`, which decide which
+    /// points are published (point_confidence.rs) with the positions the windows gave
+    /// them; only the refinement, which moves the points with them, reads these.
+    pub(crate) seen_again: BTreeMap<(u64, u64), nalgebra::Point2<f64>>,
     pub(crate) current_segment: Option<u32>,
     pub(crate) segments: u32,
     /// See [`MapParts::provisional`].
@@ -192,6 +199,7 @@ impl MapBuilder {
             points: (*self.points).clone(),
             observations: self.observations.clone(),
             weak: self.weak.clone(),
+            seen_again: self.seen_again.clone(),
             current_segment: self.current_segment,
             segments: self.segments,
             provisional: self.provisional,
@@ -206,6 +214,7 @@ impl MapBuilder {
             points: parts.points.into(),
             observations: parts.observations,
             weak: parts.weak,
+            seen_again: parts.seen_again,
             current_segment: parts.current_segment,
             segments: parts.segments,
             provisional: parts.provisional,

@@ -4,10 +4,10 @@
 //! corners, so the map holds the place twice and nothing ties the two sightings together
 //! but the chain of windows between them, whose rotation and scale drift. Each new
 //! keyframe's described tracks are matched, by projection and descriptor, to the points
-//! of older keyframes that viewed the same place from a similar pose; each match adds
-//! the old point's observation in the new keyframe at the new track's pixel. The
-//! background refinement (crate::refinement) then adjusts across the revisit, and the
-//! cross-window error that starts it counts these observations.
+//! of older keyframes that viewed the same place from a similar pose; each match is kept
+//! as a sighting of the old point in the new keyframe at the new track's pixel
+//! (`MapBuilder::seen_again`), which the background refinement (crate::refinement) adds
+//! to its observations and so adjusts across the revisit.
 
 use crate::map::MapBuilder;
 use crate::segment_linking::KeyframeFeatureSource;
@@ -142,7 +142,10 @@ impl MapBuilder {
                     let Some((s, x)) = self.points.get(&track) else {
                         continue;
                     };
-                    if *s != segment || self.observations.contains_key(&(k, track)) {
+                    if *s != segment
+                        || self.observations.contains_key(&(k, track))
+                        || self.seen_again.contains_key(&(k, track))
+                    {
                         continue;
                     }
                     let Some(px) = camera.project_undistorted(&(r_cw * (x - pose.position))) else {
@@ -191,7 +194,7 @@ impl MapBuilder {
         }
         report.observations = added.len();
         for (key, px) in added {
-            self.observations.entry(key).or_insert(px);
+            self.seen_again.entry(key).or_insert(px);
         }
         report
     }
@@ -440,11 +443,10 @@ mod tests {
         assert_eq!(report.keyframes, 1);
         assert_eq!(report.observations, 64);
         for (i, px) in pixels.iter().enumerate() {
-            let seen = map
-                .observations
-                .get(&(100, 1000 + i as u64))
-                .expect("linked");
+            let seen = map.seen_again.get(&(100, 1000 + i as u64)).expect("linked");
             assert!((seen - px).norm() < 1e-3, "{seen} vs {px}");
+            // Kept apart: the window observations decide which points are published.
+            assert!(!map.observations.contains_key(&(100, 1000 + i as u64)));
         }
     }
 

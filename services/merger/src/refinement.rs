@@ -206,7 +206,11 @@ impl MapBuilder {
             .collect();
         let (first, last) = (ids[0], ids[ids.len() - 1]);
         let mut by_track: BTreeMap<u64, Vec<(usize, nalgebra::Point2<f64>)>> = BTreeMap::new();
-        for ((kf, track), px) in self.observations.range((first, 0)..=(last, u64::MAX)) {
+        let sightings = self
+            .observations
+            .range((first, 0)..=(last, u64::MAX))
+            .chain(self.seen_again.range((first, 0)..=(last, u64::MAX)));
+        for ((kf, track), px) in sightings {
             if let Some(&cam) = index.get(kf) {
                 by_track.entry(*track).or_default().push((cam, *px));
             }
@@ -319,6 +323,7 @@ impl MapBuilder {
         let carried_keyframes = self.carry_new(&job, &carried, loops);
         for o in &result.outliers {
             self.observations.remove(&job.keys[*o]);
+            self.seen_again.remove(&job.keys[*o]);
         }
         RefinementReport {
             keyframes: job.ids.len(),
@@ -543,6 +548,27 @@ mod tests {
             }
         }
         (sum / n as f64).sqrt()
+    }
+
+    #[test]
+    fn points_seen_again_join_the_refinement() {
+        let camera = camera();
+        let mut map = wall_map(&camera, 20, 25, truth);
+        let count = |map: &MapBuilder| {
+            map.refinement_job(&camera, &RefinementOptions::default())
+                .expect("job")
+                .observations
+                .len()
+        };
+        let before = count(&map);
+        // Keyframe 24 sees point 0 again (the wall's first column, 0.6 m beyond its reach).
+        let x = map.points[&0].1;
+        let px = camera
+            .project_undistorted(&camera_pose(&truth(24)).to_camera(&x))
+            .expect("in view");
+        assert!(!map.observations.contains_key(&(24, 0)));
+        map.seen_again.insert((24, 0), px);
+        assert_eq!(count(&map), before + 1);
     }
 
     #[test]
