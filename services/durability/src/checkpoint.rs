@@ -77,16 +77,7 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 position: Some(vec3_to_pb(x)),
             })
             .collect(),
-        observations: parts
-            .observations
-            .iter()
-            .map(|((kf, track), px)| internal::Observation {
-                keyframe_id: *kf,
-                track_id: *track,
-                x: px.x as f32,
-                y: px.y as f32,
-            })
-            .collect(),
+        observations: observations_to_pb(&parts.observations),
         current_segment: parts.current_segment,
         segments: parts.segments,
         provisional_scale: parts.provisional.map(|p| internal::ProvisionalScale {
@@ -138,16 +129,7 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
             .collect(),
         revision_frame_ids: state.revisions.keys().copied().collect(),
         revision_numbers: state.revisions.values().copied().collect(),
-        seen_again: parts
-            .seen_again
-            .iter()
-            .map(|((kf, track), px)| internal::Observation {
-                keyframe_id: *kf,
-                track_id: *track,
-                x: px.x as f32,
-                y: px.y as f32,
-            })
-            .collect(),
+        seen_again: observations_to_pb(&parts.seen_again),
         weak_observations: parts
             .weak
             .iter()
@@ -210,22 +192,8 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .iter()
             .map(|p| (p.track_id, (p.segment_id, vec3_from_pb(&p.position))))
             .collect(),
-        observations: m
-            .observations
-            .iter()
-            .map(|o| {
-                let px = Point2::new(f64::from(o.x), f64::from(o.y));
-                ((o.keyframe_id, o.track_id), px)
-            })
-            .collect(),
-        seen_again: m
-            .seen_again
-            .iter()
-            .map(|o| {
-                let px = Point2::new(f64::from(o.x), f64::from(o.y));
-                ((o.keyframe_id, o.track_id), px)
-            })
-            .collect(),
+        observations: observations_from_pb(&m.observations),
+        seen_again: observations_from_pb(&m.seen_again),
         weak: {
             let mut weak: BTreeMap<u64, BTreeMap<u64, Point2<f64>>> = BTreeMap::new();
             for o in &m.weak_observations {
@@ -316,6 +284,34 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .zip(m.revision_numbers.iter().copied())
             .collect(),
     })
+}
+
+/// `(keyframe, track) -> pixel` observations as their messages.
+fn observations_to_pb(
+    observations: &BTreeMap<(u64, u64), Point2<f64>>,
+) -> Vec<internal::Observation> {
+    observations
+        .iter()
+        .map(|((kf, track), px)| internal::Observation {
+            keyframe_id: *kf,
+            track_id: *track,
+            x: px.x as f32,
+            y: px.y as f32,
+        })
+        .collect()
+}
+
+/// The inverse of [`observations_to_pb`].
+fn observations_from_pb(
+    observations: &[internal::Observation],
+) -> BTreeMap<(u64, u64), Point2<f64>> {
+    observations
+        .iter()
+        .map(|o| {
+            let px = Point2::new(f64::from(o.x), f64::from(o.y));
+            ((o.keyframe_id, o.track_id), px)
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -366,12 +366,11 @@ impl MergerSession {
             let r = self.tally.time("reassociate_points", || {
                 map.reassociate_points(&camera, features, &fresh_keyframes, &options)
             });
-            self.tally
-                .count("reassociated_observations", r.observations as u64);
+            self.tally.count("points_seen_again", r.sightings as u64);
             tracing::debug!(
                 window = w.window_id,
                 keyframes = r.keyframes,
-                observations = r.observations,
+                sightings = r.sightings,
                 median_px = crate::median(r.residuals_px),
                 "points seen again"
             );
