@@ -94,9 +94,9 @@ pub struct PipelineArgs {
     #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
     pub loop_closure: bool,
     /// Merger: match each new keyframe's corners to the points of older keyframes (up to
-    /// 300 before) that viewed the same place, and add them as observations of those
-    /// points, which the background refinement then adjusts across the revisit
-    /// (docs/merger.md, "Points seen again"); `false` turns it off.
+    /// 300 before) that viewed the same place, and keep them as sightings of those points,
+    /// which the background refinement then adjusts across the revisit (docs/merger.md,
+    /// "Points seen again"); `false` turns it off.
     #[arg(long, help_heading = "merger", default_value_t = true, action = clap::ArgAction::Set)]
     pub reassociate_points: bool,
     /// Merger: take out of the map the keyframes whose points nearly all (90 %) are seen

@@ -340,7 +340,7 @@ impl LiveTracker {
         let interval = self.options.local_adjustment_interval_s;
         let adjust = self
             .last_adjusted
-            .is_none_or(|t| timestamp - t >= interval - 1e-6);
+            .is_none_or(|t| timestamp - t >= interval - SAME_FRAME_S);
         if adjust {
             self.last_adjusted = Some(timestamp);
         }

@@ -50,10 +50,10 @@ pub struct ReassociationOptions {
     pub ratio: f32,
     /// The matches of one keyframe must agree on one pose (PnP in RANSAC from the
     /// keyframe's): at least this many (default 20) making this share of them (default
-    /// 0.3), within this many pixels (default 3). On tum_fr1_rpy 30-70 % of a keyframe's
-    /// matches agree at 3 px (blur and rolling shutter), on the rendered walks' repeated
-    /// textures the wrong ones do not: without this test the rendered corridor and street
-    /// ended 16x and 31x worse.
+    /// 0.3), within this many pixels (default 3). On tum_fr1_rpy (blur, rolling shutter)
+    /// 33-65 % of a keyframe's matches agreed at 2 px and 65-91 % at 4 px; the wrong
+    /// matches on the rendered walks' repeated textures do not agree: without this test
+    /// the rendered corridor and street ended 16x and 31x worse.
     pub min_agreeing: usize,
     pub min_agreeing_share: f64,
     pub agreement_px: f64,
@@ -123,20 +123,23 @@ impl MapBuilder {
             if self.turns_in_place(k) {
                 continue;
             }
-            let Some(depth) = self.median_depth(k, &pose, options.min_own_points) else {
+            let Some(depth) = self.observed_depth_of(k, &pose, options.min_own_points) else {
                 continue;
             };
-            let Some(new_features) = features.features(k) else {
-                continue;
-            };
+            // Before the keyframe's descriptors are read from the features log: most new
+            // keyframes of a walk have no older view of their place.
             let references = self.reference_keyframes(k, segment, &pose, depth, options);
             if references.is_empty() {
                 continue;
             }
+            let Some(new_features) = features.features(k) else {
+                continue;
+            };
             report.keyframes += 1;
             let grid = FeatureGrid::new(&new_features, options.radius_px);
             let r_cw = pose.rotation.inverse();
-            // Best old point per new feature: (distance, second best, old track).
+            // Per new feature, the old point matched to it with the least distance:
+            // (distance, old track).
             let mut best: BTreeMap<usize, (u32, u64)> = BTreeMap::new();
             for j in references {
                 let old = cache.entry(j).or_insert_with(|| features.features(j));
@@ -252,19 +255,6 @@ impl MapBuilder {
         };
         self.keyframes.range(..id).next_back().is_some_and(same)
             || self.keyframes.range(id + 1..).next().is_some_and(same)
-    }
-
-    /// Median depth of the points keyframe `id` observes; `None` below `min_points`.
-    fn median_depth(&self, id: u64, pose: &StampedPose, min_points: usize) -> Option<f64> {
-        let r_cw = pose.rotation.inverse();
-        let depths: Vec<f64> = self
-            .observations
-            .range((id, 0)..=(id, u64::MAX))
-            .filter_map(|((_, t), _)| self.points.get(t))
-            .map(|(_, x)| (r_cw * (x - pose.position)).z)
-            .filter(|z| *z > 0.0)
-            .collect();
-        (depths.len() >= min_points).then(|| crate::median(depths))?
     }
 
     /// Older keyframes of `segment` that viewed what keyframe `id` views, nearest in

@@ -70,12 +70,26 @@ impl MapBuilder {
     /// Median depth of the map points keyframe `id`, at `pose`, observes (any number of
     /// them in front of it).
     pub(crate) fn observed_depth(&self, id: u64, pose: &StampedPose) -> Option<f64> {
+        self.observed_depth_of(id, pose, 0)
+    }
+
+    /// [`Self::observed_depth`] when at least `min_points` of the points are in front of
+    /// the keyframe, else `None`.
+    pub(crate) fn observed_depth_of(
+        &self,
+        id: u64,
+        pose: &StampedPose,
+        min_points: usize,
+    ) -> Option<f64> {
         let points = self
             .observations
             .range((id, 0)..=(id, u64::MAX))
             .filter_map(|((_, track), _)| self.points.get(track))
             .map(|(_, x)| x);
-        median(depths_in_front(pose, points))
+        let depths = depths_in_front(pose, points);
+        (depths.len() >= min_points)
+            .then(|| median(depths))
+            .flatten()
     }
 
     /// Median scene depth of the latest keyframes of `segment` that see enough map points.

@@ -43,7 +43,7 @@ pub struct SessionOptions {
     pub refinement_lag: u32,
     /// Close loops inside a segment (docs/merger.md, "Loop closure").
     pub loop_closure: bool,
-    /// Add the points a new keyframe sees again as its observations
+    /// Keep the points a new keyframe sees again as its sightings for the refinement
     /// (crate::point_reassociation; docs/merger.md, "Points seen again").
     pub reassociate_points: bool,
     /// Cull redundant keyframes (docs/merger.md, "Keyframe culling").
@@ -358,7 +358,7 @@ impl MergerSession {
             }
         }
         // After the cross-window error is measured: counted there, the drift these
-        // observations measure started refinements while a turn in place was being
+        // sightings measure started refinements while a turn in place was being
         // chained, and the rendered 1500-frame walk ended 2.8x worse.
         if let (true, Some(camera)) = (self.options.reassociate_points, window_camera(w)) {
             let map = &mut self.state.map;
