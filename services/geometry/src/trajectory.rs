@@ -16,6 +16,15 @@ pub struct StampedPose {
     pub rotation: UnitQuaternion<f64>,
 }
 
+impl StampedPose {
+    /// Whether `other` has this pose's centre, up to rounding: a window solved without
+    /// parallax (a head turning in place) puts all its keyframes at one centre, and such
+    /// keyframes measure rotation only.
+    pub fn shares_centre_with(&self, other: &StampedPose) -> bool {
+        (other.position - self.position).norm() <= 1e-9 * self.position.norm().max(1.0)
+    }
+}
+
 /// Pairs `(estimate index, ground-truth index)` whose timestamps differ by at most
 /// `max_dt`, each index used once, closest pairs first (as TUM `associate.py`).
 pub fn associate(est: &[StampedPose], gt: &[StampedPose], max_dt: f64) -> Vec<(usize, usize)> {
@@ -98,6 +107,18 @@ pub fn absolute_trajectory_error(
 mod tests {
     use super::*;
     use nalgebra::Rotation3;
+
+    #[test]
+    fn centres_are_shared_up_to_rounding_only() {
+        let at = |x: f64| StampedPose {
+            timestamp: 0.0,
+            position: Vector3::new(x, 2.0, -1.0),
+            rotation: UnitQuaternion::identity(),
+        };
+        assert!(at(1000.0).shares_centre_with(&at(1000.0 + 1e-9)));
+        assert!(!at(1000.0).shares_centre_with(&at(1000.0 + 1e-3)));
+        assert!(!at(0.0).shares_centre_with(&at(1e-6)));
+    }
 
     fn pose(t: f64, p: Vector3<f64>) -> StampedPose {
         StampedPose {

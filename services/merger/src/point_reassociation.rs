@@ -249,10 +249,8 @@ impl MapBuilder {
         let Some((segment, pose)) = self.keyframes.get(&id) else {
             return false;
         };
-        let same = |(_, (s, p)): (&u64, &(u32, StampedPose))| {
-            s == segment
-                && (p.position - pose.position).norm() <= 1e-9 * pose.position.norm().max(1.0)
-        };
+        let same =
+            |(_, (s, p)): (&u64, &(u32, StampedPose))| s == segment && pose.shares_centre_with(p);
         self.keyframes.range(..id).next_back().is_some_and(same)
             || self.keyframes.range(id + 1..).next().is_some_and(same)
     }

@@ -26,9 +26,7 @@ fn turns_in_place(map: &RelocalizationMap, i: usize) -> bool {
     let k = &map.keyframes[i];
     let same = |j: usize| {
         map.keyframes.get(j).is_some_and(|n: &MapKeyframe| {
-            n.segment == k.segment
-                && (n.pose.position - k.pose.position).norm()
-                    <= 1e-9 * k.pose.position.norm().max(1.0)
+            n.segment == k.segment && k.pose.shares_centre_with(&n.pose)
         })
     };
     (i > 0 && same(i - 1)) || same(i + 1)
