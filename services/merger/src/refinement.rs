@@ -533,18 +533,18 @@ mod tests {
     }
 
     #[test]
-    fn a_refinement_does_not_reach_across_the_boundary() {
+    fn a_refinement_does_not_reach_across_an_unmeasured_scale() {
         let camera = camera();
         let options = RefinementOptions::default();
         let mut map = wall_map(&camera, 60, 25, truth);
         let whole = map.refinement_job(&camera, &options).expect("job");
         assert_eq!((whole.oldest_keyframe(), whole.keyframes()), (Some(0), 25));
-        // Keyframes from 10 on were joined by something the observations do not measure
-        // (a pace that overrode them, a healed break): the job holds them alone.
+        // Keyframes from 10 on were chained with a scale the images did not measure: the
+        // job holds them alone, the first of them fixed.
         map.refinement_boundary = Some((0, 10));
         let after = map.refinement_job(&camera, &options).expect("job");
         assert_eq!((after.oldest_keyframe(), after.keyframes()), (Some(10), 15));
-        // Too few after the boundary for a job of their own: those before it, and the fold
+        // Too few after the join for a job of their own: those before it, and the fold
         // carries the rest rigidly.
         map.refinement_boundary = Some((0, 20));
         let before = map.refinement_job(&camera, &options).expect("job");
@@ -555,7 +555,7 @@ mod tests {
         assert_eq!(before.newest_known_keyframe(), Some(19));
         let report = map.apply_refinement(before.solve().expect("solved"), &Default::default());
         assert_eq!(report.carried_keyframes, 5, "{report:?}");
-        // A boundary in another segment changes nothing.
+        // A join in another segment changes nothing.
         map.refinement_boundary = Some((1, 10));
         let other = map.refinement_job(&camera, &options).expect("job");
         assert_eq!(other.keyframes(), 25);
