@@ -93,12 +93,12 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 segment_id: segment,
                 keyframe_id: keyframe,
             }),
-        refinement_boundary: parts.refinement_boundary.map(|(segment, keyframe)| {
-            internal::RefinementBoundary {
+        scale_join: parts
+            .scale_join
+            .map(|(segment, keyframe)| internal::ScaleJoin {
                 segment_id: segment,
                 keyframe_id: keyframe,
-            }
-        }),
+            }),
         frames: state
             .frames
             .frames
@@ -223,10 +223,7 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .loop_pinned
             .as_ref()
             .map(|p| (p.segment_id, p.keyframe_id)),
-        refinement_boundary: m
-            .refinement_boundary
-            .as_ref()
-            .map(|p| (p.segment_id, p.keyframe_id)),
+        scale_join: m.scale_join.as_ref().map(|p| (p.segment_id, p.keyframe_id)),
     };
     let retired = m.retired.unwrap_or_default();
     Ok(MergerState {
@@ -352,7 +349,7 @@ mod tests {
         });
         let mut parts = state.map.to_parts();
         parts.loop_pinned = Some((0, 3));
-        parts.refinement_boundary = Some((0, 2));
+        parts.scale_join = Some((0, 2));
         parts.seen_again.insert((4, 3), Point2::new(12.5, 40.75));
         state.map = MapBuilder::from_parts(parts);
         state.frames.frames.insert(4, 0.4);

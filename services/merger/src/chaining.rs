@@ -116,7 +116,7 @@ impl MapBuilder {
                     let overridden = scale_source == ScaleSource::WalkingPace
                         && !self.weakly_joined(seg, window, shared_points.len());
                     if overridden {
-                        self.refinement_boundary = Some((seg, *id));
+                        self.scale_join = Some((seg, *id));
                     }
                 }
                 (

@@ -121,13 +121,11 @@ pub struct MapParts {
     /// `(segment, keyframe)`: the newest keyframe a closed loop put onto the older map
     /// (loop_closure.rs); a later loop is spread only over the keyframes after it.
     pub loop_pinned: Option<(u32, u64)>,
-    /// `(segment, keyframe)`: the newest join of the segment that the stored observations
-    /// cannot measure, and which the refinement therefore does not adjust across
-    /// (refinement.rs): the first keyframe of a stretch whose scale the walking pace set
-    /// against what the shared points said (a chaining the pace overrode, or a provisional
-    /// stretch it rescaled: provisional_scale.rs), or of the newer side of a healed break
-    /// (segment_linking.rs: no track spans the break).
-    pub refinement_boundary: Option<(u32, u64)>,
+    /// `(segment, keyframe)`: the first keyframe of the newest stretch whose scale the
+    /// walking pace set against what the shared points said (a chaining overridden by the
+    /// pace, or a provisional stretch rescaled, provisional_scale.rs); the refinement does
+    /// not adjust across it (refinement.rs).
+    pub scale_join: Option<(u32, u64)>,
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -153,8 +151,8 @@ pub struct MapBuilder {
     pub(crate) provisional: Option<ProvisionalScale>,
     /// See [`MapParts::loop_pinned`].
     pub(crate) loop_pinned: Option<(u32, u64)>,
-    /// See [`MapParts::refinement_boundary`].
-    pub(crate) refinement_boundary: Option<(u32, u64)>,
+    /// See [`MapParts::scale_join`].
+    pub(crate) scale_join: Option<(u32, u64)>,
 }
 
 /// What gave a chained window its scale, best evidence first (logged per window).
@@ -213,7 +211,7 @@ impl MapBuilder {
             segments: self.segments,
             provisional: self.provisional,
             loop_pinned: self.loop_pinned,
-            refinement_boundary: self.refinement_boundary,
+            scale_join: self.scale_join,
         }
     }
 
@@ -229,7 +227,7 @@ impl MapBuilder {
             segments: parts.segments,
             provisional: parts.provisional,
             loop_pinned: parts.loop_pinned,
-            refinement_boundary: parts.refinement_boundary,
+            scale_join: parts.scale_join,
         }
     }
 

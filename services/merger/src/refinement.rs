@@ -178,19 +178,17 @@ impl MapBuilder {
             .collect()
     }
 
-    /// The segment's newest join that its observations cannot measure
-    /// ([`MapParts::refinement_boundary`]).
-    fn refinement_boundary_in(&self, segment: u32) -> Option<u64> {
-        self.refinement_boundary
+    /// The segment's newest keyframe chained with a scale the images did not measure
+    /// ([`MapParts::scale_join`]).
+    fn scale_join_in(&self, segment: u32) -> Option<u64> {
+        self.scale_join
             .filter(|(s, _)| *s == segment)
             .map(|(_, keyframe)| keyframe)
     }
 
     /// Copies the refinement problem of the current segment (its last `options.keyframes`,
     /// or all) out of the map; `None` when there is too little to refine (fewer keyframes
-    /// than `fixed + 2`, or no point seen twice). It does not span the segment's
-    /// refinement boundary: it holds the keyframes from it on, or, when fewer than
-    /// `fixed + 2` follow it, those before it (the rest are carried at the fold).
+    /// than `fixed + 2`, or no point seen twice).
     pub fn refinement_job(
         &self,
         camera: &PinholeRadtan,
@@ -205,8 +203,8 @@ impl MapBuilder {
         if options.keyframes > 0 {
             ids.drain(..ids.len().saturating_sub(options.keyframes));
         }
-        if let Some(boundary) = self.refinement_boundary_in(segment) {
-            let after = ids.partition_point(|id| *id < boundary);
+        if let Some(join) = self.scale_join_in(segment) {
+            let after = ids.partition_point(|id| *id < join);
             if ids.len() - after >= options.fixed + 2 {
                 ids.drain(..after);
             } else {
@@ -260,8 +258,8 @@ impl MapBuilder {
         if points.is_empty() {
             return None;
         }
-        // Keyframes after the job's newest (beyond the refinement boundary) and the points
-        // only they see are carried rigidly at the fold, as those added meanwhile.
+        // Keyframes after the job's newest (beyond a scale join) and the points only they
+        // see are carried rigidly at the fold, as those added meanwhile.
         let known_keyframes: BTreeSet<u64> = all.into_iter().filter(|id| *id <= last).collect();
         let job_tracks: BTreeSet<u64> = tracks.iter().copied().collect();
         let beyond: BTreeSet<u64> = self
@@ -541,12 +539,12 @@ mod tests {
         assert_eq!((whole.oldest_keyframe(), whole.keyframes()), (Some(0), 25));
         // Keyframes from 10 on were chained with a scale the images did not measure: the
         // job holds them alone, the first of them fixed.
-        map.refinement_boundary = Some((0, 10));
+        map.scale_join = Some((0, 10));
         let after = map.refinement_job(&camera, &options).expect("job");
         assert_eq!((after.oldest_keyframe(), after.keyframes()), (Some(10), 15));
         // Too few after the join for a job of their own: those before it, and the fold
         // carries the rest rigidly.
-        map.refinement_boundary = Some((0, 20));
+        map.scale_join = Some((0, 20));
         let before = map.refinement_job(&camera, &options).expect("job");
         assert_eq!(
             (before.oldest_keyframe(), before.keyframes()),
@@ -556,7 +554,7 @@ mod tests {
         let report = map.apply_refinement(before.solve().expect("solved"), &Default::default());
         assert_eq!(report.carried_keyframes, 5, "{report:?}");
         // A join in another segment changes nothing.
-        map.refinement_boundary = Some((1, 10));
+        map.scale_join = Some((1, 10));
         let other = map.refinement_job(&camera, &options).expect("job");
         assert_eq!(other.keyframes(), 25);
     }

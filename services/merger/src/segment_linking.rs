@@ -447,18 +447,6 @@ impl MapBuilder {
     /// link's similarity and relabelled, and new windows continue in `to` if they were
     /// continuing `from`.
     pub fn merge_segment(&mut self, link: &SegmentLink) {
-        // No observation spans the break (its tracks all started again); only the
-        // relocalization, which the map does not keep, measured the link. A refinement
-        // across it would let one side float against the other (refinement.rs).
-        let first_of = |segment: u32| {
-            self.keyframes
-                .iter()
-                .find(|(_, (s, _))| *s == segment)
-                .map(|(id, _)| *id)
-        };
-        if let (Some(a), Some(b)) = (first_of(link.from), first_of(link.to)) {
-            self.refinement_boundary = Some((link.to, a.max(b)));
-        }
         for (segment, pose) in self.keyframes.values_mut() {
             if *segment == link.from {
                 *segment = link.to;
@@ -522,8 +510,6 @@ mod tests {
         };
         map.merge_segment(&link);
         assert_eq!(map.live_segments(), 1);
-        // Refinements of the merged segment stop at the break.
-        assert_eq!(map.refinement_boundary, Some((0, 10)));
         let (segment, p) = map.keyframe(11).expect("keyframe");
         assert_eq!(segment, 0);
         assert!((p.position - link.transform.apply(&Vector3::new(11.0, 0.0, 0.0))).norm() < 1e-12);
