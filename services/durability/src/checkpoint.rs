@@ -93,12 +93,6 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 segment_id: segment,
                 keyframe_id: keyframe,
             }),
-        scale_join: parts
-            .scale_join
-            .map(|(segment, keyframe)| internal::ScaleJoin {
-                segment_id: segment,
-                keyframe_id: keyframe,
-            }),
         frames: state
             .frames
             .frames
@@ -223,7 +217,6 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .loop_pinned
             .as_ref()
             .map(|p| (p.segment_id, p.keyframe_id)),
-        scale_join: m.scale_join.as_ref().map(|p| (p.segment_id, p.keyframe_id)),
     };
     let retired = m.retired.unwrap_or_default();
     Ok(MergerState {
@@ -349,7 +342,6 @@ mod tests {
         });
         let mut parts = state.map.to_parts();
         parts.loop_pinned = Some((0, 3));
-        parts.scale_join = Some((0, 2));
         parts.seen_again.insert((4, 3), Point2::new(12.5, 40.75));
         state.map = MapBuilder::from_parts(parts);
         state.frames.frames.insert(4, 0.4);

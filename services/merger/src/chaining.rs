@@ -1,6 +1,6 @@
 //! Chaining windows into map segments.
 
-use crate::map::{MapBuilder, PointPair, ScaleSource, WindowInput, WindowOutcome};
+use crate::map::{MapBuilder, PointPair, WindowInput, WindowOutcome};
 use crate::window_alignment::transform_pose;
 use egoslam_geometry::StampedPose;
 
@@ -111,13 +111,6 @@ impl MapBuilder {
                 );
                 if let Some((id, _)) = window.poses.get(first_new) {
                     self.note_chaining_scale(seg, *id, scale_source);
-                    // The pace overrode the shared points: a refinement across the join
-                    // would pull the window back to the scale they gave (refinement.rs).
-                    let overridden = scale_source == ScaleSource::WalkingPace
-                        && !self.weakly_joined(seg, window, shared_points.len());
-                    if overridden {
-                        self.scale_join = Some((seg, *id));
-                    }
                 }
                 (
                     seg,

@@ -121,11 +121,6 @@ pub struct MapParts {
     /// `(segment, keyframe)`: the newest keyframe a closed loop put onto the older map
     /// (loop_closure.rs); a later loop is spread only over the keyframes after it.
     pub loop_pinned: Option<(u32, u64)>,
-    /// `(segment, keyframe)`: the first keyframe of the newest stretch whose scale the
-    /// walking pace set against what the shared points said (a chaining overridden by the
-    /// pace, or a provisional stretch rescaled, provisional_scale.rs); the refinement does
-    /// not adjust across it (refinement.rs).
-    pub scale_join: Option<(u32, u64)>,
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -151,8 +146,6 @@ pub struct MapBuilder {
     pub(crate) provisional: Option<ProvisionalScale>,
     /// See [`MapParts::loop_pinned`].
     pub(crate) loop_pinned: Option<(u32, u64)>,
-    /// See [`MapParts::scale_join`].
-    pub(crate) scale_join: Option<(u32, u64)>,
 }
 
 /// What gave a chained window its scale, best evidence first (logged per window).
@@ -211,7 +204,6 @@ impl MapBuilder {
             segments: self.segments,
             provisional: self.provisional,
             loop_pinned: self.loop_pinned,
-            scale_join: self.scale_join,
         }
     }
 
@@ -227,7 +219,6 @@ impl MapBuilder {
             segments: parts.segments,
             provisional: parts.provisional,
             loop_pinned: parts.loop_pinned,
-            scale_join: parts.scale_join,
         }
     }
 

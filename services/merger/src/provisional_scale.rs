@@ -148,9 +148,6 @@ impl MapBuilder {
             .range(p.first_keyframe..)
             .find(|(_, (s, _))| *s == p.segment)
             .map(|(_, (_, pose))| pose.position)?;
-        // The points seen across the stretch's start now disagree with its scale; a
-        // refinement across it would undo the pace (refinement.rs).
-        self.scale_join = Some((p.segment, p.first_keyframe));
         let mut keyframes = 0;
         for (_, (s, pose)) in self.keyframes.range_mut(p.first_keyframe..) {
             if *s == p.segment {
@@ -262,8 +259,6 @@ mod tests {
         let pace = (b.position - a.position).norm() / (b.timestamp - a.timestamp);
         assert!((pace - NEW_SEGMENT_PACE).abs() < 0.05, "pace {pace}");
         assert!(map.provisional_scale().is_none());
-        // A refinement must not reach back across the rescaled stretch's start.
-        assert_eq!(map.scale_join, Some((0, 35)));
     }
 
     #[test]
@@ -278,6 +273,5 @@ mod tests {
         assert_eq!((settled.scale, settled.keyframes), (1.0, 0), "{settled:?}");
         assert_eq!(map.keyframe(79).expect("posed").1.position, before);
         assert!(map.provisional_scale().is_none());
-        assert_eq!(map.scale_join, None, "nothing rescaled");
     }
 }

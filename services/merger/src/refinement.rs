@@ -178,14 +178,6 @@ impl MapBuilder {
             .collect()
     }
 
-    /// The segment's newest keyframe chained with a scale the images did not measure
-    /// ([`MapParts::scale_join`]).
-    fn scale_join_in(&self, segment: u32) -> Option<u64> {
-        self.scale_join
-            .filter(|(s, _)| *s == segment)
-            .map(|(_, keyframe)| keyframe)
-    }
-
     /// Copies the refinement problem of the current segment (its last `options.keyframes`,
     /// or all) out of the map; `None` when there is too little to refine (fewer keyframes
     /// than `fixed + 2`, or no point seen twice).
@@ -202,17 +194,6 @@ impl MapBuilder {
         let mut ids = all.clone();
         if options.keyframes > 0 {
             ids.drain(..ids.len().saturating_sub(options.keyframes));
-        }
-        if let Some(join) = self.scale_join_in(segment) {
-            let after = ids.partition_point(|id| *id < join);
-            if ids.len() - after >= options.fixed + 2 {
-                ids.drain(..after);
-            } else {
-                ids.truncate(after);
-            }
-            if ids.len() < options.fixed + 2 {
-                return None;
-            }
         }
         let index: BTreeMap<u64, usize> = ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
         let poses: Vec<CameraPose> = ids
@@ -258,20 +239,10 @@ impl MapBuilder {
         if points.is_empty() {
             return None;
         }
-        // Keyframes after the job's newest (beyond a scale join) and the points only they
-        // see are carried rigidly at the fold, as those added meanwhile.
-        let known_keyframes: BTreeSet<u64> = all.into_iter().filter(|id| *id <= last).collect();
-        let job_tracks: BTreeSet<u64> = tracks.iter().copied().collect();
-        let beyond: BTreeSet<u64> = self
-            .observations
-            .range((last + 1, 0)..)
-            .map(|((_, track), _)| *track)
-            .filter(|track| !job_tracks.contains(track))
-            .collect();
         let known_tracks = self
             .points
             .iter()
-            .filter(|(t, (s, _))| *s == segment && !beyond.contains(t))
+            .filter(|(_, (s, _))| *s == segment)
             .map(|(t, _)| *t)
             .collect();
         Some(RefinementJob {
@@ -285,7 +256,7 @@ impl MapBuilder {
             points,
             observations,
             keys,
-            known_keyframes,
+            known_keyframes: all.into_iter().collect(),
             known_tracks,
         })
     }
@@ -528,35 +499,6 @@ mod tests {
             parts.keyframes.insert(i as u64, (0, drifted(i)));
         }
         MapBuilder::from_parts(parts)
-    }
-
-    #[test]
-    fn a_refinement_does_not_reach_across_an_unmeasured_scale() {
-        let camera = camera();
-        let options = RefinementOptions::default();
-        let mut map = wall_map(&camera, 60, 25, truth);
-        let whole = map.refinement_job(&camera, &options).expect("job");
-        assert_eq!((whole.oldest_keyframe(), whole.keyframes()), (Some(0), 25));
-        // Keyframes from 10 on were chained with a scale the images did not measure: the
-        // job holds them alone, the first of them fixed.
-        map.scale_join = Some((0, 10));
-        let after = map.refinement_job(&camera, &options).expect("job");
-        assert_eq!((after.oldest_keyframe(), after.keyframes()), (Some(10), 15));
-        // Too few after the join for a job of their own: those before it, and the fold
-        // carries the rest rigidly.
-        map.scale_join = Some((0, 20));
-        let before = map.refinement_job(&camera, &options).expect("job");
-        assert_eq!(
-            (before.oldest_keyframe(), before.keyframes()),
-            (Some(0), 20)
-        );
-        assert_eq!(before.newest_known_keyframe(), Some(19));
-        let report = map.apply_refinement(before.solve().expect("solved"), &Default::default());
-        assert_eq!(report.carried_keyframes, 5, "{report:?}");
-        // A join in another segment changes nothing.
-        map.scale_join = Some((1, 10));
-        let other = map.refinement_job(&camera, &options).expect("job");
-        assert_eq!(other.keyframes(), 25);
     }
 
     #[test]
