@@ -56,27 +56,62 @@ pub struct RollingShutterPose {
     pub rmse_after_px: f64,
 }
 
-type Params = SVector<f64, 9>;
+impl RollingShutterPose {
+    /// A pose and turn known from elsewhere (no refinement measured it: both errors 0).
+    pub fn from_motion(pose: StampedPose, angular_velocity: Vector3<f64>) -> Self {
+        Self {
+            pose,
+            angular_velocity,
+            rmse_before_px: 0.0,
+            rmse_after_px: 0.0,
+        }
+    }
 
-/// Pixel of `point` seen by the camera `pose` (with `params` applied) turning at the
-/// angular velocity in `params`, on the row of `observed`.
-fn predict(
-    camera: &PinholeRadtan,
-    pose: &StampedPose,
-    params: &Params,
-    point: &Vector3<f64>,
-    observed: &Point2<f64>,
-    readout_s: f64,
-) -> Option<Point2<f64>> {
-    let tau = camera.row_offset(observed.y) * readout_s;
-    let turn = Vector3::new(params[6], params[7], params[8]) * tau;
-    let rotation = pose.rotation.to_rotation_matrix()
-        * Rotation3::new(Vector3::new(params[0], params[1], params[2]))
-        * Rotation3::new(turn);
-    let centre = pose.position + Vector3::new(params[3], params[4], params[5]);
-    camera.project_undistorted(&(rotation.inverse() * (point - centre)))
+    /// Undistorted pixel of `point` in `camera`, on the row whose exposure sees it: the
+    /// row is found by fixed-point iteration from the middle-row projection (three steps:
+    /// a head's turn moves a point by a few pixels over the readout, and each step shrinks
+    /// the row error by that fraction of the image height).
+    pub fn project(
+        &self,
+        camera: &PinholeRadtan,
+        point: &Vector3<f64>,
+        readout_s: f64,
+    ) -> Option<Point2<f64>> {
+        let mut pixel = camera
+            .project_undistorted(&(self.pose.rotation.inverse() * (point - self.pose.position)))?;
+        for _ in 0..3 {
+            let tau = camera.row_offset(pixel.y) * readout_s;
+            let rotation =
+                self.pose.rotation * UnitQuaternion::from_scaled_axis(self.angular_velocity * tau);
+            pixel =
+                camera.project_undistorted(&(rotation.inverse() * (point - self.pose.position)))?;
+        }
+        Some(pixel)
+    }
+
+    /// Distance, pixels, between `observed` (undistorted) and where `point` is seen on
+    /// `observed`'s row.
+    pub fn reprojection_error(
+        &self,
+        camera: &PinholeRadtan,
+        point: &Vector3<f64>,
+        observed: &Point2<f64>,
+        readout_s: f64,
+    ) -> Option<f64> {
+        let tau = camera.row_offset(observed.y) * readout_s;
+        let rotation =
+            self.pose.rotation * UnitQuaternion::from_scaled_axis(self.angular_velocity * tau);
+        let q = camera.project_undistorted(&(rotation.inverse() * (point - self.pose.position)))?;
+        Some((q - observed).norm())
+    }
 }
 
+type Params = SVector<f64, 9>;
+
+/// Pixels of `correspondences`' points seen by the camera `pose` (with `params` applied)
+/// turning at the angular velocity in `params`, each on the row of its observation, minus
+/// the observations. The increment and centre are applied once, not per point: the
+/// forward-difference Jacobian evaluates this ten times per iteration.
 fn residuals(
     camera: &PinholeRadtan,
     pose: &StampedPose,
@@ -84,10 +119,17 @@ fn residuals(
     correspondences: &[(Vector3<f64>, Point2<f64>)],
     readout_s: f64,
 ) -> Option<Vec<[f64; 2]>> {
+    let camera_from_base = (pose.rotation.to_rotation_matrix()
+        * Rotation3::new(Vector3::new(params[0], params[1], params[2])))
+    .inverse();
+    let centre = pose.position + Vector3::new(params[3], params[4], params[5]);
+    let omega = Vector3::new(params[6], params[7], params[8]);
     correspondences
         .iter()
         .map(|(x, p)| {
-            let q = predict(camera, pose, params, x, p, readout_s)?;
+            let tau = camera.row_offset(p.y) * readout_s;
+            let turned = Rotation3::new(omega * tau).inverse() * (camera_from_base * (x - centre));
+            let q = camera.project_undistorted(&turned)?;
             Some([q.x - p.x, q.y - p.y])
         })
         .collect()
@@ -203,6 +245,35 @@ pub fn refine_rolling_shutter_pose(
     })
 }
 
+/// `start` refined with the turn on all `correspondences` (Huber), then again on those the
+/// first refinement explains within `threshold_px`: the pose and the indices of the
+/// correspondences kept. `None` when a refinement fails or fewer than `min_kept` remain.
+pub fn refine_rolling_shutter_inliers(
+    camera: &PinholeRadtan,
+    correspondences: &[(Vector3<f64>, Point2<f64>)],
+    start: &StampedPose,
+    readout_s: f64,
+    threshold_px: f64,
+    min_kept: usize,
+    options: &RollingShutterPoseOptions,
+) -> Option<(RollingShutterPose, Vec<usize>)> {
+    let first = refine_rolling_shutter_pose(camera, correspondences, start, readout_s, options)?;
+    let kept: Vec<usize> = (0..correspondences.len())
+        .filter(|&i| {
+            let (point, observed) = &correspondences[i];
+            first
+                .reprojection_error(camera, point, observed, readout_s)
+                .is_some_and(|e| e <= threshold_px)
+        })
+        .collect();
+    if kept.len() < min_kept.max(1) {
+        return None;
+    }
+    let pairs: Vec<_> = kept.iter().map(|&i| correspondences[i]).collect();
+    let second = refine_rolling_shutter_pose(camera, &pairs, &first.pose, readout_s, options)?;
+    Some((second, kept))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -313,6 +384,72 @@ mod tests {
             &seen[..5],
             &truth,
             0.03,
+            &RollingShutterPoseOptions::default()
+        )
+        .is_none());
+    }
+
+    #[test]
+    fn a_turning_pose_sees_points_on_their_rows_and_outliers_are_dropped() {
+        let truth = StampedPose {
+            timestamp: 0.0,
+            position: Vector3::new(-0.1, 0.05, 0.1),
+            rotation: UnitQuaternion::from_euler_angles(-0.03, 0.08, 0.01),
+        };
+        let omega = Vector3::new(-0.4, 1.8, 0.2);
+        let readout = 0.022;
+        let mut seen = observe(&truth, omega, readout);
+        let turning = RollingShutterPose::from_motion(truth, omega);
+        let cam = camera();
+        // The projection finds each point's pixel on the row that sees it, to within the
+        // fixed-point iteration's residue; the middle row's pose alone misses by pixels.
+        let (mut worst, mut worst_still) = (0.0f64, 0.0f64);
+        for (x, p) in &seen {
+            let q = turning.project(&cam, x, readout).expect("in front");
+            worst = worst.max((q - p).norm());
+            let still = cam
+                .project_undistorted(&(truth.rotation.inverse() * (x - truth.position)))
+                .expect("in front");
+            worst_still = worst_still.max((still - p).norm());
+            let e = turning
+                .reprojection_error(&cam, x, p, readout)
+                .expect("in front");
+            assert!(e < 1e-9, "{e}");
+        }
+        assert!(worst < 0.01, "{worst}");
+        assert!(worst_still > 5.0, "{worst_still}");
+        // A fifth of the correspondences moved 20 px: refined with the turn, they are the
+        // ones left out, and the pose is the truth's.
+        let moved: Vec<usize> = (0..seen.len()).step_by(5).collect();
+        for &i in &moved {
+            seen[i].1.x += 20.0;
+        }
+        let start = StampedPose {
+            position: truth.position + Vector3::new(0.01, -0.01, 0.0),
+            ..truth
+        };
+        let (found, kept) = refine_rolling_shutter_inliers(
+            &cam,
+            &seen,
+            &start,
+            readout,
+            1.5,
+            15,
+            &RollingShutterPoseOptions::default(),
+        )
+        .expect("refined");
+        assert_eq!(kept.len(), seen.len() - moved.len());
+        assert!(kept.iter().all(|i| !moved.contains(i)));
+        assert!((found.pose.position - truth.position).norm() < 1e-4);
+        assert!((found.angular_velocity - omega).norm() < 0.01);
+        // Asked to keep more than it can explain: refused.
+        assert!(refine_rolling_shutter_inliers(
+            &cam,
+            &seen,
+            &start,
+            readout,
+            1.5,
+            seen.len(),
             &RollingShutterPoseOptions::default()
         )
         .is_none());
