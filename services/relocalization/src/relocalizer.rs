@@ -90,9 +90,10 @@ pub struct RelocalizerOptions {
     /// from the points (segment linking, scale) turn it off.
     pub place_by_rotation: bool,
     /// The query frames' rolling-shutter readout, seconds (default 0: a global shutter).
-    /// A query frame has no tracks for the frontend's correction; with a readout its final
-    /// pose is refined together with the camera's turn during the readout
-    /// ([`crate::rolling_shutter_pose`]).
+    /// A query frame has no tracks for the frontend's correction; with a readout its pose
+    /// is refined together with the camera's turn during the readout
+    /// ([`crate::rolling_shutter_pose`]), and the points are searched for and aligned
+    /// where the turning camera sees them (`relocalizer/turn.rs`).
     pub rolling_shutter_s: f64,
     /// Settings of that refinement.
     pub rolling_shutter: RollingShutterPoseOptions,
@@ -158,6 +159,10 @@ pub struct Relocalization {
     pub keyframe_id: u64,
     /// Inlier matches of the final refinement: `(map track, query feature index)`.
     pub inliers: Vec<(u64, usize)>,
+    /// The camera's angular velocity during the rolling-shutter readout (camera frame,
+    /// rad/s; `pose` is the middle row's): zero with a global shutter or when the readout's
+    /// refinement did not hold.
+    pub angular_velocity: Vector3<f64>,
 }
 
 /// A map ready for queries: the map, its vocabulary and the keyframes' inverted index.
@@ -340,6 +345,25 @@ impl Relocalizer {
         pose: &StampedPose,
         options: &RelocalizerOptions,
     ) -> Vec<(u64, usize)> {
+        let r_cw = pose.rotation.inverse();
+        let camera = &self.map.camera;
+        self.match_projected(
+            query,
+            keyframes,
+            |x| camera.project_undistorted(&(r_cw * (x - pose.position))),
+            options,
+        )
+    }
+
+    /// [`Self::match_projection`] with the points placed in the query by `project` (an
+    /// undistorted pixel).
+    fn match_projected(
+        &self,
+        query: &QueryFeatures,
+        keyframes: &[usize],
+        project: impl Fn(&Vector3<f64>) -> Option<Point2<f64>>,
+        options: &RelocalizerOptions,
+    ) -> Vec<(u64, usize)> {
         // A dense grid of the query's features over their bounding box: looked up 9 times
         // per projected point, so a hash map here cost more than the distances. Cells of
         // 16 px (at least the search radius, so the 3x3 block around a projection holds
@@ -380,8 +404,6 @@ impl Relocalizer {
             }
             &grid[(y * cols + x) as usize]
         };
-        let r_cw = pose.rotation.inverse();
-        let camera = &self.map.camera;
         let radius = options.projection_radius_px;
         let mut best_of_query: BTreeMap<usize, (u32, u64)> = BTreeMap::new();
         for &k in keyframes {
@@ -393,7 +415,7 @@ impl Relocalizer {
                 let Some(x) = self.point_positions.get(point as usize) else {
                     continue;
                 };
-                let Some(px) = camera.project_undistorted(&(r_cw * (x - pose.position))) else {
+                let Some(px) = project(x) else {
                     continue;
                 };
                 let (cx, cy) = cell_of(&px);
@@ -440,16 +462,16 @@ impl Relocalizer {
     }
 
     /// `pose` refined on its inlier `pairs` with the camera's turn during a rolling-shutter
-    /// readout (`RelocalizerOptions::rolling_shutter_s`); `pose` itself with a global
-    /// shutter or when the refinement does not hold.
+    /// readout (`RelocalizerOptions::rolling_shutter_s`), and that turn's angular velocity;
+    /// `pose` itself and no turn with a global shutter or when the refinement does not hold.
     fn unrolled(
         &self,
         pose: StampedPose,
         pairs: impl Iterator<Item = (Vector3<f64>, Point2<f64>)>,
         options: &RelocalizerOptions,
-    ) -> StampedPose {
+    ) -> (StampedPose, Vector3<f64>) {
         if options.rolling_shutter_s <= 0.0 {
-            return pose;
+            return (pose, Vector3::zeros());
         }
         let pairs: Vec<_> = pairs.collect();
         refine_rolling_shutter_pose(
@@ -459,7 +481,7 @@ impl Relocalizer {
             options.rolling_shutter_s,
             &options.rolling_shutter,
         )
-        .map_or(pose, |r| r.pose)
+        .map_or((pose, Vector3::zeros()), |r| (r.pose, r.angular_velocity))
     }
 
     /// Relocalizes one frame.
@@ -548,7 +570,7 @@ impl Relocalizer {
                 continue;
             }
             if let Some(found) = self.place(query, &hypothesis, None, options) {
-                return Ok(found);
+                return Ok(self.rotation_if_better(query, &candidates, found, options));
             }
         }
         if let Some(found) = self.second_chance(query, &candidates, options, tentative) {
@@ -562,6 +584,7 @@ impl Relocalizer {
 }
 
 mod patches;
+mod turn;
 
 mod confirmation;
 use confirmation::Hypothesis;

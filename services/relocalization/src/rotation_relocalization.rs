@@ -201,6 +201,7 @@ pub(crate) fn relocalize_by_rotation(
                 .iter()
                 .map(|&m| (keyframe.features[matches[m].1].track_id, matches[m].0))
                 .collect(),
+            angular_velocity: Vector3::zeros(),
         });
     }
     None

@@ -90,7 +90,7 @@ impl Relocalizer {
             )
         });
         let needed = tentative.map_or(solution.inliers.len(), |t| t.min_confirmed_inliers);
-        let (pose, inliers) = match refined {
+        let ((pose, angular_velocity), inliers) = match refined {
             Some(s) if s.inliers.len() >= needed => (
                 self.unrolled(
                     s.pose,
@@ -116,12 +116,14 @@ impl Relocalizer {
                     .collect(),
             ),
         };
-        Some(Relocalization {
+        let found = Relocalization {
             pose,
             segment: hypothesis.segment,
             keyframe_id: nearest.keyframe_id,
             inliers,
-        })
+            angular_velocity,
+        };
+        Some(self.searched_with_turn(query, &local, found, options))
     }
 }
 
@@ -135,29 +137,40 @@ pub(super) fn stays_near(
     refined: &PnpSolution,
     pairs: &[(Vector3<f64>, Point2<f64>)],
 ) -> bool {
-    let r_cw = refined.pose.rotation.inverse();
-    let depth = egoslam_geometry::median(
-        refined
-            .inliers
-            .iter()
-            .map(|&i| (r_cw * (pairs[i].0 - refined.pose.position)).z)
-            .collect(),
+    let near = pose_stays_near(
+        options,
+        start,
+        &refined.pose,
+        refined.inliers.iter().map(|&i| &pairs[i].0),
     );
-    let shift = (refined.pose.position - start.position).norm();
-    let turn = refined.pose.rotation.angle_to(&start.rotation).to_degrees();
-    let near = turn <= options.max_refinement_turn_deg
-        && depth > 0.0
-        && shift <= options.max_refinement_shift_of_depth * depth;
     if !near {
         tracing::debug!(
             appearance = start_inliers,
             projected = refined.inliers.len(),
-            turn_deg = turn,
-            shift_of_depth = shift / depth,
             "refinement left its start"
         );
     }
     near
+}
+
+/// Whether `refined` (world_from_camera) is within the refinement's bounds of `start`
+/// ([`RelocalizerOptions::max_refinement_turn_deg`], and
+/// [`RelocalizerOptions::max_refinement_shift_of_depth`] of the median depth of `points`,
+/// which must lie in front).
+pub(super) fn pose_stays_near<'p>(
+    options: &RelocalizerOptions,
+    start: &StampedPose,
+    refined: &StampedPose,
+    points: impl Iterator<Item = &'p Vector3<f64>>,
+) -> bool {
+    let r_cw = refined.rotation.inverse();
+    let depth =
+        egoslam_geometry::median(points.map(|x| (r_cw * (x - refined.position)).z).collect());
+    let shift = (refined.position - start.position).norm();
+    let turn = refined.rotation.angle_to(&start.rotation).to_degrees();
+    turn <= options.max_refinement_turn_deg
+        && depth > 0.0
+        && shift <= options.max_refinement_shift_of_depth * depth
 }
 
 /// A candidate group's pose from its appearance matches, with what gave it.
@@ -171,6 +184,31 @@ pub(super) struct Hypothesis<'g> {
 }
 
 impl Relocalizer {
+    /// `found`, a pose from points, or the placement by rotation at a candidate keyframe
+    /// that turned in place when the rotation explains more matches than the points'
+    /// pose has inliers: a frame of a turn in place sees few points (the stretch
+    /// triangulated none), and a PnP on those few is noisier than the stretch's centre.
+    pub(super) fn rotation_if_better(
+        &self,
+        query: &QueryFeatures,
+        candidates: &[Candidate],
+        found: Relocalization,
+        options: &RelocalizerOptions,
+    ) -> Relocalization {
+        if !options.place_by_rotation {
+            return found;
+        }
+        let ranked: Vec<usize> = candidates
+            .iter()
+            .filter_map(|c| self.index.get(&c.keyframe_id).copied())
+            .collect();
+        let r = relocalize_by_rotation(&self.map, query, &ranked, options);
+        match r {
+            Some(rotation) if rotation.inliers.len() > found.inliers.len() => rotation,
+            _ => found,
+        }
+    }
+
     /// What is tried once no candidate group gave a pose on its own: placement by
     /// rotation at a keyframe that turned in place, then the tentative hypotheses, best
     /// supported first.

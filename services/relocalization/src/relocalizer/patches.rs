@@ -5,6 +5,7 @@
 use super::{Relocalization, Relocalizer, RelocalizerOptions};
 use crate::absolute_pose::{solve_pnp, PnpOptions};
 use crate::patch_alignment::{align_patch, viewpoint_warp};
+use crate::rolling_shutter_pose::RollingShutterPose;
 use egoslam_geometry::{PinholeRadtan, StampedPose};
 use opencv::prelude::MatTraitConst;
 
@@ -26,6 +27,7 @@ impl Relocalizer {
             tracing::debug_span!("patch_alignment", inliers = found.inliers.len()).entered();
         let camera = &self.map.camera;
         let camera_from_world = found.pose.rotation.inverse();
+        let turning = RollingShutterPose::from_motion(found.pose, found.angular_velocity);
         let mut aligned = Vec::new();
         let mut tracks = Vec::new();
         let every = found
@@ -45,9 +47,17 @@ impl Relocalizer {
             else {
                 continue;
             };
-            let Some(predicted) =
-                raw_camera.project_raw(&(camera_from_world * (point - found.pose.position)))
-            else {
+            // Where the point is on the row that sees it: a turn of 60 deg/s over a 22 ms
+            // readout moves rows at the top and bottom ~6 px from the middle row's view,
+            // beyond the alignment's reach.
+            let seen = if options.rolling_shutter_s > 0.0 {
+                turning
+                    .project(camera, point, options.rolling_shutter_s)
+                    .map(|ideal| camera.bearing_from_undistorted(ideal))
+            } else {
+                Some(camera_from_world * (point - found.pose.position))
+            };
+            let Some(predicted) = seen.and_then(|ray| raw_camera.project_raw(&ray)) else {
                 continue;
             };
             let patch = &keyframe.patches[p].1;
@@ -57,6 +67,10 @@ impl Relocalizer {
                 tracks.push((track, feature));
             }
         }
+        if options.rolling_shutter_s > 0.0 {
+            return self.solve_rolling_shutter(found, &aligned, &tracks, options);
+        }
+        // A global shutter: a PnP from the pose.
         let refine = PnpOptions {
             min_inlier_ratio: 0.0,
             ransac_iterations: 50,
@@ -79,11 +93,7 @@ impl Relocalizer {
             Some(solution) => Relocalization {
                 pose: StampedPose {
                     timestamp: found.pose.timestamp,
-                    ..self.unrolled(
-                        solution.pose,
-                        solution.inliers.iter().map(|&i| aligned[i]),
-                        options,
-                    )
+                    ..solution.pose
                 },
                 inliers: solution.inliers.iter().map(|&i| tracks[i]).collect(),
                 ..found
