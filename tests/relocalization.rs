@@ -349,8 +349,10 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
     // The map's run estimated the readout (30 ms rendered) and the map kept it.
     let readout = f(&turned["rolling_shutter_ms"]);
     assert!((25.0..=35.0).contains(&readout), "{turned}");
-    // Measured: 125 of 150 frames, median 9.8 cm and 1.32 deg without the turn; with it
-    // 150 (the turn in place at the end placed by rotation too), 2.6 cm and 0.24 deg.
+    // Measured: 126 of 150 frames, median 10.4 cm and 1.07 deg without the turn; with it
+    // 150 (the turn in place at the end placed by rotation too), 1.2 cm and 0.12 deg, and
+    // an ATE of 2.0x the map keyframes' (2.6 cm and 0.29 deg, 3.9x, when only the final
+    // refinement knew the turn, not the search by projection and the aligned solve).
     assert!(f(&turned["localized"]) >= 145.0, "{turned}");
     assert!(
         f(&turned["localized"]) > f(&plain["localized"]),
@@ -361,8 +363,9 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
         f(&t["median_position_m"]) < 0.5 * f(&p["median_position_m"]),
         "{p} {t}"
     );
-    assert!(f(&t["median_position_m"]) < 0.045, "{t}");
-    assert!(f(&t["median_rotation_deg"]) < 0.6, "{t}");
+    assert!(f(&t["median_position_m"]) < 0.018, "{t}");
+    assert!(f(&t["median_rotation_deg"]) < 0.2, "{t}");
+    assert!(f(&t["ate_m"]) < 2.6 * f(&t["map_keyframe_ate_m"]), "{t}");
     // A readout no camera has is refused before anything is read.
     let refused = localize(
         &map,
@@ -375,6 +378,42 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
         String::from_utf8_lossy(&refused.stderr).contains("must be between 0 and 100 ms"),
         "{}",
         String::from_utf8_lossy(&refused.stderr)
+    );
+}
+
+/// The relocalization protocol on the TUM clip: the map of a plain `egoslam run`
+/// (the rolling-shutter readout estimated, 21-22 ms), every frame relocalized from scratch
+/// with the readout the map records, scored as a trajectory.
+#[test]
+fn tum_relocalized_within_a_quarter_of_its_maps_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let map = dir.path().join("map.egomap");
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(tum_fixture())
+        .arg("--out")
+        .arg(dir.path().join("run"))
+        .arg("--map-out")
+        .arg(&map)
+        .status()
+        .expect("run");
+    assert!(status.success());
+    let out = dir.path().join("localized");
+    let output = localize(&map, &tum_fixture(), &out, &[]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let r = report(&out);
+    // Measured: 113 of 120 frames, ATE 1.72 cm against the map keyframes' 1.44 cm (1.19x;
+    // 1.39x when the search by projection and the aligned solve ignored the turn during
+    // the readout, and frames of the turn in place were placed by a few points).
+    assert!(f(&r["localized"]) >= 110.0, "{r}");
+    let acc = &r["accuracy"];
+    assert!(
+        f(&acc["ate_m"]) <= 1.3 * f(&acc["map_keyframe_ate_m"]),
+        "{acc}"
     );
 }
 

@@ -207,7 +207,11 @@ fn relocalization_error(
     };
     let (mut position, mut rotation) = errors(localized);
     let (mut map_position, mut map_rotation) = errors(keyframes);
+    // As `egoslam eval` scores a trajectory: the localized frames aligned on their own.
+    let localized_ate = absolute_trajectory_error(localized, gt, 0.02)
+        .map_err(|e| anyhow::anyhow!("localized frames cannot be aligned to ground truth: {e}"))?;
     Ok(json!({
+        "ate_m": localized_ate.rmse,
         "map_keyframe_ate_m": ate.rmse,
         "map_keyframe_median_position_m": median(&mut map_position),
         "map_keyframe_median_rotation_deg": median(&mut map_rotation),
@@ -348,11 +352,14 @@ pub fn localize(args: LocalizeArgs) -> anyhow::Result<()> {
             .collect();
         match relocalization_error(&keyframes, &localized[&segment], &gt.poses) {
             Ok(e) => {
+                let number = |key: &str| e[key].as_f64().unwrap_or(f64::NAN);
                 println!(
-                    "relocalization error: median {:.4} m, {:.3} deg over {} frames",
-                    e["median_position_m"].as_f64().unwrap_or(f64::NAN),
-                    e["median_rotation_deg"].as_f64().unwrap_or(f64::NAN),
-                    e["evaluated"]
+                    "relocalization error: median {:.4} m, {:.3} deg over {} frames; ATE {:.4} m (map keyframes {:.4} m)",
+                    number("median_position_m"),
+                    number("median_rotation_deg"),
+                    e["evaluated"],
+                    number("ate_m"),
+                    number("map_keyframe_ate_m"),
                 );
                 report["accuracy"] = e;
             }
