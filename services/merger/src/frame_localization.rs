@@ -106,7 +106,11 @@ pub fn localize_frame(
         return Err(LocalizationError::FarFromPrior(deviation));
     }
     Ok(Localized {
-        pose: solution.pose,
+        // The retry without the prior stamps its pose 0.
+        pose: StampedPose {
+            timestamp: prior.timestamp,
+            ..solution.pose
+        },
         inliers: solution.inliers.len(),
     })
 }

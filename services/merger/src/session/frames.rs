@@ -216,7 +216,13 @@ pub fn pose_frames(
                 frame_id,
                 segment,
                 interpolated: localized.map_or(!keyframe_ids.contains(&frame_id), |l| l.1),
-                pose: localized.map_or(pose, |l| l.0),
+                // The frame's own stamp, whatever the pose it hangs on carries: a PnP
+                // solved without a prior stamps 0, and a row stamped 0 in trajectory.tum
+                // is matched to the ground truth's first pose.
+                pose: StampedPose {
+                    timestamp: stamps[i],
+                    ..localized.map_or(pose, |l| l.0)
+                },
             }
         })
         .collect()

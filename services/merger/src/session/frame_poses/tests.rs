@@ -124,7 +124,8 @@ impl Session {
                     return;
                 }
                 let next = if far { anchor } else { anchor + 1 };
-                let relative = pose(frame as f64 / 30.0, 0.3, 0.02);
+                // Stamped 0 when far, as a PnP solved without a prior stamps its pose.
+                let relative = pose(if far { 0.0 } else { frame as f64 / 30.0 }, 0.3, 0.02);
                 let bracket_length = if far { 0.0 } else { 1.0 };
                 let localized = LocalizedFrame {
                     anchor_keyframe: anchor,
@@ -191,6 +192,12 @@ impl Session {
             ids(&mut fresh.iter().map(|f| f.frame_id))
         );
         for f in &fresh {
+            assert_eq!(
+                Some(f.pose.timestamp),
+                self.index.frames.get(&f.frame_id).copied(),
+                "frame {} posed with another frame's stamp",
+                f.frame_id
+            );
             let held = &self.held[&f.frame_id];
             let same =
                 (held.segment, held.pose, held.interpolated) == (f.segment, f.pose, f.interpolated);
