@@ -15,6 +15,7 @@ use nalgebra::{Point2, UnitQuaternion, Vector3};
 use rustc_hash::FxHashMap;
 use std::collections::VecDeque;
 
+mod first_gauge;
 mod local_adjustment;
 pub mod recording;
 mod rotation_from_rays;
@@ -196,6 +197,8 @@ pub struct LiveTracker {
     tracked: VecDeque<local_adjustment::TrackedFrame>,
     /// The timestamp of the last frame that asked for a local adjustment.
     last_adjusted: Option<f64>,
+    /// A new stream's frames before its first window, held to the segment's gauge.
+    first_gauge: Option<first_gauge::FirstGauge>,
 }
 
 impl LiveTracker {
@@ -213,6 +216,8 @@ impl LiveTracker {
     /// young tracks on the way. Everything the tracker built on the previous map goes (it
     /// drifted with the tracker; the new map is refined).
     pub fn set_map(&mut self, map: MapView) {
+        // A window is merged: the map holds the gauge from now on.
+        self.first_gauge = None;
         if self.cannot_retrack_from(&map) {
             // The map's newest keyframe is older than the frames kept (a solver far behind
             // the frontend, as in a lossless replay of a fast stream): starting again from
@@ -303,6 +308,7 @@ impl LiveTracker {
             },
             previous: Some((origin, rays(&camera, tracks))),
             last: Some(origin),
+            first_gauge: Some(first_gauge::FirstGauge::default()),
             ..Self::default()
         };
         // The origin anchors the first walk, as a map's newest keyframe does (set_map).
@@ -375,7 +381,7 @@ impl LiveTracker {
         let rays_now = rays(&camera, tracks);
         let live = match located {
             Ok(l) => {
-                let pose = self.adjusted(
+                let mut pose = self.adjusted(
                     adjust,
                     &camera,
                     StampedPose {
@@ -387,6 +393,7 @@ impl LiveTracker {
                 self.before_last = self.last.replace(pose);
                 self.triangulate(&camera, &pose, tracks);
                 self.remember(pose, rays_now);
+                self.hold_first_gauge(&mut pose, &correspondences);
                 LivePose {
                     pose,
                     segment: self.map.segment,
