@@ -57,6 +57,23 @@ fn map_then_localize_with(input: &Path, dir: &Path, run_args: &[&str]) -> serde_
     report(&dir.join("localized"))
 }
 
+/// The map of `input` by a plain `egoslam run --map-out` (the rolling-shutter readout and
+/// the calibration estimated from the stream), in `dir/map.egomap`.
+fn default_map(input: &Path, dir: &Path) -> std::path::PathBuf {
+    let map = dir.join("map.egomap");
+    let status = egoslam()
+        .args(["run", "--input"])
+        .arg(input)
+        .arg("--out")
+        .arg(dir.join("run"))
+        .arg("--map-out")
+        .arg(&map)
+        .status()
+        .expect("run");
+    assert!(status.success());
+    map
+}
+
 fn f(v: &serde_json::Value) -> f64 {
     v.as_f64().expect("number")
 }
@@ -324,17 +341,7 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
             "30",
         ],
     );
-    let map = dir.path().join("map.egomap");
-    let status = egoslam()
-        .args(["run", "--input"])
-        .arg(&sequence)
-        .arg("--out")
-        .arg(dir.path().join("run"))
-        .arg("--map-out")
-        .arg(&map)
-        .status()
-        .expect("run");
-    assert!(status.success());
+    let map = default_map(&sequence, dir.path());
     let localized = |extra: &[&str]| {
         let out = dir.path().join(format!("localized_{}", extra.len()));
         let output = localize(&map, &sequence, &out, extra);
@@ -387,17 +394,7 @@ fn rolling_shutter_queries_are_posed_with_their_turn() {
 #[test]
 fn tum_relocalized_within_a_quarter_of_its_maps_error() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let map = dir.path().join("map.egomap");
-    let status = egoslam()
-        .args(["run", "--input"])
-        .arg(tum_fixture())
-        .arg("--out")
-        .arg(dir.path().join("run"))
-        .arg("--map-out")
-        .arg(&map)
-        .status()
-        .expect("run");
-    assert!(status.success());
+    let map = default_map(&tum_fixture(), dir.path());
     let out = dir.path().join("localized");
     let output = localize(&map, &tum_fixture(), &out, &[]);
     assert!(

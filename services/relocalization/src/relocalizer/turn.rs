@@ -8,7 +8,6 @@
 use super::confirmation::pose_stays_near;
 use super::{QueryFeatures, Relocalization, Relocalizer, RelocalizerOptions};
 use crate::rolling_shutter_pose::{refine_rolling_shutter_inliers, RollingShutterPose};
-use egoslam_geometry::StampedPose;
 use nalgebra::{Point2, Vector3};
 
 impl Relocalizer {
@@ -37,31 +36,9 @@ impl Relocalizer {
             options,
         );
         let pairs = self.correspondences(query, &matches);
-        let Some((refined, kept)) = refine_rolling_shutter_inliers(
-            camera,
-            &pairs,
-            &found.pose,
-            readout,
-            options.refine_threshold_px,
-            found.inliers.len().max(options.pnp.min_inliers),
-            &options.rolling_shutter,
-        ) else {
-            return found;
-        };
-        if !pose_stays_near(
-            options,
-            &found.pose,
-            &refined.pose,
-            kept.iter().map(|&i| &pairs[i].0),
-        ) {
-            return found;
-        }
-        Relocalization {
-            pose: refined.pose,
-            inliers: kept.iter().map(|&i| matches[i]).collect(),
-            angular_velocity: refined.angular_velocity,
-            ..found
-        }
+        let threshold = options.refine_threshold_px;
+        let min_kept = found.inliers.len().max(options.pnp.min_inliers);
+        self.refined_with_turn(found, &pairs, &matches, threshold, min_kept, options)
     }
 
     /// The pose of a rolling-shutter frame solved on aligned positions with the camera's
@@ -75,31 +52,41 @@ impl Relocalizer {
         tracks: &[(u64, usize)],
         options: &RelocalizerOptions,
     ) -> Relocalization {
+        let (threshold, min_kept) = (options.aligned_threshold_px, options.pnp.min_inliers);
+        self.refined_with_turn(found, aligned, tracks, threshold, min_kept, options)
+    }
+
+    /// `found` refined with the turn on `pairs` ([`refine_rolling_shutter_inliers`] at
+    /// `threshold_px`, at least `min_kept` kept), its inliers the kept pairs' `matches`
+    /// (`(track, query feature)`, index for index with `pairs`); `found` unchanged when the
+    /// refinement fails or leaves the refinement's bounds of it.
+    fn refined_with_turn(
+        &self,
+        found: Relocalization,
+        pairs: &[(Vector3<f64>, Point2<f64>)],
+        matches: &[(u64, usize)],
+        threshold_px: f64,
+        min_kept: usize,
+        options: &RelocalizerOptions,
+    ) -> Relocalization {
         let Some((refined, kept)) = refine_rolling_shutter_inliers(
             &self.map.camera,
-            aligned,
+            pairs,
             &found.pose,
             options.rolling_shutter_s,
-            options.aligned_threshold_px,
-            options.pnp.min_inliers,
+            threshold_px,
+            min_kept,
             &options.rolling_shutter,
         ) else {
             return found;
         };
-        if !pose_stays_near(
-            options,
-            &found.pose,
-            &refined.pose,
-            kept.iter().map(|&i| &aligned[i].0),
-        ) {
+        let points = kept.iter().map(|&i| &pairs[i].0);
+        if !pose_stays_near(options, &found.pose, &refined.pose, points) {
             return found;
         }
         Relocalization {
-            pose: StampedPose {
-                timestamp: found.pose.timestamp,
-                ..refined.pose
-            },
-            inliers: kept.iter().map(|&i| tracks[i]).collect(),
+            pose: refined.pose,
+            inliers: kept.iter().map(|&i| matches[i]).collect(),
             angular_velocity: refined.angular_velocity,
             ..found
         }
