@@ -36,18 +36,7 @@ fn map_then_localize(input: &Path, dir: &Path) -> serde_json::Value {
 
 /// [`map_then_localize`] with `run_args` added to the map's run.
 fn map_then_localize_with(input: &Path, dir: &Path, run_args: &[&str]) -> serde_json::Value {
-    let map = dir.join("map.egomap");
-    let status = egoslam_with_calibration_given()
-        .args(["run", "--input"])
-        .arg(input)
-        .args(run_args)
-        .arg("--out")
-        .arg(dir.join("run"))
-        .arg("--map-out")
-        .arg(&map)
-        .status()
-        .expect("run");
-    assert!(status.success());
+    let map = map_by(egoslam_with_calibration_given(), input, dir, run_args);
     let out = localize(&map, input, &dir.join("localized"), &[]);
     assert!(
         out.status.success(),
@@ -60,10 +49,22 @@ fn map_then_localize_with(input: &Path, dir: &Path, run_args: &[&str]) -> serde_
 /// The map of `input` by a plain `egoslam run --map-out` (the rolling-shutter readout and
 /// the calibration estimated from the stream), in `dir/map.egomap`.
 fn default_map(input: &Path, dir: &Path) -> std::path::PathBuf {
+    map_by(egoslam(), input, dir, &[])
+}
+
+/// The map of `input` by `egoslam` (`command`) `run --map-out` with `run_args`, in
+/// `dir/map.egomap` (the run's output in `dir/run`).
+fn map_by(
+    mut command: std::process::Command,
+    input: &Path,
+    dir: &Path,
+    run_args: &[&str],
+) -> std::path::PathBuf {
     let map = dir.join("map.egomap");
-    let status = egoslam()
+    let status = command
         .args(["run", "--input"])
         .arg(input)
+        .args(run_args)
         .arg("--out")
         .arg(dir.join("run"))
         .arg("--map-out")
