@@ -17,6 +17,7 @@ use std::collections::VecDeque;
 
 mod first_gauge;
 mod local_adjustment;
+mod pace_limit;
 pub mod recording;
 mod rotation_from_rays;
 mod walked_on;
@@ -84,6 +85,11 @@ pub struct LiveTrackerOptions {
     /// pose, the prior holds the orientation of before the turn, and a PnP pose on hundreds
     /// of correspondences was refused as 30-60 deg away while the head had turned that far.
     pub max_turn_rate_deg_s: f64,
+    /// Fastest a PnP pose may have moved from the last tracked pose, in multiples of the
+    /// map's walking pace (default 4: a wearer breaking into a run, a car pulling away from
+    /// its median speed; pace_limit.rs has what moves faster). Beyond it the frame is
+    /// posed as without a PnP.
+    pub max_speed_of_pace: f64,
     /// The tracked frames of the last `local_window_s` seconds are adjusted with their
     /// points after each tracked frame (local_adjustment.rs; default 1 s, the span a
     /// walking head's tracks live; `None`: no adjustment).
@@ -118,6 +124,7 @@ impl Default for LiveTrackerOptions {
             rotation_min_inliers: 20,
             rotation_min_inlier_share: 0.5,
             max_turn_rate_deg_s: 300.0,
+            max_speed_of_pace: 4.0,
             local_adjustment: Some(LocalAdjustmentOptions::default()),
             local_window_s: 1.0,
             local_adjustment_interval_s: 1.0 / 15.0,
@@ -377,7 +384,15 @@ impl LiveTracker {
             let gap_s = (timestamp - last.timestamp - 0.05).max(0.0);
             localization.max_rotation_from_prior_deg += self.options.max_turn_rate_deg_s * gap_s;
         }
-        let located = localize_frame(&camera, &correspondences, &prior, &localization);
+        let located = localize_frame(&camera, &correspondences, &prior, &localization)
+            .map_err(|e| e.to_string())
+            .and_then(|l| {
+                let at = StampedPose {
+                    timestamp,
+                    ..l.pose
+                };
+                self.within_pace(&at).map(|()| l)
+            });
         let rays_now = rays(&camera, tracks);
         let live = match located {
             Ok(l) => {
