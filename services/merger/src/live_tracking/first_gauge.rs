@@ -157,15 +157,7 @@ impl LiveTracker {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{UnitQuaternion, Vector3};
-
-    fn at(t: f64, z: f64) -> StampedPose {
-        StampedPose {
-            timestamp: t,
-            position: Vector3::new(0.0, 0.0, z),
-            rotation: UnitQuaternion::identity(),
-        }
-    }
+    use crate::live_tracking::tests::on_axis as at;
 
     #[test]
     fn a_walk_faster_than_the_pace_is_scaled_down_to_it() {

@@ -37,16 +37,8 @@ impl LiveTracker {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::live_tracking::tests::on_axis as at;
     use crate::live_tracking::{LiveTrackerOptions, MapView};
-    use nalgebra::{UnitQuaternion, Vector3};
-
-    fn at(t: f64, z: f64) -> StampedPose {
-        StampedPose {
-            timestamp: t,
-            position: Vector3::new(0.0, 0.0, z),
-            rotation: UnitQuaternion::identity(),
-        }
-    }
 
     #[test]
     fn a_pose_faster_than_four_paces_is_refused() {

@@ -31,6 +31,15 @@ fn scene() -> Vec<Vector3<f64>> {
 }
 
 /// The camera walking sideways along x at 1 m/s, turning slowly, at 30 fps.
+/// A camera facing down the z axis, at `z` on it, at time `t`.
+pub(super) fn on_axis(t: f64, z: f64) -> StampedPose {
+    StampedPose {
+        timestamp: t,
+        position: Vector3::new(0.0, 0.0, z),
+        rotation: UnitQuaternion::identity(),
+    }
+}
+
 fn pose_at(frame: u32) -> StampedPose {
     let t = f64::from(frame) / 30.0;
     StampedPose {
