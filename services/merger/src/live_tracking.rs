@@ -386,13 +386,7 @@ impl LiveTracker {
         }
         let located = localize_frame(&camera, &correspondences, &prior, &localization)
             .map_err(|e| e.to_string())
-            .and_then(|l| {
-                let at = StampedPose {
-                    timestamp,
-                    ..l.pose
-                };
-                self.within_pace(&at).map(|()| l)
-            });
+            .and_then(|l| self.within_pace(&l.pose).map(|()| l));
         let rays_now = rays(&camera, tracks);
         let live = match located {
             Ok(l) => {

@@ -77,14 +77,9 @@ impl RollingShutterPose {
         point: &Vector3<f64>,
         readout_s: f64,
     ) -> Option<Point2<f64>> {
-        let mut pixel = camera
-            .project_undistorted(&(self.pose.rotation.inverse() * (point - self.pose.position)))?;
+        let mut pixel = self.on_row(camera, point, f64::from(camera.height) / 2.0, readout_s)?;
         for _ in 0..3 {
-            let tau = camera.row_offset(pixel.y) * readout_s;
-            let rotation =
-                self.pose.rotation * UnitQuaternion::from_scaled_axis(self.angular_velocity * tau);
-            pixel =
-                camera.project_undistorted(&(rotation.inverse() * (point - self.pose.position)))?;
+            pixel = self.on_row(camera, point, pixel.y, readout_s)?;
         }
         Some(pixel)
     }
@@ -98,11 +93,22 @@ impl RollingShutterPose {
         observed: &Point2<f64>,
         readout_s: f64,
     ) -> Option<f64> {
-        let tau = camera.row_offset(observed.y) * readout_s;
+        let q = self.on_row(camera, point, observed.y, readout_s)?;
+        Some((q - observed).norm())
+    }
+
+    /// Undistorted pixel of `point` seen by the camera as it was when row `y` was read.
+    fn on_row(
+        &self,
+        camera: &PinholeRadtan,
+        point: &Vector3<f64>,
+        y: f64,
+        readout_s: f64,
+    ) -> Option<Point2<f64>> {
+        let tau = camera.row_offset(y) * readout_s;
         let rotation =
             self.pose.rotation * UnitQuaternion::from_scaled_axis(self.angular_velocity * tau);
-        let q = camera.project_undistorted(&(rotation.inverse() * (point - self.pose.position)))?;
-        Some((q - observed).norm())
+        camera.project_undistorted(&(rotation.inverse() * (point - self.pose.position)))
     }
 }
 

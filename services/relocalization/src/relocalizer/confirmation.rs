@@ -195,18 +195,30 @@ impl Relocalizer {
         found: Relocalization,
         options: &RelocalizerOptions,
     ) -> Relocalization {
-        if !options.place_by_rotation {
-            return found;
+        match self.placed_by_rotation(query, candidates, options) {
+            Some(rotation) if rotation.inliers.len() > found.inliers.len() => rotation,
+            _ => found,
         }
+    }
+
+    /// The placement by rotation at the first of `candidates` that turned in place and
+    /// whose matches a rotation explains ([`relocalize_by_rotation`]); `None` when none
+    /// does or the options turn it off.
+    fn placed_by_rotation(
+        &self,
+        query: &QueryFeatures,
+        candidates: &[Candidate],
+        options: &RelocalizerOptions,
+    ) -> Option<Relocalization> {
+        if !options.place_by_rotation {
+            return None;
+        }
+        let _span = tracing::debug_span!("placement_by_rotation").entered();
         let ranked: Vec<usize> = candidates
             .iter()
             .filter_map(|c| self.index.get(&c.keyframe_id).copied())
             .collect();
-        let r = relocalize_by_rotation(&self.map, query, &ranked, options);
-        match r {
-            Some(rotation) if rotation.inliers.len() > found.inliers.len() => rotation,
-            _ => found,
-        }
+        relocalize_by_rotation(&self.map, query, &ranked, options)
     }
 
     /// What is tried once no candidate group gave a pose on its own: placement by
@@ -221,15 +233,8 @@ impl Relocalizer {
     ) -> Option<Relocalization> {
         // No candidate's points gave a pose: a head turning in place leaves keyframes
         // without points, placed by rotation alone.
-        if options.place_by_rotation {
-            let _span = tracing::debug_span!("placement_by_rotation").entered();
-            let ranked: Vec<usize> = candidates
-                .iter()
-                .filter_map(|c| self.index.get(&c.keyframe_id).copied())
-                .collect();
-            if let Some(found) = relocalize_by_rotation(&self.map, query, &ranked, options) {
-                return Some(found);
-            }
+        if let Some(found) = self.placed_by_rotation(query, candidates, options) {
+            return Some(found);
         }
         let settings = options.tentative?;
         // Stable: equal support keeps the groups' order (best bag-of-words score first).

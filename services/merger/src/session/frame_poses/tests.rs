@@ -124,7 +124,8 @@ impl Session {
                     return;
                 }
                 let next = if far { anchor } else { anchor + 1 };
-                // Stamped 0 when far, as a PnP solved without a prior stamps its pose.
+                // Stamped 0 when far: a posed frame carries its own stamp, whatever the
+                // pose it hangs on was stamped with (a PnP without a prior stamps 0).
                 let relative = pose(if far { 0.0 } else { frame as f64 / 30.0 }, 0.3, 0.02);
                 let bracket_length = if far { 0.0 } else { 1.0 };
                 let localized = LocalizedFrame {
