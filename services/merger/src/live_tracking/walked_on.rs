@@ -16,7 +16,7 @@
 //!
 //! [`TrackingState::Rotation`]: super::TrackingState::Rotation
 
-use super::{closest_point, Sighting};
+use super::own_points::{closest_point, Sighting};
 use egoslam_geometry::{rotation_aligning, PinholeRadtan, StampedPose};
 use egoslam_solver::relative_pose::{estimate_relative_pose, RelativePoseOptions};
 use nalgebra::{UnitQuaternion, Vector3};
