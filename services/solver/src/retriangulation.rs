@@ -166,6 +166,10 @@ pub(crate) fn retriangulate_and_adjust(
     };
     for _ in 0..options.max_passes {
         let kept = current.structure.observations.len() - current.adjusted.outliers.len();
+        // Every point starts from its triangulation, also where the last adjustment had
+        // one: starting the tracks it held without an outlier at their adjusted positions
+        // saved one LM iteration in seven on KITTI's windows and left the dumped TUM
+        // windows further off (mean 8.26 -> 8.74 % of their path), the shake's too.
         let candidate =
             triangulate_tracks(camera, &current.adjusted.poses, tracks, ids, triangulation);
         let gained = candidate.observations.len() as f64 - kept as f64;
