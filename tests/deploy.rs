@@ -41,8 +41,9 @@ fn a_service_reports_ready_and_pings_the_watchdog() {
     socket
         .set_read_timeout(Some(Duration::from_secs(20)))
         .expect("timeout");
-    let mut merger = egoslam()
-        .arg("merger")
+    // As its unit starts it: the lean binary (deploy/systemd/egoslam-merger.service).
+    let mut merger = std::process::Command::new(env!("CARGO_BIN_EXE_egoslam-merger"))
+        .env("EGOSLAM_ZENOH_LISTEN", "tcp/127.0.0.1:0")
         .arg(format!("--namespace={}", namespace("notify")))
         .arg(format!("--out={}", dir.path().display()))
         .env("NOTIFY_SOCKET", &socket_path)

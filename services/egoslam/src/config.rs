@@ -174,13 +174,16 @@ impl ConfigFile {
 
 /// The command line parsed with the configuration file (`--config` or `EGOSLAM_CONFIG`)
 /// applied; a usage error or help exits as clap does, a bad file is an error.
-pub fn parse_command_line(command: clap::Command) -> anyhow::Result<clap::ArgMatches> {
-    let first = command.clone().get_matches();
+pub fn parse_command_line(
+    command: clap::Command,
+    argv: Vec<std::ffi::OsString>,
+) -> anyhow::Result<clap::ArgMatches> {
+    let first = command.clone().get_matches_from(argv.iter());
     let Some(path) = first.get_one::<PathBuf>("config") else {
         return Ok(first);
     };
     let file = ConfigFile::load(path, &command)?;
-    Ok(file.apply(command).get_matches())
+    Ok(file.apply(command).get_matches_from(argv))
 }
 
 #[cfg(test)]

@@ -51,8 +51,15 @@ impl Supervised {
 pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
     use std::os::unix::process::CommandExt;
     let exe = std::env::current_exe().context("locating the egoslam executable")?;
-    let mut command = Command::new(exe);
-    command.arg(name).args(args);
+    let mut command = match lean_service_binary(&exe, name) {
+        Some(lean) => Command::new(lean),
+        None => {
+            let mut command = Command::new(&exe);
+            command.arg(name);
+            command
+        }
+    };
+    command.args(args);
     // A launcher that is killed (SIGKILL, or SIGTERM, which it does not catch) must not
     // leave its services running on: each gets SIGTERM when the launcher dies, and stops
     // as on any SIGTERM. Found when two killed runs kept writing into one output folder.
@@ -80,6 +87,23 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
         restarts: 0,
         recent_restarts: Default::default(),
     })
+}
+
+/// How much older than the running `egoslam` a lean service binary next to it may be and
+/// still count as built with it: cargo links a package's binaries one after another, in
+/// no set order, within seconds.
+const SAME_BUILD_SLACK: Duration = Duration::from_secs(120);
+
+/// The lean binary of service `name` (`egoslam-NAME`, lib.rs) next to `exe`, when there is
+/// one from the same build: it starts in milliseconds where the multi-call binary loads
+/// ~250 shared libraries (video and image decoding) first. One older than `exe` (a build
+/// of `egoslam` alone, which leaves its siblings as they were) could speak an older
+/// protocol, so `exe` runs the service itself then.
+fn lean_service_binary(exe: &std::path::Path, name: &str) -> Option<std::path::PathBuf> {
+    let lean = exe.with_file_name(format!("egoslam-{name}"));
+    let modified = |p: &std::path::Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    let (own, theirs) = (modified(exe)?, modified(&lean)?);
+    (theirs + SAME_BUILD_SLACK >= own).then_some(lean)
 }
 
 pub fn stop_all(children: &mut [Supervised]) {
@@ -251,6 +275,37 @@ pub fn supervise(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_lean_service_binary_is_used_only_from_the_same_build() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let exe = dir.path().join("egoslam");
+        let lean = dir.path().join("egoslam-solver");
+        let touch = |path: &std::path::Path, age: Duration| {
+            let file = std::fs::File::create(path).expect("create");
+            file.set_modified(std::time::SystemTime::now() - age)
+                .expect("set mtime");
+        };
+        touch(&exe, Duration::ZERO);
+        assert_eq!(lean_service_binary(&exe, "solver"), None, "none there");
+        touch(&lean, Duration::from_secs(30));
+        assert_eq!(
+            lean_service_binary(&exe, "solver"),
+            Some(lean.clone()),
+            "same build"
+        );
+        assert_eq!(
+            lean_service_binary(&exe, "merger"),
+            None,
+            "another service's"
+        );
+        touch(&lean, Duration::from_secs(3600));
+        assert_eq!(
+            lean_service_binary(&exe, "solver"),
+            None,
+            "left by an older build"
+        );
+    }
 
     #[test]
     fn restarts_are_limited_per_interval_not_per_run() {

@@ -1,0 +1,7 @@
+//! The solver service alone: `egoslam solver` without the code (and the shared libraries: video
+//! decoding, image codecs) the other commands need, so that it starts in a fraction of the
+//! time. `egoslam run` starts it when it lies next to `egoslam` (supervision/supervisor.rs).
+
+fn main() -> std::process::ExitCode {
+    egoslam::main_with(egoslam::service_argv("solver"), egoslam::run_solver)
+}
