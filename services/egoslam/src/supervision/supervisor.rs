@@ -10,7 +10,7 @@
 
 use anyhow::{bail, Context};
 use std::process::{Child, Command};
-use std::sync::atomic::{AtomicI32, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 /// Services the supervisor restarts when they die by a signal: the merger resumes exactly
@@ -54,6 +54,12 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
     let mut command = match lean_service_binary(&exe, name) {
         Some(lean) => Command::new(lean),
         None => {
+            if LEAN_SERVICES.contains(&name) && !TOLD_NO_LEAN_BINARIES.swap(true, Ordering::Relaxed)
+            {
+                tracing::info!(
+                    "the services run as `egoslam SERVICE` (no egoslam-{name} of this build next to egoslam; `cargo build -p egoslam` builds them), which loads ~250 shared libraries at each start"
+                );
+            }
             let mut command = Command::new(&exe);
             command.arg(name);
             command
@@ -88,6 +94,12 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
         recent_restarts: Default::default(),
     })
 }
+
+/// The services built as lean binaries of their own (src/bin/).
+const LEAN_SERVICES: &[&str] = &["frontend", "solver", "merger"];
+
+/// Whether the launcher has said that it runs the services without their lean binaries.
+static TOLD_NO_LEAN_BINARIES: AtomicBool = AtomicBool::new(false);
 
 /// How much older than the running `egoslam` a lean service binary next to it may be and
 /// still count as built with it: cargo links a package's binaries one after another, in
