@@ -49,10 +49,15 @@ impl Supervised {
 }
 
 pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> {
-    use std::os::unix::process::CommandExt;
     let exe = std::env::current_exe().context("locating the egoslam executable")?;
-    let mut command = match lean_service_binary(&exe, name) {
-        Some(lean) => Command::new(lean),
+    let lean = lean_service_binary(&exe, name);
+    let started = match &lean {
+        Some(lean) => start_service(lean, None, args).or_else(|e| {
+            // A lean binary that does not start (not executable, cut short by a copy)
+            // must not stop the run: the multi-call binary has the same service.
+            tracing::warn!(binary = %lean.display(), error = %e, "lean service binary did not start; running `egoslam {name}`");
+            start_service(&exe, Some(name), args)
+        }),
         None => {
             if LEAN_SERVICES.contains(&name) && !TOLD_NO_LEAN_BINARIES.swap(true, Ordering::Relaxed)
             {
@@ -60,12 +65,29 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
                     "the services run as `egoslam SERVICE` (no egoslam-{name} of this build next to egoslam; `cargo build -p egoslam` builds them), which loads ~250 shared libraries at each start"
                 );
             }
-            let mut command = Command::new(&exe);
-            command.arg(name);
-            command
+            start_service(&exe, Some(name), args)
         }
     };
-    command.args(args);
+    let child = started.with_context(|| format!("starting the {name} service"))?;
+    Ok(Supervised {
+        name,
+        args: args.to_vec(),
+        child,
+        restarts: 0,
+        recent_restarts: Default::default(),
+    })
+}
+
+/// Starts `program` (with the subcommand `subcommand`, for the multi-call binary) and
+/// `args` as a service process.
+fn start_service(
+    program: &std::path::Path,
+    subcommand: Option<&str>,
+    args: &[String],
+) -> std::io::Result<Child> {
+    use std::os::unix::process::CommandExt;
+    let mut command = Command::new(program);
+    command.args(subcommand).args(args);
     // A launcher that is killed (SIGKILL, or SIGTERM, which it does not catch) must not
     // leave its services running on: each gets SIGTERM when the launcher dies, and stops
     // as on any SIGTERM. Found when two killed runs kept writing into one output folder.
@@ -83,16 +105,7 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
             Ok(())
         });
     }
-    let child = command
-        .spawn()
-        .with_context(|| format!("starting the {name} service"))?;
-    Ok(Supervised {
-        name,
-        args: args.to_vec(),
-        child,
-        restarts: 0,
-        recent_restarts: Default::default(),
-    })
+    command.spawn()
 }
 
 /// The services built as lean binaries of their own (src/bin/).
@@ -112,10 +125,20 @@ const SAME_BUILD_SLACK: Duration = Duration::from_secs(120);
 /// of `egoslam` alone, which leaves its siblings as they were) could speak an older
 /// protocol, so `exe` runs the service itself then.
 fn lean_service_binary(exe: &std::path::Path, name: &str) -> Option<std::path::PathBuf> {
+    use std::io::Read;
+    use std::os::unix::fs::PermissionsExt;
     let lean = exe.with_file_name(format!("egoslam-{name}"));
     let modified = |p: &std::path::Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
     let (own, theirs) = (modified(exe)?, modified(&lean)?);
-    (theirs + SAME_BUILD_SLACK >= own).then_some(lean)
+    // An executable ELF file: anything else (a file cut short, a script) would start as a
+    // shell's "not found" rather than fail to start.
+    let executable = std::fs::metadata(&lean).ok()?.permissions().mode() & 0o111 != 0;
+    let mut magic = [0u8; 4];
+    let elf = std::fs::File::open(&lean)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok()
+        && magic == *b"\x7fELF";
+    (executable && elf && theirs + SAME_BUILD_SLACK >= own).then_some(lean)
 }
 
 pub fn stop_all(children: &mut [Supervised]) {
@@ -289,14 +312,34 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_binary_that_cannot_start_is_an_error_to_fall_back_on() {
+        // Not executable: exec fails (spawn then starts the multi-call binary), while a
+        // program with a subcommand starts.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let broken = dir.path().join("egoslam-solver");
+        std::fs::write(&broken, "not a program").expect("write");
+        assert!(start_service(&broken, None, &[]).is_err());
+        let mut child =
+            start_service(std::path::Path::new("true"), Some("solver"), &[]).expect("true");
+        assert!(child.wait().expect("wait").success());
+    }
+
+    #[test]
     fn a_lean_service_binary_is_used_only_from_the_same_build() {
+        use std::os::unix::fs::PermissionsExt;
         let dir = tempfile::tempdir().expect("tempdir");
         let exe = dir.path().join("egoslam");
         let lean = dir.path().join("egoslam-solver");
+        // A file with an ELF header, executable, modified `age` ago.
         let touch = |path: &std::path::Path, age: Duration| {
-            let file = std::fs::File::create(path).expect("create");
+            std::fs::write(path, b"\x7fELF\x02\x01\x01").expect("write");
+            let file = std::fs::File::options()
+                .write(true)
+                .open(path)
+                .expect("open");
             file.set_modified(std::time::SystemTime::now() - age)
                 .expect("set mtime");
+            std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755)).expect("chmod");
         };
         touch(&exe, Duration::ZERO);
         assert_eq!(lean_service_binary(&exe, "solver"), None, "none there");
@@ -317,6 +360,12 @@ mod tests {
             None,
             "left by an older build"
         );
+        touch(&lean, Duration::ZERO);
+        std::fs::write(&lean, "#!/bin/sh\n").expect("script");
+        assert_eq!(lean_service_binary(&exe, "solver"), None, "not an ELF file");
+        touch(&lean, Duration::ZERO);
+        std::fs::set_permissions(&lean, std::fs::Permissions::from_mode(0o644)).expect("chmod");
+        assert_eq!(lean_service_binary(&exe, "solver"), None, "not executable");
     }
 
     #[test]
