@@ -15,9 +15,12 @@ if [ ! -x "$binary" ]; then
   ./deploy/install-deps.sh
   cargo build --release -p egoslam
 fi
+# The lean binaries must come from the same build as egoslam (the camera unit runs egoslam
+# itself): present, and not older than it by more than a build's linking takes.
 for s in "${services[@]}"; do
-  if [ ! -x "$(dirname "$binary")/egoslam-$s" ]; then
-    echo "$(dirname "$binary")/egoslam-$s missing: build all of egoslam's binaries (cargo build --release -p egoslam)" >&2
+  lean="$(dirname "$binary")/egoslam-$s"
+  if [ ! -x "$lean" ] || [ $(( $(stat -c %Y "$binary") - $(stat -c %Y "$lean") )) -gt 120 ]; then
+    echo "$lean missing or older than $binary: build all of egoslam's binaries (cargo build --release -p egoslam)" >&2
     exit 1
   fi
 done
