@@ -53,8 +53,8 @@ pub fn spawn(name: &'static str, args: &[String]) -> anyhow::Result<Supervised> 
     let lean = lean_service_binary(&exe, name);
     let started = match &lean {
         Some(lean) => start_service(lean, None, args).or_else(|e| {
-            // A lean binary that does not start (not executable, cut short by a copy)
-            // must not stop the run: the multi-call binary has the same service.
+            // A lean binary that does not start (removed or made unrunnable since it was
+            // checked) must not stop the run: the multi-call binary has the same service.
             tracing::warn!(binary = %lean.display(), error = %e, "lean service binary did not start; running `egoslam {name}`");
             start_service(&exe, Some(name), args)
         }),
