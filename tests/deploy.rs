@@ -67,3 +67,40 @@ fn a_service_reports_ready_and_pings_the_watchdog() {
     merger.wait().expect("reaped");
     assert!(seen[0].starts_with("READY=1"), "{seen:?}");
 }
+
+/// The units run the lean service binaries because they leave out OpenCV's video and image
+/// decoding (~250 shared libraries loaded at every start, docs/deploy.md): a service that
+/// comes to call into either would bring them back without a word.
+#[test]
+fn the_lean_service_binaries_do_not_link_the_decoders() {
+    let binaries = [
+        env!("CARGO_BIN_EXE_egoslam-frontend"),
+        env!("CARGO_BIN_EXE_egoslam-solver"),
+        env!("CARGO_BIN_EXE_egoslam-merger"),
+    ];
+    for binary in binaries {
+        let out = std::process::Command::new("readelf")
+            .args(["-d", binary])
+            .output()
+            .expect("readelf (binutils, with the C toolchain)");
+        assert!(out.status.success(), "readelf {binary}");
+        let dynamic = String::from_utf8_lossy(&out.stdout);
+        let needed: Vec<&str> = dynamic.lines().filter(|l| l.contains("(NEEDED)")).collect();
+        assert!(
+            needed.iter().any(|l| l.contains("libopencv_core")),
+            "{binary}: not linked as expected: {needed:?}"
+        );
+        for decoder in ["libopencv_videoio", "libopencv_imgcodecs"] {
+            assert!(
+                !needed.iter().any(|l| l.contains(decoder)),
+                "{binary} links {decoder}: {needed:?}"
+            );
+        }
+    }
+    // And the multi-call binary does, which is what the lean ones are for.
+    let out = std::process::Command::new("readelf")
+        .args(["-d", env!("CARGO_BIN_EXE_egoslam")])
+        .output()
+        .expect("readelf");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("libopencv_videoio"));
+}
