@@ -103,10 +103,7 @@ pub fn service_pid(service: &str, out: &Path) -> Option<u32> {
         let cmdline = std::fs::read(e.path().join("cmdline")).ok()?;
         let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
         // `egoslam SERVICE ...`, or the service's lean binary `egoslam-SERVICE ...`.
-        let lean = format!("egoslam-{service}");
-        let program = args.first().copied().unwrap_or_default();
-        let name = program.rsplit(|b| *b == b'/').next().unwrap_or_default();
-        let named = args.get(1) == Some(&service.as_bytes()) || name == lean.as_bytes();
+        let named = egoslam_runtime::process_role::role(&cmdline) == service.as_bytes();
         let is_it = named && args.contains(&needle.as_bytes());
         is_it.then_some(pid)
     })

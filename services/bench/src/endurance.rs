@@ -114,20 +114,8 @@ struct ProcessSample {
     written_bytes: BTreeMap<&'static str, u64>,
 }
 
-/// What an egoslam process of a run is, from its command line: `egoslam ROLE ...` (the
-/// multi-call binary) or `egoslam-ROLE ...` (a service's lean binary).
-fn role(cmdline: &[u8]) -> &[u8] {
-    let mut args = cmdline.split(|b| *b == 0);
-    let program = args.next().unwrap_or_default();
-    let name = program.rsplit(|b| *b == b'/').next().unwrap_or_default();
-    match name.strip_prefix(b"egoslam-") {
-        Some(lean) if !lean.is_empty() => lean,
-        _ => args.next().unwrap_or_default(),
-    }
-}
-
-/// [`ProcessSample`] of `root` and its descendants, by service ([`role`]; the launcher is
-/// `run`).
+/// [`ProcessSample`] of `root` and its descendants, by service
+/// ([`egoslam_runtime::process_role::role`]; the launcher is `run`).
 fn sample_processes(root: u32) -> ProcessSample {
     let parents = parents();
     let mut tree = vec![root];
@@ -141,7 +129,7 @@ fn sample_processes(root: u32) -> ProcessSample {
     let mut written = BTreeMap::new();
     for pid in tree {
         let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
-        let service = match role(&cmdline) {
+        let service = match egoslam_runtime::process_role::role(&cmdline) {
             b"run" => "launcher",
             other => match SERVICES.iter().find(|s| s.as_bytes() == other) {
                 Some(s) => s,
@@ -567,15 +555,6 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_process_is_known_by_its_subcommand_or_its_lean_binary() {
-        assert_eq!(role(b"/usr/bin/egoslam\0run\0--input\0x\0"), b"run");
-        assert_eq!(role(b"target/egoslam\0merger\0--out=o\0"), b"merger");
-        assert_eq!(role(b"/opt/egoslam-frontend\0--out=o\0"), b"frontend");
-        assert_eq!(role(b"egoslam-solver\0"), b"solver");
-        assert_eq!(role(b""), b"");
-    }
 
     #[test]
     fn the_loop_plays_the_walk_back_and_forth_with_its_ground_truth() {

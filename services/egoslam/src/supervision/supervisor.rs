@@ -127,12 +127,13 @@ const SAME_BUILD_SLACK: Duration = Duration::from_secs(120);
 fn lean_service_binary(exe: &std::path::Path, name: &str) -> Option<std::path::PathBuf> {
     use std::io::Read;
     use std::os::unix::fs::PermissionsExt;
-    let lean = exe.with_file_name(format!("egoslam-{name}"));
-    let modified = |p: &std::path::Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
-    let (own, theirs) = (modified(exe)?, modified(&lean)?);
+    let lean = exe.with_file_name(egoslam_runtime::process_role::lean_binary_name(name));
+    let own = std::fs::metadata(exe).and_then(|m| m.modified()).ok()?;
+    let metadata = std::fs::metadata(&lean).ok()?;
+    let theirs = metadata.modified().ok()?;
     // An executable ELF file: anything else (a file cut short, a script) would start as a
     // shell's "not found" rather than fail to start.
-    let executable = std::fs::metadata(&lean).ok()?.permissions().mode() & 0o111 != 0;
+    let executable = metadata.permissions().mode() & 0o111 != 0;
     let mut magic = [0u8; 4];
     let elf = std::fs::File::open(&lean)
         .and_then(|mut f| f.read_exact(&mut magic))

@@ -30,7 +30,6 @@ fn scene() -> Vec<Vector3<f64>> {
         .collect()
 }
 
-/// The camera walking sideways along x at 1 m/s, turning slowly, at 30 fps.
 /// A camera facing down the z axis, at `z` on it, at time `t`.
 pub(super) fn on_axis(t: f64, z: f64) -> StampedPose {
     StampedPose {
@@ -40,6 +39,7 @@ pub(super) fn on_axis(t: f64, z: f64) -> StampedPose {
     }
 }
 
+/// The camera walking sideways along x at 1 m/s, turning slowly, at 30 fps.
 fn pose_at(frame: u32) -> StampedPose {
     let t = f64::from(frame) / 30.0;
     StampedPose {
