@@ -10,6 +10,11 @@
 //! checkpoint has applied; a torn record at its end (a kill mid-append) is ignored, and the
 //! windows after the checkpoint are re-applied from the solver's journal, which re-appends
 //! their features.
+//!
+//! New records wait in memory ([`FeaturesLog::write_pending`]) until the checkpoint or
+//! until they outgrow [`PENDING_LIMIT_BYTES`]: most of a head-mounted walk's keyframes are
+//! culled soon after they arrive, and a record written and compacted away later is flash
+//! wear for nothing (the checkpoint needs them no sooner; the journal covers a kill).
 
 use crate::record_log::{for_each_record, LogReader, RecordLog};
 use egoslam_messages::internal::v1 as internal;
@@ -29,6 +34,10 @@ pub const COMPACT_ABOVE_BYTES: u64 = 8 << 20;
 /// wanted: the disk it takes stays within this factor of what the map needs, and each
 /// compaction rewrites the live records once (the write amplification is 1 / (factor - 1)).
 pub const COMPACT_AT_FACTOR: f64 = 1.25;
+
+/// Bytes of new records held in memory before the oldest are written (16 MiB: ~350
+/// keyframes, ~15 s of a walk's keyframes), whatever their keyframes' fate by then.
+pub const PENDING_LIMIT_BYTES: u64 = 16 << 20;
 
 /// Bytes a record keeps per track when compaction keeps only some of its tracks (a
 /// descriptor, its track id and pixel, and a patch).
@@ -77,6 +86,17 @@ pub struct FeaturesLog {
     records: BTreeMap<u64, (u64, u64)>,
     /// keyframe -> bytes of the patches in its latest record (those with any).
     patch_bytes: BTreeMap<u64, u64>,
+    /// keyframe -> its latest record, appended but not yet written (newer than `records`).
+    pending: BTreeMap<u64, internal::KeyframeFeatures>,
+    /// Encoded bytes of `pending`.
+    pending_bytes: u64,
+}
+
+/// A record's bytes in the log (length prefix included).
+fn logged_len(record: &internal::KeyframeFeatures) -> u64 {
+    use prost::Message;
+    let bytes = record.encoded_len();
+    (prost::length_delimiter_len(bytes) + bytes) as u64
 }
 
 /// The bytes a record's patches take (pixels and track ids).
@@ -129,19 +149,24 @@ impl FeaturesLog {
                 log,
                 records,
                 patch_bytes,
+                pending: BTreeMap::new(),
+                pending_bytes: 0,
             },
             descriptions,
         ))
     }
 
-    /// Hands what was appended to the kernel, so that reads see it.
+    /// Hands what was written to the kernel, so that reads see it.
     pub fn flush(&mut self) -> crate::Result<()> {
         self.log.flush()
     }
 
-    /// Keyframe `id`'s described tracks as its latest record holds them (after
-    /// [`FeaturesLog::flush`]); `None` for a keyframe without one or an unreadable record.
+    /// Keyframe `id`'s described tracks as its latest record holds them; `None` for a
+    /// keyframe without one or an unreadable record.
     pub fn features_of(&self, id: u64) -> crate::Result<Option<Vec<MapFeature>>> {
+        if let Some(record) = self.pending.get(&id) {
+            return Ok(features_from_pb(record));
+        }
         let Some((at, _)) = self.records.get(&id) else {
             return Ok(None);
         };
@@ -149,21 +174,42 @@ impl FeaturesLog {
         Ok(features_from_pb(&record))
     }
 
-    /// Appends `record` (buffered; [`FeaturesLog::sync`] makes it durable).
-    pub fn append(&mut self, record: &internal::KeyframeFeatures) -> crate::Result<()> {
-        use prost::Message;
-        let at = self.log.append(record)?;
-        let bytes =
-            (prost::length_delimiter_len(record.encoded_len()) + record.encoded_len()) as u64;
-        self.records.insert(record.keyframe_id, (at, bytes));
-        match patch_bytes_of(record) {
-            0 => self.patch_bytes.remove(&record.keyframe_id),
-            b => self.patch_bytes.insert(record.keyframe_id, b),
-        };
-        Ok(())
+    /// Takes `record` as keyframe `record.keyframe_id`'s latest, held in memory until
+    /// [`FeaturesLog::write_pending`] writes what is still wanted of it.
+    pub fn append(&mut self, record: &internal::KeyframeFeatures) {
+        self.pending_bytes += logged_len(record);
+        if let Some(old) = self.pending.insert(record.keyframe_id, record.clone()) {
+            self.pending_bytes -= logged_len(&old);
+        }
     }
 
-    /// Makes everything appended durable.
+    /// Writes what `keep` keeps of the pending records, oldest keyframe first, until at most
+    /// `limit` bytes of them are left in memory (0: all, before a checkpoint); a record
+    /// kept whole, or partly, is written once, and one kept not at all never (buffered:
+    /// [`FeaturesLog::sync`] makes it durable). Returns the bytes written.
+    pub fn write_pending(&mut self, keep: impl Fn(u64) -> Keep, limit: u64) -> crate::Result<u64> {
+        let mut written = 0;
+        while self.pending_bytes > limit {
+            let Some((keyframe, record)) = self.pending.pop_first() else {
+                break;
+            };
+            self.pending_bytes -= logged_len(&record);
+            let Some(record) = kept_part(record, keep(keyframe)) else {
+                continue;
+            };
+            let bytes = logged_len(&record);
+            let at = self.log.append(&record)?;
+            self.records.insert(keyframe, (at, bytes));
+            match patch_bytes_of(&record) {
+                0 => self.patch_bytes.remove(&keyframe),
+                b => self.patch_bytes.insert(keyframe, b),
+            };
+            written += bytes;
+        }
+        Ok(written)
+    }
+
+    /// Makes everything written durable (not the pending records: write those first).
     pub fn sync(&mut self) -> crate::Result<()> {
         self.log.sync()
     }
@@ -172,6 +218,8 @@ impl FeaturesLog {
     pub fn truncate(&mut self) -> crate::Result<()> {
         self.records.clear();
         self.patch_bytes.clear();
+        self.pending.clear();
+        self.pending_bytes = 0;
         self.log.truncate()
     }
 
@@ -183,10 +231,13 @@ impl FeaturesLog {
         let mut reader = self.log.reader()?;
         let mut out = BTreeMap::new();
         for keyframe in keyframes {
-            let Some((at, _)) = self.records.get(&keyframe) else {
-                continue;
+            let record: internal::KeyframeFeatures = match self.pending.get(&keyframe) {
+                Some(record) => record.clone(),
+                None => match self.records.get(&keyframe) {
+                    Some((at, _)) => reader.read_at(*at)?,
+                    None => continue,
+                },
             };
-            let record: internal::KeyframeFeatures = reader.read_at(*at)?;
             if let Some(patches) = patches_from_pb(&record).filter(|p| !p.is_empty()) {
                 out.insert(keyframe, patches);
             }
@@ -200,7 +251,7 @@ impl FeaturesLog {
     /// map, not with the time walked. Records are copied one at a time. Returns the bytes
     /// written (0 when not due). Call it before a checkpoint: the log must cover every
     /// keyframe the checkpoint holds, and the windows after it re-append theirs when
-    /// replayed.
+    /// replayed, and after [`FeaturesLog::write_pending`] (it rewrites the written records).
     pub fn compact_if_due(&mut self, keep: impl Fn(u64) -> Keep) -> crate::Result<u64> {
         let size = self.log.len_bytes()?;
         if size < COMPACT_ABOVE_BYTES {
@@ -232,19 +283,12 @@ impl FeaturesLog {
         let mut records = BTreeMap::new();
         let mut patch_bytes = BTreeMap::new();
         self.log.rewrite(|reader, writer| {
-            use prost::Message;
             for (keyframe, at, keep) in decisions {
-                let mut record: internal::KeyframeFeatures = reader.read_at(at)?;
-                match keep {
-                    Keep::Tracks(tracks) => record = only_tracks(&record, &tracks),
-                    Keep::Features => {
-                        record.patch_track_ids.clear();
-                        record.patches.clear();
-                    }
-                    Keep::Whole | Keep::Nothing => {}
-                }
-                let bytes = record.encoded_len();
-                let bytes = (prost::length_delimiter_len(bytes) + bytes) as u64;
+                let record: internal::KeyframeFeatures = reader.read_at(at)?;
+                let Some(record) = kept_part(record, keep) else {
+                    continue;
+                };
+                let bytes = logged_len(&record);
                 records.insert(keyframe, (writer.append(&record)?, bytes));
                 if let b @ 1.. = patch_bytes_of(&record) {
                     patch_bytes.insert(keyframe, b);
@@ -262,7 +306,7 @@ impl FeaturesLog {
 
 impl egoslam_merger::KeyframeFeatureSource for FeaturesLog {
     fn is_described(&self, id: u64) -> bool {
-        self.records.contains_key(&id)
+        self.pending.contains_key(&id) || self.records.contains_key(&id)
     }
 
     fn features(&self, id: u64) -> Option<Vec<MapFeature>> {
@@ -271,6 +315,23 @@ impl egoslam_merger::KeyframeFeatureSource for FeaturesLog {
             None
         })
     }
+}
+
+/// What `keep` keeps of `record` (`None`: nothing).
+fn kept_part(
+    mut record: internal::KeyframeFeatures,
+    keep: Keep,
+) -> Option<internal::KeyframeFeatures> {
+    match keep {
+        Keep::Whole => {}
+        Keep::Tracks(tracks) => record = only_tracks(&record, &tracks),
+        Keep::Features => {
+            record.patch_track_ids.clear();
+            record.patches.clear();
+        }
+        Keep::Nothing => return None,
+    }
+    Some(record)
 }
 
 /// `record` with the features and patches of `tracks` alone.
@@ -323,6 +384,70 @@ mod tests {
         }
     }
 
+    /// Writes every pending record whole.
+    fn write_all(log: &mut FeaturesLog) {
+        log.write_pending(|_| Keep::Whole, 0).expect("write");
+    }
+
+    #[test]
+    fn records_wait_in_memory_and_those_culled_meanwhile_are_never_written() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (mut log, _) = FeaturesLog::open(dir.path()).expect("open");
+        // 100 keyframes of 500 features (~21 KB each).
+        for k in 0..100u64 {
+            let f: Vec<MapFeature> = (0..500).map(|i| feature(k * 1000 + i)).collect();
+            log.append(&features_to_pb(k, &f, &[(k * 1000 + 7, [k as u8; 100])]));
+        }
+        assert_eq!(
+            log.log.len_bytes().expect("len"),
+            crate::record_log::HEADER_LEN
+        );
+        // Read back from memory as from disk.
+        assert_eq!(
+            log.features_of(42).expect("read").expect("pending")[3],
+            feature(42003)
+        );
+        assert_eq!(
+            log.patches([42]).expect("patches")[&42],
+            vec![(42007, [42; 100])]
+        );
+        use egoslam_merger::KeyframeFeatureSource;
+        assert!(log.is_described(99) && !log.is_described(100));
+        // Over a limit of about half of them, the oldest go first: the culled ones not at
+        // all, keyframe 2 with its one wanted track.
+        let keep = |k: u64| match k {
+            2 => Keep::Tracks(BTreeSet::from([2007])),
+            k if k % 4 == 0 => Keep::Whole,
+            _ => Keep::Nothing,
+        };
+        let newest_half: u64 = log.pending.range(50..).map(|(_, r)| logged_len(r)).sum();
+        let kept_whole: u64 = (0..50)
+            .filter(|k| k % 4 == 0)
+            .map(|k| logged_len(&log.pending[&k]))
+            .sum();
+        let written = log.write_pending(keep, newest_half).expect("write");
+        assert_eq!(log.pending.len(), 50);
+        assert_eq!(log.pending.keys().next(), Some(&50));
+        let partial = logged_len(&features_to_pb(2, &[feature(2007)], &[(2007, [2; 100])]));
+        assert_eq!(written, kept_whole + partial);
+        assert_eq!(
+            written,
+            log.log.len_bytes().expect("len") - crate::record_log::HEADER_LEN
+        );
+        // The rest before a checkpoint; what was written comes back after a restart.
+        log.write_pending(keep, 0).expect("write");
+        assert!(log.pending.is_empty() && log.pending_bytes == 0);
+        log.sync().expect("sync");
+        let (back_log, back) = FeaturesLog::open(dir.path()).expect("reopen");
+        assert_eq!(back.len(), 26);
+        assert_eq!(back[&2], [(2007, 2)]);
+        assert_eq!(
+            back_log.features_of(96).expect("read").expect("kept").len(),
+            500
+        );
+        assert!(back_log.features_of(97).expect("read").is_none());
+    }
+
     #[test]
     fn compaction_keeps_the_live_keyframes_once_and_appending_goes_on() {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -333,8 +458,9 @@ mod tests {
         for k in 0..800u64 {
             let f: Vec<MapFeature> = (0..500).map(|i| feature(k * 1000 + i)).collect();
             let p = vec![(k * 1000 + 7, [k as u8; 100]), (k * 1000 + 8, [1; 100])];
-            log.append(&features_to_pb(k, &f, &p)).expect("append");
+            log.append(&features_to_pb(k, &f, &p));
         }
+        write_all(&mut log);
         let keep = |k: u64| match k {
             2 => Keep::Tracks(BTreeSet::from([2007])),
             k if k % 4 == 0 => Keep::Whole,
@@ -346,13 +472,13 @@ mod tests {
         assert!(after > 0 && after < before / 3, "{after} of {before}");
         assert_eq!(log.log.len_bytes().expect("len"), after);
         assert_eq!(log.compact_if_due(keep).expect("again"), 0);
-        log.append(&features_to_pb(800, &[feature(800)], &[]))
-            .expect("append");
+        log.append(&features_to_pb(800, &[feature(800)], &[]));
         // Patches are read back by offset, before and after a restart.
         let patches = log.patches([2, 8, 9, 800]).expect("patches");
         assert_eq!(patches.keys().copied().collect::<Vec<_>>(), [2, 8]);
         assert_eq!(patches[&2], vec![(2007, [2; 100])]);
         assert_eq!(patches[&8][1], (8008, [1; 100]));
+        write_all(&mut log);
         log.sync().expect("sync");
         let (mut back_log, back) = FeaturesLog::open(dir.path()).expect("reopen");
         assert_eq!(back.len(), 202);
@@ -376,8 +502,9 @@ mod tests {
         for k in 0..700u64 {
             let f: Vec<MapFeature> = (0..100).map(|i| feature(k * 1000 + i)).collect();
             let p: Vec<(u64, Patch)> = (0..100).map(|i| (k * 1000 + i, [3; 100])).collect();
-            log.append(&features_to_pb(k, &f, &p)).expect("append");
+            log.append(&features_to_pb(k, &f, &p));
         }
+        write_all(&mut log);
         let all_whole = |_: u64| Keep::Whole;
         assert_eq!(log.compact_if_due(all_whole).expect("not due"), 0);
         // The oldest half's patches are past retention: the log shrinks by their bytes.
@@ -412,9 +539,11 @@ mod tests {
             patches: vec![fill; 100],
         };
         let (mut log, _) = FeaturesLog::open(dir.path()).expect("open");
-        log.append(&record(0, 1)).expect("append");
-        log.append(&record(1, 2)).expect("append");
-        log.append(&record(0, 3)).expect("append");
+        log.append(&record(0, 1));
+        write_all(&mut log);
+        log.append(&record(1, 2));
+        log.append(&record(0, 3));
+        write_all(&mut log);
         log.sync().expect("sync");
         let (mut reopened, back) = FeaturesLog::open(dir.path()).expect("read");
         assert_eq!(back.len(), 2);

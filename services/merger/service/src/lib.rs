@@ -15,7 +15,7 @@ mod saved_map;
 use anyhow::bail;
 use egoslam_bus::{Bus, BusOptions, MessageSubscriber, WINDOWS};
 use egoslam_durability::checkpoint::{self, Checkpoint};
-use egoslam_durability::features_log::{patched_tracks, FeaturesLog, Keep};
+use egoslam_durability::features_log::{patched_tracks, FeaturesLog, Keep, PENDING_LIMIT_BYTES};
 use egoslam_durability::log_compaction;
 use egoslam_egress::{Egress, EgressOptions};
 use egoslam_merger::session::frames::{posed_frames, posed_keyframes};
@@ -109,6 +109,25 @@ fn positive_from_env<T: std::str::FromStr + PartialOrd + Default>(name: &str) ->
         .filter(|n| *n > T::default())
 }
 
+/// What the features log keeps of a keyframe's record: a map keyframe's whole (without
+/// its patches past retention), a culled one's patched tracks, nothing of the rest.
+fn keep_of(session: &MergerSession) -> impl Fn(u64) -> Keep + '_ {
+    let (map, patched) = (&session.state.map, &session.state.patched_tracks);
+    move |keyframe: u64| {
+        if map.keyframe(keyframe).is_some() {
+            if session.patches_expired(keyframe) {
+                Keep::Features
+            } else {
+                Keep::Whole
+            }
+        } else if let Some(tracks) = patched.get(&keyframe) {
+            Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
+        } else {
+            Keep::Nothing
+        }
+    }
+}
+
 impl Merger {
     fn checkpoint_path(&self) -> std::path::PathBuf {
         egoslam_durability::state_dir(&self.options.out).join(checkpoint::FILE_NAME)
@@ -147,7 +166,7 @@ impl Merger {
                 Some((features, patches)) => {
                     let patched = patched_tracks(&patches);
                     self.session.add_keyframe(f.keyframe_id, &features, patched);
-                    self.features_log.append(f)?;
+                    self.features_log.append(f);
                 }
                 None => {
                     tracing::warn!(
@@ -158,10 +177,15 @@ impl Merger {
                 }
             }
         }
-        // Loop closure and linking read descriptors back from the log.
-        self.features_log.flush()?;
         self.session.apply_window(sequence, w, &self.features_log);
         self.take_tally();
+        // Records older than the pending limit are written now, as far as the map still
+        // wants them; loop closure and linking read them back from the log.
+        let written = self
+            .features_log
+            .write_pending(keep_of(&self.session), PENDING_LIMIT_BYTES)?;
+        self.stats.count("features_log_written_bytes", written);
+        self.features_log.flush()?;
         if let Some(live) = &self.live {
             live.update(
                 &self.session.state.map,
@@ -200,22 +224,10 @@ impl Merger {
             .numbers();
         let save_start = std::time::Instant::now();
         self.session.prune_culled_patches();
-        let session = &self.session;
-        let (map, patched) = (&session.state.map, &session.state.patched_tracks);
-        let keep = |keyframe: u64| {
-            if map.keyframe(keyframe).is_some() {
-                if session.patches_expired(keyframe) {
-                    Keep::Features
-                } else {
-                    Keep::Whole
-                }
-            } else if let Some(tracks) = patched.get(&keyframe) {
-                Keep::Tracks(tracks.iter().map(|(t, _)| *t).collect())
-            } else {
-                Keep::Nothing
-            }
-        };
-        if self.features_log.compact_if_due(keep)? > 0 {
+        let keep = keep_of(&self.session);
+        let written = self.features_log.write_pending(&keep, 0)?;
+        self.stats.count("features_log_written_bytes", written);
+        if self.features_log.compact_if_due(&keep)? > 0 {
             self.stats.count("features_log_compactions", 1);
         }
         self.features_log.sync()?;
