@@ -312,10 +312,25 @@ fn compacted_logs_still_recover_a_killed_merger_and_solver() {
         );
         std::thread::sleep(Duration::from_millis(5));
     }
+    // The frontend's keyframe log is kept in memory-backed storage, off the flash.
+    let namespace = format!("run{}", run.id());
+    let in_memory = egoslam_durability::keyframe_log_path(out.path(), &namespace);
+    let in_state = out.path().join("state/keyframes.log");
+    assert!(
+        in_memory.exists() && !in_state.exists(),
+        "keyframe log at {}",
+        in_memory.display()
+    );
     sigkill("merger", out.path());
     std::thread::sleep(Duration::from_millis(500));
     sigkill("solver", out.path());
     wait_success(run);
+    // At the end it joins the rest of the state, and the run leaves no file in memory.
+    assert!(!in_memory.exists(), "{} left behind", in_memory.display());
+    assert!(
+        in_state.metadata().is_ok_and(|m| m.len() > 0),
+        "no keyframe log kept"
+    );
     let r = report(out.path());
     assert_eq!(r["restarts"]["merger"], 1, "{r}");
     assert_eq!(r["restarts"]["solver"], 1, "{r}");

@@ -107,7 +107,7 @@ fn parents() -> BTreeMap<u32, u32> {
         .collect()
 }
 
-/// Per service: VmRSS in MiB, and bytes the process has caused to be written to storage
+/// Per service: VmRSS in MiB (with `memory_files`: the run's memory-backed files), and bytes the process has caused to be written to storage
 /// (`write_bytes` of /proc/PID/io: what wears the flash, page-cache writeback included).
 struct ProcessSample {
     rss_mib: BTreeMap<&'static str, f64>,
@@ -155,10 +155,40 @@ fn sample_processes(root: u32) -> ProcessSample {
             .unwrap_or(0);
         *written.entry(service).or_default() += bytes;
     }
+    // RAM the run holds in files (the frontend's keyframe log): counted with the
+    // processes', as no process maps them.
+    let files = memory_backed_bytes(root);
+    if files > 0 {
+        rss.insert(MEMORY_FILES, files as f64 / (1024.0 * 1024.0));
+    }
     ProcessSample {
         rss_mib: rss,
         written_bytes: written,
     }
+}
+
+/// The memory-backed files' entry among the services' RSS.
+const MEMORY_FILES: &str = "memory_files";
+
+/// Bytes of the memory-backed files of the run launched as process `root`
+/// (egoslam_durability::memory_backed_dir, `egoslam-run<pid>...`).
+fn memory_backed_bytes(root: u32) -> u64 {
+    let Some(dir) = egoslam_durability::memory_backed_dir() else {
+        return 0;
+    };
+    let prefix = egoslam_durability::memory_backed_name(&format!("run{root}"), "");
+    let run = |name: &str| {
+        name.strip_prefix(&prefix[..prefix.len() - 1])
+            .is_some_and(|rest| rest.starts_with(['-', 'r']))
+    };
+    std::fs::read_dir(dir).map_or(0, |entries| {
+        entries
+            .flatten()
+            .filter(|e| e.file_name().to_str().is_some_and(run))
+            .filter_map(|e| e.metadata().ok())
+            .map(|m| m.len())
+            .sum()
+    })
 }
 
 /// Bytes under `dir` (symlinks not followed).
@@ -252,7 +282,7 @@ fn sampled_run(
 
 fn write_csv(path: &Path, samples: &[Sample]) -> anyhow::Result<()> {
     let mut csv = String::from("wall_s,merged_video_s,rss_total_mib");
-    for s in SERVICES {
+    for s in SERVICES.iter().chain(&[MEMORY_FILES]) {
         csv += &format!(",rss_{s}_mib");
     }
     csv += ",disk_mib,written_mib,keyframes,map_points\n";
@@ -263,7 +293,7 @@ fn write_csv(path: &Path, samples: &[Sample]) -> anyhow::Result<()> {
             s.merged_video_s,
             s.total_rss()
         );
-        for service in SERVICES {
+        for service in SERVICES.iter().chain(&[MEMORY_FILES]) {
             csv += &format!(",{:.1}", s.rss_mib.get(service).copied().unwrap_or(0.0));
         }
         csv += &format!(
@@ -461,6 +491,9 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         "rss_peak_mib_last_cycle": peak(&samples, last..end, Sample::total_rss),
         "rss_peak_mib": peak(&samples, 0.0..end, Sample::total_rss),
         "rss_peak_mib_by_service": report["peak_rss_mib"],
+        "memory_files_mib_peak": peak(&samples, 0.0..end, |s| {
+            s.rss_mib.get(MEMORY_FILES).copied().unwrap_or(0.0)
+        }),
         // Over the last quarter of the run, per minute of video (the run keeps a
         // near-constant pace, so run time maps linearly onto video time).
         "rss_slope_last_quarter_mib_per_video_min": rss_slope(&samples, 0.75 * wall)
@@ -504,15 +537,16 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
     let table = format!(
         "Measured by `egoslam bench --suite endurance --cycles {cycles} --walk-frames {walk_frames}`: \
          {name} ({walk_frames} frames, one pass) played back and forth {cycles} times ({frames} frames, \
-         {minutes} min of 30 fps video) through `egoslam run`, publishing over zenoh to a loopback listener; memory summed over the run's processes, \
-         sampled every 2 s; {plot}samples in `{work}`.\n\n\
+         {minutes} min of 30 fps video) through `egoslam run`, publishing over zenoh to a loopback listener; memory summed over the run's processes \
+         and its files in memory-backed storage, sampled every 2 s; {plot}samples in `{work}`.\n\n\
          | figure | up to the end of cycle 2 | last cycle / end |\n|---|---|---|\n\
-         | peak RSS, all processes (MiB) | {rss_c2} | {rss_last} |\n\
+         | peak memory: RSS of all processes and the memory-backed files (MiB) | {rss_c2} | {rss_last} |\n\
          | output + state on disk (MiB; peak, then at the end) | {disk_c2} | {disk_end} |\n\
          | keyframes in the map (at the end of cycle 2, at the end) | {map_kf_c2} | {map_kf} |\n\n\
          | keyframes made / in the map | map points | segments | ATE, whole loop | ATE, one pass | ratio | written to storage per hour of video (MiB) |\n\
          |---|---|---|---|---|---|---|\n| {kf} / {map_kf} | {pts} | {seg} | {ate} m | {ate1} m | {ratio} | {per_hour} |\n\n\
          Total RSS over the last quarter of the run: {slope} MiB per minute of video (least-squares slope). \
+         The memory-backed files (the frontend's keyframe log) peaked at {memory_files} MiB. \
          Written to storage over the run, by service (MiB): {written_by_service}.\n\n",
         cycles = args.cycles,
         walk_frames = args.walk_frames,
@@ -532,6 +566,7 @@ pub fn run(args: &BenchArgs, config: Option<&Path>) -> anyhow::Result<()> {
         ratio = f("ate_ratio_to_single_pass", 2),
         per_hour = f("written_mib_per_video_hour", 0),
         slope = f("rss_slope_last_quarter_mib_per_video_min", 2),
+        memory_files = f("memory_files_mib_peak", 0),
         written_by_service = summary["written_mib_by_service"]
             .as_object()
             .map(|m| {

@@ -15,12 +15,39 @@ pub mod window_journal;
 
 use std::io::Write;
 
-/// The frontend's log of every keyframe message it sent, in order (length-delimited, in the
-/// state folder): a restarted solver replays the ones its predecessor had not turned into
-/// windows (docs/durability.md).
+/// The frontend's log of every keyframe message it sent, in order (length-delimited): a
+/// restarted solver replays the ones its predecessor had not turned into windows
+/// (docs/durability.md). Its name in the state folder; see [`keyframe_log_path`].
 pub const KEYFRAME_LOG: &str = "keyframes.log";
 
 use std::path::{Path, PathBuf};
+
+/// Memory-backed storage for what only a killed process needs and is rewritten too often
+/// for the flash: systemd's `RuntimeDirectory=` (`$RUNTIME_DIRECTORY`), else `/dev/shm`;
+/// `None` where neither exists.
+pub fn memory_backed_dir() -> Option<PathBuf> {
+    let runtime = std::env::var_os("RUNTIME_DIRECTORY")
+        .and_then(|dirs| std::env::split_paths(&dirs).next())
+        .filter(|d| d.is_dir());
+    runtime.or_else(|| Some(PathBuf::from("/dev/shm")).filter(|d| d.is_dir()))
+}
+
+/// The name of a file of bus namespace `namespace` in [`memory_backed_dir`]: one folder
+/// serves every run of the machine.
+pub fn memory_backed_name(namespace: &str, file: &str) -> String {
+    format!("egoslam-{namespace}-{file}")
+}
+
+/// Where the frontend of bus namespace `namespace` logs its keyframes: in memory-backed
+/// storage, since the log is for a killed solver alone (a power cut ends the stream
+/// anyway) and holds every keyframe once, ~5 GB per hour of a walk that the flash would
+/// wear by; in the state folder of `out` where no such storage exists.
+pub fn keyframe_log_path(out: &Path, namespace: &str) -> PathBuf {
+    match memory_backed_dir() {
+        Some(dir) => dir.join(memory_backed_name(namespace, KEYFRAME_LOG)),
+        None => state_dir(out).join(KEYFRAME_LOG),
+    }
+}
 
 /// Why a durable file could not be written or read back.
 #[derive(Debug, thiserror::Error)]

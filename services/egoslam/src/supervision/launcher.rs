@@ -1,6 +1,7 @@
 //! `egoslam run`: checks the input, starts the services, supervises them, reports.
 
 use crate::options::RunArgs;
+use crate::supervision::memory_files::RunMemoryFiles;
 use crate::supervision::services::Services;
 use crate::supervision::stream_calibration::{RoundSettings, StreamCalibration};
 use crate::supervision::supervisor::{catch_stop_signals, supervise, Supervision};
@@ -232,7 +233,9 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     // The services' iceoryx2 files in a folder of this run's, not the shared /tmp/iceoryx2:
     // runs never see each other's services or clean up each other's nodes.
     BusRoot::remove_stale();
+    RunMemoryFiles::remove_stale();
     let bus_root = BusRoot::of_this_process();
+    let mut memory_files = RunMemoryFiles::new(out, &namespace);
     let bus_config = per_run_bus_config(&bus_root.0)?;
     std::env::set_var("EGOSLAM_ICEORYX2_CONFIG", &bus_config);
     // From here on a Ctrl-C stops the services in order and keeps what they processed.
@@ -248,6 +251,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             0 => namespace.clone(),
             n => format!("{namespace}r{n}"),
         };
+        memory_files.follow(&round_namespace);
         // A round started again is a new run to a client (Status.run_id changes): its
         // poses start again from the first frame.
         let run_id = format!(
@@ -292,9 +296,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         match next {
             Some(settings) => {
                 // A killed frontend leaves the tracks it would have resumed from.
-                if let Some(path) = egoslam_frontend_service::resume::path(&round_namespace) {
-                    let _ = std::fs::remove_file(path);
-                }
+                memory_files.discard();
                 calibrations.start_again();
                 tracing::info!("the run starts again from the first frame with the calibration estimated from the stream");
                 round = settings;
@@ -305,6 +307,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let camera = round.camera;
     // Every service has ended (or was stopped): their bus files are of no further use.
     drop(bus_root);
+    drop(memory_files);
     let Supervision {
         restarts,
         interrupted_by,

@@ -3,6 +3,7 @@
 
 pub mod launcher;
 pub mod live_view;
+pub mod memory_files;
 pub mod progress;
 pub mod services;
 pub mod stream_calibration;

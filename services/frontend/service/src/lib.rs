@@ -10,7 +10,6 @@ use anyhow::{bail, Context};
 use egoslam_bus::{Bus, BusOptions, FrameSubscriber, MessagePublisher, KEYFRAMES, LIVE_FRAMES};
 use egoslam_durability::log_compaction;
 use egoslam_durability::record_log::RecordLog;
-use egoslam_durability::KEYFRAME_LOG;
 use egoslam_frontend::tracker::ResumePoint;
 use egoslam_frontend::{KeyframeTracks, Tracker, TrackerError, TrackerOptions};
 use egoslam_messages::internal::v1 as internal;
@@ -289,7 +288,11 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
         // The mark of an earlier run names its keyframe ids, which this one reuses.
         log_compaction::remove_mark(&solver_mark)?;
     }
-    let mut keyframe_log = CompactingLog::open(&state.join(KEYFRAME_LOG), solver_mark, resuming)?;
+    let mut keyframe_log = CompactingLog::open(
+        &egoslam_durability::keyframe_log_path(&args.out, &args.namespace),
+        solver_mark,
+        resuming,
+    )?;
     if let Ok(text) = std::fs::read_to_string(&state_path) {
         let ids: serde_json::Value = serde_json::from_str(&text)
             .with_context(|| format!("{}: unreadable", state_path.display()))?;
@@ -542,6 +545,7 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use crate::keyframe_message::tests::keyframe;
+    use egoslam_durability::KEYFRAME_LOG;
 
     #[test]
     fn the_keyframe_log_drops_what_the_solver_no_longer_needs_once_it_has_grown() {

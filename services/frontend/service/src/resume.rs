@@ -21,11 +21,11 @@ const MAGIC: &[u8] = b"egoslam frontend resume v1\n";
 
 /// Where the frontend of bus namespace `namespace` keeps its last frame, if anywhere.
 pub fn path(namespace: &str) -> Option<PathBuf> {
-    let runtime = std::env::var_os("RUNTIME_DIRECTORY")
-        .and_then(|dirs| std::env::split_paths(&dirs).next())
-        .filter(|d| d.is_dir());
-    let dir = runtime.or_else(|| Some(PathBuf::from("/dev/shm")).filter(|d| d.is_dir()))?;
-    Some(dir.join(format!("egoslam-{namespace}-frontend.resume")))
+    let dir = egoslam_durability::memory_backed_dir()?;
+    Some(dir.join(egoslam_durability::memory_backed_name(
+        namespace,
+        "frontend.resume",
+    )))
 }
 
 /// A frame read back from the file.

@@ -382,7 +382,7 @@ pub fn run(args: SolverServiceOptions) -> anyhow::Result<()> {
     let state_dir = egoslam_durability::create_state_dir(&args.out)?;
     let journal_path = state_dir.join(window_journal::FILE_NAME);
     // A restarted solver continues its predecessor's stream (docs/durability.md).
-    let resume = resume::find(&args.out, args.windows.overlap)?;
+    let resume = resume::find(&args.out, &args.namespace, args.windows.overlap)?;
     let (stream_id, mut journal, mut builder, next_sequence, replay, skip_up_to) = match resume {
         Some(r) => {
             tracing::warn!(

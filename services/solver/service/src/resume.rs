@@ -10,7 +10,6 @@
 
 use egoslam_durability::record_log::read_records;
 use egoslam_durability::window_journal::{self, Journal};
-use egoslam_durability::KEYFRAME_LOG;
 use egoslam_messages::internal::v1 as internal;
 use std::path::Path;
 
@@ -44,7 +43,7 @@ impl Resume {
 
 /// The resume point in `out`, or `None` for a fresh stream: no journal, a finished one, an
 /// unreadable one (with a warning), or a log that lacks what the journal refers to.
-pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
+pub fn find(out: &Path, namespace: &str, overlap: usize) -> anyhow::Result<Option<Resume>> {
     let path = egoslam_durability::state_dir(out).join(window_journal::FILE_NAME);
     if !path.exists() {
         return Ok(None);
@@ -60,7 +59,7 @@ pub fn find(out: &Path, overlap: usize) -> anyhow::Result<Option<Resume>> {
         return Ok(None);
     }
     let logged: Vec<internal::Keyframe> =
-        read_records(&egoslam_durability::state_dir(out).join(KEYFRAME_LOG))?;
+        read_records(&egoslam_durability::keyframe_log_path(out, namespace))?;
     let (tail_ids, covered) = match journal.messages.last() {
         Some(w) => {
             let ids = &w.keyframe_ids;
