@@ -56,8 +56,45 @@ pub fn shared(name: &str) -> Option<PathBuf> {
 }
 
 /// A bus namespace no other test uses.
-pub fn namespace(test: &str) -> String {
-    format!("it_{test}_{}", std::process::id())
+pub fn namespace(test: &str) -> Namespace {
+    Namespace(format!("it_{test}_{}", std::process::id()))
+}
+
+/// A test's bus namespace; dropped, it removes what its services left in memory-backed
+/// storage (the frontend's keyframe log and resume frame, which `egoslam run` removes for
+/// its own runs), so that test runs do not fill /dev/shm.
+pub struct Namespace(String);
+
+impl std::ops::Deref for Namespace {
+    type Target = String;
+
+    fn deref(&self) -> &String {
+        &self.0
+    }
+}
+
+impl std::fmt::Display for Namespace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl Drop for Namespace {
+    fn drop(&mut self) {
+        let Some(dir) = egoslam_durability::memory_backed_dir() else {
+            return;
+        };
+        let prefix = egoslam_durability::memory_backed_name(&self.0, "");
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            if entry
+                .file_name()
+                .to_str()
+                .is_some_and(|n| n.starts_with(&prefix))
+            {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
 }
 
 /// A TCP port free on loopback now (for a zenoh endpoint a test connects to).
