@@ -104,3 +104,37 @@ fn the_lean_service_binaries_do_not_link_the_decoders() {
         .expect("readelf");
     assert!(String::from_utf8_lossy(&out.stdout).contains("libopencv_videoio"));
 }
+
+/// A lean binary's help and usage errors name it as it is run (`egoslam-solver [OPTIONS]`),
+/// not as the multi-call subcommand it parses (`egoslam-solver solver`), and it takes the
+/// subcommand's flags.
+#[test]
+fn a_lean_binary_names_itself_in_its_usage() {
+    for (service, binary) in [
+        ("frontend", env!("CARGO_BIN_EXE_egoslam-frontend")),
+        ("solver", env!("CARGO_BIN_EXE_egoslam-solver")),
+        ("merger", env!("CARGO_BIN_EXE_egoslam-merger")),
+    ] {
+        let help = std::process::Command::new(binary)
+            .arg("--help")
+            .output()
+            .expect("help");
+        assert!(help.status.success(), "{binary} --help");
+        let text = String::from_utf8_lossy(&help.stdout);
+        assert!(
+            text.contains(&format!("Usage: egoslam-{service} [OPTIONS]")),
+            "{text}"
+        );
+        assert!(text.contains("--namespace"), "{text}");
+        let wrong = std::process::Command::new(binary)
+            .arg("--no-such-flag")
+            .output()
+            .expect("usage error");
+        assert_eq!(wrong.status.code(), Some(2));
+        let text = String::from_utf8_lossy(&wrong.stderr);
+        assert!(
+            text.contains(&format!("Usage: egoslam-{service} [OPTIONS]")),
+            "{text}"
+        );
+    }
+}

@@ -29,11 +29,28 @@ pub type Dispatch = fn(cli::Cli) -> anyhow::Result<()>;
 /// The program: parses `argv` (with the configuration file), sets up logging and runs
 /// `dispatch` on the parsed command line.
 pub fn main_with(argv: Vec<OsString>, dispatch: Dispatch) -> std::process::ExitCode {
+    main_of(cli::Cli::command(), argv, dispatch)
+}
+
+/// The program of a lean service binary (`egoslam-SERVICE`): `egoslam SERVICE`'s command
+/// line ([`service_argv`]), whose usage names the binary alone.
+pub fn main_service(service: &str, dispatch: Dispatch) -> std::process::ExitCode {
+    let binary = egoslam_runtime::process_role::lean_binary_name(service);
+    let command = cli::Cli::command()
+        .mut_subcommand(service, |c| c.override_usage(format!("{binary} [OPTIONS]")));
+    main_of(command, service_argv(service), dispatch)
+}
+
+fn main_of(
+    command: clap::Command,
+    argv: Vec<OsString>,
+    dispatch: Dispatch,
+) -> std::process::ExitCode {
     // Egocentric video shows the wearer's life: everything egoslam writes (results, state,
     // logs, saved maps) is for its owner only (files 0600, folders 0700).
     // SAFETY: umask(2) only sets the process's file mode mask.
     unsafe { libc::umask(0o077) };
-    let matches = match config::parse_command_line(cli::Cli::command(), argv) {
+    let matches = match config::parse_command_line(command, argv) {
         Ok(m) => m,
         Err(e) => {
             eprintln!("error: {e:#}");
@@ -152,7 +169,7 @@ pub fn run_merger(cli: cli::Cli) -> anyhow::Result<()> {
 /// This process's arguments as those of `egoslam SERVICE ...`: what a lean service binary
 /// (`egoslam-SERVICE ...`) parses, so that it takes every flag and configuration key the
 /// multi-call binary's subcommand does.
-pub fn service_argv(service: &str) -> Vec<OsString> {
+fn service_argv(service: &str) -> Vec<OsString> {
     let mut args = std::env::args_os();
     let mut argv: Vec<OsString> = args.next().into_iter().collect();
     let rest: Vec<OsString> = args.collect();

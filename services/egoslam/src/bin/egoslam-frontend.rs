@@ -3,5 +3,5 @@
 //! time. `egoslam run` starts it when it lies next to `egoslam` (supervision/supervisor.rs).
 
 fn main() -> std::process::ExitCode {
-    egoslam::main_with(egoslam::service_argv("frontend"), egoslam::run_frontend)
+    egoslam::main_service("frontend", egoslam::run_frontend)
 }

@@ -3,5 +3,5 @@
 //! time. `egoslam run` starts it when it lies next to `egoslam` (supervision/supervisor.rs).
 
 fn main() -> std::process::ExitCode {
-    egoslam::main_with(egoslam::service_argv("merger"), egoslam::run_merger)
+    egoslam::main_service("merger", egoslam::run_merger)
 }
