@@ -176,11 +176,7 @@ fn memory_backed_bytes(root: u32) -> u64 {
     let Some(dir) = egoslam_durability::memory_backed_dir() else {
         return 0;
     };
-    let prefix = egoslam_durability::memory_backed_name(&format!("run{root}"), "");
-    let run = |name: &str| {
-        name.strip_prefix(&prefix[..prefix.len() - 1])
-            .is_some_and(|rest| rest.starts_with(['-', 'r']))
-    };
+    let run = |name: &str| egoslam_durability::memory_backed_run(name) == Some(root);
     std::fs::read_dir(dir).map_or(0, |entries| {
         entries
             .flatten()

@@ -38,6 +38,18 @@ pub fn memory_backed_name(namespace: &str, file: &str) -> String {
     format!("egoslam-{namespace}-{file}")
 }
 
+/// The launcher process id of the `egoslam run` whose memory-backed file is named `name`
+/// (its bus namespace is `run<pid>`, or `run<pid>r<n>` for a round started again); `None`
+/// for any other file.
+pub fn memory_backed_run(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix(memory_backed_name("run", "").trim_end_matches('-'))?;
+    let digits = rest.find(|c: char| !c.is_ascii_digit())?;
+    match &rest[digits..] {
+        tail if tail.starts_with('-') || tail.starts_with('r') => rest[..digits].parse().ok(),
+        _ => None,
+    }
+}
+
 /// Where the frontend of bus namespace `namespace` logs its keyframes: in memory-backed
 /// storage, since the log is for a killed solver alone (a power cut ends the stream
 /// anyway) and holds every keyframe once, ~5 GB per hour of a walk that the flash would
@@ -46,6 +58,27 @@ pub fn keyframe_log_path(out: &Path, namespace: &str) -> PathBuf {
     match memory_backed_dir() {
         Some(dir) => dir.join(memory_backed_name(namespace, KEYFRAME_LOG)),
         None => state_dir(out).join(KEYFRAME_LOG),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_is_known_by_its_launcher_in_every_round() {
+        assert_eq!(
+            memory_backed_run("egoslam-run4242-keyframes.log"),
+            Some(4242)
+        );
+        assert_eq!(
+            memory_backed_run("egoslam-run4242r1-frontend.resume"),
+            Some(4242)
+        );
+        assert_eq!(memory_backed_run("egoslam-default-keyframes.log"), None);
+        assert_eq!(memory_backed_run("egoslam-run-keyframes.log"), None);
+        assert_eq!(memory_backed_run("egoslam-run42x-keyframes.log"), None);
+        assert_eq!(memory_backed_run("iox2_something"), None);
     }
 }
 

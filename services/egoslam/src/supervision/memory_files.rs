@@ -4,7 +4,7 @@
 //! state stays for a look after the run (one write of a log compacted to ~16 MiB, against
 //! ~5 GB per hour of video it would have written there during the run).
 
-use egoslam_durability::{keyframe_log_path, memory_backed_dir, memory_backed_name, KEYFRAME_LOG};
+use egoslam_durability::{keyframe_log_path, memory_backed_dir, memory_backed_run, KEYFRAME_LOG};
 use std::path::{Path, PathBuf};
 
 /// The memory-backed files of one round's bus namespace; dropped, the keyframe log moves
@@ -50,7 +50,7 @@ impl RunMemoryFiles {
         };
         for entry in entries.flatten() {
             let name = entry.file_name();
-            let Some(pid) = name.to_str().and_then(launcher_pid) else {
+            let Some(pid) = name.to_str().and_then(memory_backed_run) else {
                 continue;
             };
             if !Path::new(&format!("/proc/{pid}")).exists() {
@@ -59,14 +59,6 @@ impl RunMemoryFiles {
             }
         }
     }
-}
-
-/// The launcher's process id in a memory-backed file name of one of its runs'
-/// (`egoslam-run<pid>-...` or, for a round started again, `egoslam-run<pid>r<n>-...`).
-fn launcher_pid(name: &str) -> Option<u32> {
-    let rest = name.strip_prefix(memory_backed_name("run", "").trim_end_matches('-'))?;
-    let digits = rest.find(|c: char| !c.is_ascii_digit())?;
-    rest[..digits].parse().ok()
 }
 
 impl Drop for RunMemoryFiles {
@@ -80,22 +72,5 @@ impl Drop for RunMemoryFiles {
             }
         }
         self.discard();
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_run_is_known_by_its_launcher_in_every_round() {
-        assert_eq!(launcher_pid("egoslam-run4242-keyframes.log"), Some(4242));
-        assert_eq!(
-            launcher_pid("egoslam-run4242r1-frontend.resume"),
-            Some(4242)
-        );
-        assert_eq!(launcher_pid("egoslam-default-keyframes.log"), None);
-        assert_eq!(launcher_pid("egoslam-run-keyframes.log"), None);
-        assert_eq!(launcher_pid("iox2_something"), None);
     }
 }
