@@ -6,6 +6,7 @@
 //! ([`bundle_adjustment`]). One estimator per module, each with an options struct.
 
 pub mod bundle_adjustment;
+pub mod detached_keyframes;
 pub mod essential_decomposition;
 pub mod essential_ransac;
 pub mod essential_refinement;

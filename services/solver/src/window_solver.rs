@@ -3,6 +3,7 @@
 //! triangulation -> bundle adjustment. Pure: keyframe tracks in, poses and points out.
 
 use crate::bundle_adjustment::{bundle_adjust, BundleAdjustmentOptions};
+use crate::detached_keyframes::{restore_detached_keyframes, DetachedKeyframeOptions};
 use crate::retriangulation::{
     retriangulate_and_adjust, tracks_of, triangulate_tracks, RetriangulationOptions, Structure,
     TrackObservations,
@@ -70,6 +71,9 @@ pub struct WindowSolverOptions {
     /// when bundle adjustment turned them away, their rotations from the averaging
     /// (unobserved_keyframes.rs).
     pub unobserved_keyframes: UnobservedKeyframeOptions,
+    /// A group of keyframes bundle adjustment turned away with points only they see gets
+    /// its rotations from the averaging (detached_keyframes.rs).
+    pub detached_keyframes: DetachedKeyframeOptions,
 }
 
 impl Default for WindowSolverOptions {
@@ -89,6 +93,7 @@ impl Default for WindowSolverOptions {
             min_translation_edge_fraction: 0.1,
             min_piece_fraction: 0.5,
             unobserved_keyframes: UnobservedKeyframeOptions::default(),
+            detached_keyframes: DetachedKeyframeOptions::default(),
         }
     }
 }
@@ -514,15 +519,37 @@ fn solve_connected(
     for &n in &adjusted.outliers {
         outlier[n] = true;
     }
+    // Inlier observations per keyframe, for the unobserved keyframes' poses.
+    let mut seen = adjusted.inliers_per_camera(&observations, n);
+    let mut adjusted_poses = adjusted.poses;
+    let detached = restore_detached_keyframes(
+        &mut adjusted_poses,
+        rot,
+        &observations,
+        &outlier,
+        &options.detached_keyframes,
+    );
+    if !detached.is_empty() {
+        tracing::debug!(
+            ?detached,
+            "keyframes turned away with points only they see: rotations from the averaging"
+        );
+    }
+    // A detached keyframe's points were placed for its turned pose: its observations leave
+    // the solution, and its centre is placed from the motion as an unobserved one's.
+    for &k in &detached {
+        seen[k] = 0;
+    }
     let mut counts = vec![0u32; points.len()];
     let mut kept = Vec::with_capacity(observations.len());
-    for (o, _) in observations.iter().zip(&outlier).filter(|(_, out)| !**out) {
+    for (o, _) in observations
+        .iter()
+        .zip(&outlier)
+        .filter(|(o, out)| !**out && detached.binary_search(&o.camera).is_err())
+    {
         counts[o.point] += 1;
         kept.push((o.camera, points[o.point].0, o.pixel));
     }
-    // Inlier observations per keyframe, for the unobserved keyframes' poses.
-    let seen = adjusted.inliers_per_camera(&observations, n);
-    let mut adjusted_poses = adjusted.poses;
     let timestamps: Vec<f64> = keyframes.iter().map(|k| k.timestamp).collect();
     let restored = restore_unobserved_rotations(
         &mut adjusted_poses,
