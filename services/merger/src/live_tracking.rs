@@ -314,7 +314,12 @@ impl LiveTracker {
                 // earlier one: the walk needs only the frame's time.
                 let turned = self.turned(&camera, timestamp, &rays_now);
                 let now = turned.map_or(prior, |(pose, _)| pose);
-                match (self.walked(&camera, &now, &rays_now), turned) {
+                // A walk that could not be told from drift gives way to a turn in place; it
+                // still gives the frame its turn where no rotation alone fits the rays.
+                let walk = self
+                    .walked(&camera, &now, &rays_now)
+                    .filter(|w| w.moved || turned.is_none());
+                match (walk, turned) {
                     (Some(walked), _) => {
                         // Moving on at the pace: the velocity from the frame it was measured from.
                         self.local_points.extend(walked.points);
@@ -455,6 +460,7 @@ impl LiveTracker {
             min_inliers: o.rotation_min_inliers,
             min_inlier_share: o.rotation_min_inlier_share,
             max_triangulation_error_px: o.max_triangulation_error_px,
+            min_track_share: o.walk_min_track_share,
         };
         let min_parallax = o.min_walk_parallax_px / camera.fx;
         let (anchor, anchor_rays) = self.recent.iter().rev().find(|(_, rays)| {

@@ -49,6 +49,15 @@ pub struct LiveTrackerOptions {
     /// not walked on).
     pub walk_anchor_s: f64,
     pub min_walk_parallax_px: f64,
+    /// The frame is moved on only when that posed frame shares at least this share of its
+    /// tracks (default 0.5). A walking head shows its parallax against a frame a fraction of
+    /// a second back, while most tracks still live (the rendered walks: 580-840 of ~900
+    /// shared, 0.1 s back); in a turn in place the search for parallax goes back 0.3-0.5 s,
+    /// to a frame sharing only the 50-140 tracks that lived through the turn, whose drift
+    /// (with motion blur) passes for 3 px of parallax, and each such frame walked the held
+    /// position on by the pace. Such a frame is posed by the turn in place instead, or by
+    /// the relative pose's turn alone where no rotation fits its rays.
+    pub walk_min_track_share: f64,
     /// How fast a head may have turned since the last posed frame, degrees per second: the
     /// PnP pose may be this much further from the prior per second of the gap beyond
     /// 50 ms (default 300: quick glances peak there). After frames the tracker could not
@@ -90,6 +99,7 @@ impl Default for LiveTrackerOptions {
             history_s: 3.0,
             walk_anchor_s: 1.0,
             min_walk_parallax_px: 3.0,
+            walk_min_track_share: 0.5,
             rotation_threshold_px: 5.0,
             rotation_min_inliers: 20,
             rotation_min_inlier_share: 0.5,

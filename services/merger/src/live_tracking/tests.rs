@@ -448,3 +448,57 @@ fn the_local_adjustment_holds_a_walk_on_the_trackers_own_points() {
         "adjusted {adjusted_rms} / {adjusted_worst} m against {plain_rms} / {plain_worst} m"
     );
 }
+
+/// Turning in place with the map's pace known and no map point in view, while most tracks
+/// end and start again every 5 frames; the 80 that live through the turn are observed from
+/// a camera drifting sideways at 1.5 m/s, as drifting tracks look like parallax. Returns
+/// each frame's state and position error.
+fn turn_with_surviving_tracks_drifting(options: LiveTrackerOptions) -> Vec<(TrackingState, f64)> {
+    let points = scene();
+    let observe_turn = |frame: u32| {
+        let truth = turning_in_place(frame);
+        let ghost = StampedPose {
+            position: Vector3::new(0.05 * f64::from(frame), 0.0, 0.0),
+            ..truth
+        };
+        let generation = u64::from(frame / 5);
+        let survivors = observe(&points, &ghost)
+            .into_iter()
+            .filter(|(id, _)| id % 5 == 0);
+        let renewed = observe(&points, &truth)
+            .into_iter()
+            .filter(|(id, _)| id % 5 != 0)
+            .map(|(id, px)| (id + 1000 * (generation + 1), px));
+        (truth, survivors.chain(renewed).collect::<Vec<_>>())
+    };
+    let mut tracker = LiveTracker::new(options);
+    let (first, tracks) = observe_turn(0);
+    tracker.track(first.timestamp, &tracks);
+    tracker.set_map(MapView {
+        pace: Some(1.0),
+        ..map_of(&points, 0..0, first)
+    });
+    (1..=30)
+        .map(|frame| {
+            let (truth, tracks) = observe_turn(frame);
+            let live = tracker.track(truth.timestamp, &tracks).expect("map");
+            (live.state, error(&live.pose, &truth).0)
+        })
+        .collect()
+}
+
+#[test]
+fn a_turn_in_place_is_not_walked_on_by_the_drift_of_the_tracks_that_lived_through_it() {
+    let held = turn_with_surviving_tracks_drifting(LiveTrackerOptions::default());
+    assert!(
+        held.iter()
+            .all(|(s, e)| *s == TrackingState::Rotation && *e < 1e-6),
+        "{held:?}"
+    );
+    // Walking on from any frame sharing 20 tracks, the drift moves the position on.
+    let walked = turn_with_surviving_tracks_drifting(LiveTrackerOptions {
+        walk_min_track_share: 0.0,
+        ..LiveTrackerOptions::default()
+    });
+    assert!(walked.iter().any(|(_, e)| *e > 0.1), "{walked:?}");
+}

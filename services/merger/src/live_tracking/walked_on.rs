@@ -33,6 +33,11 @@ pub(super) struct Walked {
     pub pose: StampedPose,
     pub points: Vec<(u64, Vector3<f64>)>,
     pub inliers: usize,
+    /// False when the anchor shares too few of the frame's tracks to tell a walk from the
+    /// drift of the tracks that lived through a turn ([`WalkCheck::min_track_share`]): the
+    /// pose then keeps the anchor's position and only the relative pose's turn, and no
+    /// track is triangulated.
+    pub moved: bool,
 }
 
 /// When the relative pose is trusted.
@@ -41,6 +46,8 @@ pub(super) struct WalkCheck {
     pub min_inlier_share: f64,
     /// Largest reprojection error of a triangulated track in the frame, pixels.
     pub max_triangulation_error_px: f64,
+    /// Least share of the frame's tracks the anchor must share for the frame to be moved.
+    pub min_track_share: f64,
 }
 
 /// The median angle by which the rays of the tracks `anchor` and `now` share miss the
@@ -86,6 +93,7 @@ pub(super) fn walked_on(
     if shared.len() < check.min_inliers {
         return None;
     }
+    let moved = shared.len() as f64 >= check.min_track_share * now_rays.len() as f64;
     let normalised = |r: &Vector3<f64>| (r.x / r.z, r.y / r.z);
     let (before, after): (Vec<_>, Vec<_>) = shared
         .iter()
@@ -109,7 +117,8 @@ pub(super) fn walked_on(
     // x_now = R x_anchor + t in the cameras' frames: the world turn of `now` and its centre
     // moved by -R_now t, `pace * elapsed` long.
     let rotation = anchor.rotation * UnitQuaternion::from_rotation_matrix(&edge.rotation.inverse());
-    let centre = anchor.position - (rotation * edge.translation) * (pace * elapsed);
+    let length = if moved { pace * elapsed } else { 0.0 };
+    let centre = anchor.position - (rotation * edge.translation) * length;
     let pose = StampedPose {
         timestamp: now.timestamp,
         position: centre,
@@ -118,6 +127,7 @@ pub(super) fn walked_on(
     let r_cw = rotation.inverse();
     let points = shared
         .iter()
+        .filter(|_| moved)
         .filter_map(|(t, a, b)| {
             let first = Sighting {
                 centre: anchor.position,
@@ -134,5 +144,6 @@ pub(super) fn walked_on(
         pose,
         points,
         inliers: edge.inliers,
+        moved,
     })
 }
