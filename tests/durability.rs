@@ -197,12 +197,18 @@ fn a_merger_behind_takes_the_windows_it_could_not_hold_from_the_journal() {
     wait_success(run_fixture(undisturbed.path(), None));
     let expected = keyframes(undisturbed.path());
 
-    // A merger that holds one window in memory, stopped for a while after its first
-    // window: the solver goes on, and the windows it sent meanwhile wait on the bus.
+    // A merger that holds one window in memory, stopped after its first window until the
+    // solver has solved the rest of the clip (however long a loaded machine takes for it):
+    // the windows the solver sent meanwhile wait on the bus.
     let behind = tempfile::tempdir().expect("tempdir");
     let run = run_fixture_until_checkpoint(behind.path(), ("EGOSLAM_MERGER_BACKLOG_WINDOWS", "1"));
     signal("merger", behind.path(), "-STOP");
-    std::thread::sleep(Duration::from_millis(1500));
+    let stopped = Instant::now();
+    while service_pid("solver", behind.path()).is_some()
+        && stopped.elapsed() < Duration::from_secs(30)
+    {
+        std::thread::sleep(Duration::from_millis(50));
+    }
     signal("merger", behind.path(), "-CONT");
     wait_success(run);
     let r = report(behind.path());

@@ -23,11 +23,16 @@ pub struct Channel {
     pub restart_grace_s: u64,
 }
 
-/// Decoded grey frames, replay -> frontend. Buffer of 4 frames: enough to absorb decode
-/// jitter, small enough that a live camera is never more than 4 frames behind.
+/// Decoded grey frames, replay -> frontend. Buffer of 16 frames (0.53 s at 30 fps): the
+/// frontend stalls for a moment when it decides the rolling-shutter readout and releases
+/// the keyframes it held for it (~150 ms, ~430 ms while something else loads both cores);
+/// frames a live camera drops there leave a gap in the tracks, and a gap in a turn in
+/// place splits the map (docs/solver.md). The frontend runs at several times real time,
+/// so the buffer is empty outside such a stall, and the frames a stall queued are worked
+/// off within a few frame intervals.
 pub const FRAMES: Channel = Channel {
     name: "frames",
-    buffer: 4,
+    buffer: 16,
     initial_bytes: 640 * 480,
     // The replay (or camera) is not restartable: a consumer fails as soon as it is gone.
     restart_grace_s: 0,

@@ -414,7 +414,10 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
         stats.frames += 1;
         let mut attempt_over = false;
         if let Some(online) = &mut online_readout {
-            if online_readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)? {
+            let decided = stats.time("readout_estimate", || {
+                online_readout::observe_online(online, &mut tracker, meta.timestamp, &args.out)
+            })?;
+            if decided {
                 online_readout = None;
                 attempt_over = true;
             } else {
@@ -427,10 +430,12 @@ pub fn run(args: FrontendServiceOptions) -> anyhow::Result<()> {
             let readout_s = tracker.rolling_shutter_s();
             correct_this_keyframe = readout_s > 0.0;
             let count = held.len();
+            let started = Instant::now();
             for (k, msg) in held.release(&tracker, readout_s, &mut skipped) {
                 let sender = (&mut keyframe_log, &mut keyframes);
                 publish(&mut stats, sender, &msg, &tracker, &state_path, &k)?;
             }
+            stats.add_time("release_held", started.elapsed().as_secs_f64() * 1e3);
             tracing::info!(
                 keyframes = count,
                 readout_ms = readout_s * 1e3,
