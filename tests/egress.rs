@@ -271,26 +271,29 @@ fn live_poses_come_first(pose_messages: &[pb::Pose], report: &serde_json::Value)
         .iter()
         .filter(|p| round_first(p))
         .all(|p| live.contains(&p.tracking)));
-    // On this clip (fast rotation, tracks living a fraction of a second) the live tracker
-    // localizes about half the frames on the map (64-68 of 120) and follows most others by
-    // rotation; fewer than a quarter would mean the map no longer reaches it.
-    let tracked = first
+    // This clip is a head turning in place with tracks living a fraction of a second, all
+    // of it before the first map (below): the live tracker follows its frames from their
+    // tracks, by rotation or by PnP on its own points (measured 118 of 120: 20 by PnP, 98
+    // by rotation); more than a quarter predicted or lost would mean it lost the clip.
+    let followed = first
         .values()
-        .filter(|p| p.tracking == pb::TrackingState::Tracking as i32)
+        .filter(|p| {
+            p.tracking == pb::TrackingState::Tracking as i32
+                || p.tracking == pb::TrackingState::Rotation as i32
+        })
         .count();
     assert!(
-        tracked * 4 >= first.len(),
-        "{tracked} of {} frames tracked",
+        followed * 4 >= first.len() * 3,
+        "{followed} of {} frames followed from their tracks",
         first.len()
     );
     let hops = &report["latency_ms"];
     assert_eq!(hops["live_published"]["frames"].as_u64(), Some(frames));
-    // The orientation is what the live poses give on this clip: measured 2.6 deg (refined:
-    // 1.3 deg; ignoring the rotation: 35 deg; with frames 5-16 dropped by a loaded
-    // machine, 5.1 deg). Their positions (3.5 cm) are barely better than a constant
+    // The orientation is what the live poses give on this clip: measured 1.8 deg (refined:
+    // 1.3 deg; ignoring the rotation: 35 deg; with frames dropped by a loaded machine,
+    // up to 5.1 deg). Their positions (2.9 cm) are barely better than a constant
     // position (3.9 cm): the clip's keyframes are held for its readout to its end, so its
-    // live poses come before any map, on the tracker's own points (docs/merger.md, "Live
-    // poses").
+    // live poses come before any map (docs/merger.md, "Live poses").
     let orientation = report["accuracy"]["live"]["orientation_rmse_deg"]
         .as_f64()
         .expect("orientation");
