@@ -314,12 +314,10 @@ impl LiveTracker {
                 // earlier one: the walk needs only the frame's time.
                 let turned = self.turned(&camera, timestamp, &rays_now);
                 let now = turned.map_or(prior, |(pose, _)| pose);
-                // A walk that could not be told from drift gives way to a turn in place; it
-                // still gives the frame its turn where no rotation alone fits the rays.
-                let walk = self
-                    .walked(&camera, &now, &rays_now)
-                    .filter(|w| w.moved || turned.is_none());
-                match (walk, turned) {
+                match (
+                    self.walked(&camera, &now, &rays_now, turned.is_some()),
+                    turned,
+                ) {
                     (Some(walked), _) => {
                         // Moving on at the pace: the velocity from the frame it was measured from.
                         self.local_points.extend(walked.points);
@@ -447,12 +445,13 @@ impl LiveTracker {
     /// [`walked_on::walked_on`] from the newest recent posed frame whose shared tracks'
     /// rays differ by the walk's parallax (the oldest such frame would take a stop before
     /// the walk for walking), when the map has a pace. Of `now` (the frame's turned pose,
-    /// or its prior) only the time is used.
+    /// or its prior) only the time is used; `turned`: a rotation alone fits its rays.
     fn walked(
         &self,
         camera: &PinholeRadtan,
         now: &StampedPose,
         rays_now: &FxHashMap<u64, Vector3<f64>>,
+        turned: bool,
     ) -> Option<walked_on::Walked> {
         let pace = self.map.pace?;
         let o = &self.options;
@@ -467,7 +466,14 @@ impl LiveTracker {
             walked_on::rotation_residual(rays, rays_now, o.rotation_min_inliers)
                 .is_some_and(|p| p >= min_parallax)
         })?;
-        walked_on::walked_on(camera, (anchor, anchor_rays), (now, rays_now), pace, &check)
+        walked_on::walked_on(
+            camera,
+            (anchor, anchor_rays),
+            (now, rays_now),
+            pace,
+            &check,
+            turned,
+        )
     }
 
     /// Constant velocity from the last two tracked poses; the last tracked pose when there

@@ -33,11 +33,6 @@ pub(super) struct Walked {
     pub pose: StampedPose,
     pub points: Vec<(u64, Vector3<f64>)>,
     pub inliers: usize,
-    /// False when the anchor shares too few of the frame's tracks to tell a walk from the
-    /// drift of the tracks that lived through a turn ([`WalkCheck::min_track_share`]): the
-    /// pose then keeps the anchor's position and only the relative pose's turn, and no
-    /// track is triangulated.
-    pub moved: bool,
 }
 
 /// When the relative pose is trusted.
@@ -46,7 +41,10 @@ pub(super) struct WalkCheck {
     pub min_inlier_share: f64,
     /// Largest reprojection error of a triangulated track in the frame, pixels.
     pub max_triangulation_error_px: f64,
-    /// Least share of the frame's tracks the anchor must share for the frame to be moved.
+    /// Least share of the frame's tracks the anchor must share for the frame to be moved:
+    /// with fewer, a walk cannot be told from the drift of the tracks that lived through a
+    /// turn, and the pose keeps the anchor's position with the relative pose's turn alone
+    /// (no track triangulated).
     pub min_track_share: f64,
 }
 
@@ -72,13 +70,15 @@ pub(super) fn rotation_residual(
 
 /// `now` (orientation fitted, position held) moved on from `anchor` by `pace` map units per
 /// second along the direction its shared tracks give (module doc); `None` when the relative
-/// pose is not clear.
+/// pose is not clear, or when `turned` (a rotation alone fits the frame's rays) and the
+/// anchor shares too few tracks to tell a walk from drift (the turn poses the frame then).
 pub(super) fn walked_on(
     camera: &PinholeRadtan,
     (anchor, anchor_rays): PosedRays,
     (now, now_rays): PosedRays,
     pace: f64,
     check: &WalkCheck,
+    turned: bool,
 ) -> Option<Walked> {
     let elapsed = now.timestamp - anchor.timestamp;
     if !(pace > 0.0 && elapsed > 0.0) {
@@ -94,6 +94,9 @@ pub(super) fn walked_on(
         return None;
     }
     let moved = shared.len() as f64 >= check.min_track_share * now_rays.len() as f64;
+    if !moved && turned {
+        return None;
+    }
     let normalised = |r: &Vector3<f64>| (r.x / r.z, r.y / r.z);
     let (before, after): (Vec<_>, Vec<_>) = shared
         .iter()
@@ -144,6 +147,5 @@ pub(super) fn walked_on(
         pose,
         points,
         inliers: edge.inliers,
-        moved,
     })
 }
