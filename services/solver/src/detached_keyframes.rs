@@ -86,19 +86,16 @@ pub fn restore_detached_keyframes(
             .filter(|h| angle(&(g.inverse() * *h)) < 0.5 * limit)
             .count()
     };
-    let Some((shared, support)) = gauges.iter().map(|g| (g, agreeing(g))).fold(
-        None,
-        |best: Option<(&Rotation3<f64>, usize)>, (g, c)| match best {
-            Some((_, b)) if b >= c => best,
-            _ => Some((g, c)),
-        },
-    ) else {
+    let Some((support, std::cmp::Reverse(first))) = (0..n)
+        .map(|k| (agreeing(&gauges[k]), std::cmp::Reverse(k)))
+        .max()
+    else {
         return Vec::new();
     };
     if 2 * support < n {
         return Vec::new();
     }
-    let shared = *shared;
+    let shared = gauges[first];
     let group: Vec<usize> = (0..n)
         .filter(|&k| angle(&(shared.inverse() * gauges[k])) > limit)
         .collect();
