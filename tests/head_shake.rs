@@ -13,6 +13,7 @@ mod common;
 
 use common::*;
 use nalgebra::{UnitQuaternion, Vector3};
+use std::ffi::OsString;
 use std::fmt::Write;
 use std::path::Path;
 
@@ -54,21 +55,15 @@ fn a_fast_head_shake_keeps_its_orientation() {
     let dir = tempfile::tempdir().expect("tempdir");
     let trajectory = dir.path().join("shake.txt");
     write_shake(&trajectory);
-    let seq = dir.path().join("seq");
-    let status = egoslam()
-        .args(["synth", "--path", "replay", "--trajectory"])
-        .arg(&trajectory)
-        .args(["--frames", "300", "--blur-samples", "9", "--out"])
-        .arg(&seq)
-        .status()
-        .expect("synth");
-    assert!(status.success());
-    let report = run_report(&seq, &dir.path().join("out"));
-    assert_eq!(report["posed_frames"], 300);
-    assert_eq!(report["segments"], 1);
-    let orientation = report["accuracy"]["trajectory"]["orientation_rmse_deg"]
-        .as_f64()
-        .expect("orientation error");
+    let synth: Vec<OsString> = vec![
+        "--path".into(),
+        "replay".into(),
+        "--trajectory".into(),
+        trajectory.into(),
+        "--blur-samples".into(),
+        "9".into(),
+    ];
+    let orientation = orientation_of_render(dir.path(), &synth, 300);
     assert!(orientation < 3.5, "orientation RMSE {orientation} deg");
 }
 
@@ -78,18 +73,27 @@ fn a_fast_head_shake_keeps_its_orientation() {
 #[test]
 fn a_walk_with_a_head_shake_keeps_its_orientation() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let seq = dir.path().join("seq");
+    let orientation = orientation_of_render(dir.path(), &["--path".into(), "shake".into()], 330);
+    assert!(orientation < 2.0, "orientation RMSE {orientation} deg");
+}
+
+/// Renders `frames` frames with `egoslam synth` and `synth`'s arguments into `dir`, runs
+/// them, checks that every frame is posed in one segment and returns the trajectory's
+/// orientation RMSE, degrees.
+fn orientation_of_render(dir: &Path, synth: &[OsString], frames: u32) -> f64 {
+    let seq = dir.join("seq");
     let status = egoslam()
-        .args(["synth", "--path", "shake", "--frames", "330", "--out"])
+        .arg("synth")
+        .args(synth)
+        .args(["--frames", &frames.to_string(), "--out"])
         .arg(&seq)
         .status()
         .expect("synth");
     assert!(status.success());
-    let report = run_report(&seq, &dir.path().join("out"));
-    assert_eq!(report["posed_frames"], 330);
+    let report = run_report(&seq, &dir.join("out"));
+    assert_eq!(report["posed_frames"], frames);
     assert_eq!(report["segments"], 1);
-    let orientation = report["accuracy"]["trajectory"]["orientation_rmse_deg"]
+    report["accuracy"]["trajectory"]["orientation_rmse_deg"]
         .as_f64()
-        .expect("orientation error");
-    assert!(orientation < 2.0, "orientation RMSE {orientation} deg");
+        .expect("orientation error")
 }
