@@ -25,9 +25,11 @@ pub struct Channel {
 
 /// Decoded grey frames, replay -> frontend. Buffer of 16 frames (0.53 s at 30 fps): the
 /// frontend stalls for a moment when it decides the rolling-shutter readout and releases
-/// the keyframes it held for it (~150 ms, ~430 ms while something else loads both cores);
-/// frames a live camera drops there leave a gap in the tracks, and a gap in a turn in
-/// place splits the map (docs/solver.md). The frontend runs at several times real time,
+/// the keyframes it held for it (report.json `frontend.readout_estimate` and
+/// `frontend.release_held`: ~190 ms together on a loaded machine; with both cores busy
+/// elsewhere a 4-frame buffer dropped 13 frames in a row there); frames a live camera
+/// drops leave a gap in the tracks, and a gap in a turn in place splits the map
+/// (docs/solver.md). The frontend runs at several times real time,
 /// so the buffer is empty outside such a stall, and the frames a stall queued are worked
 /// off within a few frame intervals.
 pub const FRAMES: Channel = Channel {
