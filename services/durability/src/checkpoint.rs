@@ -93,6 +93,14 @@ fn to_message(state: &MergerState) -> internal::MergerCheckpoint {
                 segment_id: segment,
                 keyframe_id: keyframe,
             }),
+        mended_steps: parts
+            .mended_steps
+            .iter()
+            .map(|(segment, keyframe)| internal::MendedStep {
+                segment_id: *segment,
+                keyframe_id: *keyframe,
+            })
+            .collect(),
         frames: state
             .frames
             .frames
@@ -217,6 +225,11 @@ fn from_message(m: internal::MergerCheckpoint) -> Result<MergerState, String> {
             .loop_pinned
             .as_ref()
             .map(|p| (p.segment_id, p.keyframe_id)),
+        mended_steps: m
+            .mended_steps
+            .iter()
+            .map(|p| (p.segment_id, p.keyframe_id))
+            .collect(),
     };
     let retired = m.retired.unwrap_or_default();
     Ok(MergerState {
@@ -342,6 +355,7 @@ mod tests {
         });
         let mut parts = state.map.to_parts();
         parts.loop_pinned = Some((0, 3));
+        parts.mended_steps = vec![(0, 2)];
         parts.seen_again.insert((4, 3), Point2::new(12.5, 40.75));
         state.map = MapBuilder::from_parts(parts);
         state.frames.frames.insert(4, 0.4);

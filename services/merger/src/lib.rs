@@ -26,6 +26,7 @@ pub mod scene_depth;
 pub mod segment_linking;
 pub mod session;
 pub mod speed_continuity;
+pub mod turn_scale_step;
 pub mod window_alignment;
 
 pub use base_map::next_free_id;
@@ -52,3 +53,4 @@ pub use retriangulation::RetriangulationReport;
 pub use segment_linking::{
     find_link, KeyframeFeatureSource, LinkOptions, RelocalizationSources, SegmentLink,
 };
+pub use turn_scale_step::{MendedStep, TurnScaleStepOptions};

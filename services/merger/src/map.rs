@@ -121,6 +121,9 @@ pub struct MapParts {
     /// `(segment, keyframe)`: the newest keyframe a closed loop put onto the older map
     /// (loop_closure.rs); a later loop is spread only over the keyframes after it.
     pub loop_pinned: Option<(u32, u64)>,
+    /// `(segment, keyframe)`: the steps of the scale mended after a turn, each after the
+    /// keyframe (turn_scale_step.rs), mended again after each refinement.
+    pub mended_steps: Vec<(u32, u64)>,
 }
 
 /// The growing map: keyframe poses and points per segment.
@@ -146,6 +149,8 @@ pub struct MapBuilder {
     pub(crate) provisional: Option<ProvisionalScale>,
     /// See [`MapParts::loop_pinned`].
     pub(crate) loop_pinned: Option<(u32, u64)>,
+    /// See [`MapParts::mended_steps`].
+    pub(crate) mended_steps: Vec<(u32, u64)>,
 }
 
 /// What gave a chained window its scale, best evidence first (logged per window).
@@ -204,6 +209,7 @@ impl MapBuilder {
             segments: self.segments,
             provisional: self.provisional,
             loop_pinned: self.loop_pinned,
+            mended_steps: self.mended_steps.clone(),
         }
     }
 
@@ -219,6 +225,7 @@ impl MapBuilder {
             segments: parts.segments,
             provisional: parts.provisional,
             loop_pinned: parts.loop_pinned,
+            mended_steps: parts.mended_steps,
         }
     }
 

@@ -143,46 +143,60 @@ impl MapBuilder {
         // About the stretch's first keyframe: the step from the keyframe before it carries
         // the weak alignment's error, which a rescale about that keyframe would multiply
         // (21x on the 12,000-frame walk, throwing a 30-keyframe stretch metres away).
-        let pivot = self
-            .keyframes
-            .range(p.first_keyframe..)
-            .find(|(_, (s, _))| *s == p.segment)
-            .map(|(_, (_, pose))| pose.position)?;
-        let mut keyframes = 0;
-        for (_, (s, pose)) in self.keyframes.range_mut(p.first_keyframe..) {
-            if *s == p.segment {
-                pose.position = pivot + (pose.position - pivot) * scale;
-                keyframes += 1;
-            }
-        }
-        // Points only the stretch sees were triangulated in its scale; points older
-        // keyframes see too were in the map before it and keep their place.
-        let seen_after: HashSet<u64> = self
-            .observations
-            .range((p.first_keyframe, 0)..)
-            .map(|((_, track), _)| *track)
-            .collect();
-        let seen_before: HashSet<u64> = self
-            .observations
-            .range(..(p.first_keyframe, 0))
-            .map(|((_, track), _)| *track)
-            .filter(|track| seen_after.contains(track))
-            .collect();
-        let mut points = 0;
-        for track in seen_after.difference(&seen_before) {
-            if let Some((s, x)) = self.points.get_mut(track) {
-                if *s == p.segment {
-                    *x = pivot + (*x - pivot) * scale;
-                    points += 1;
-                }
-            }
-        }
+        let (keyframes, points) = self.scale_stretch(p.segment, p.first_keyframe, scale)?;
         Some(SettledScale {
             first_keyframe: p.first_keyframe,
             scale,
             keyframes,
             points,
         })
+    }
+}
+
+impl MapBuilder {
+    /// Scales the keyframes of `segment` from `first_keyframe` on about that keyframe's
+    /// position by `scale`, and the points only they see; points older keyframes see too
+    /// were in the map before the stretch and keep their place. Returns the keyframes and
+    /// points moved; `None` when the segment has no keyframe from `first_keyframe` on.
+    pub(crate) fn scale_stretch(
+        &mut self,
+        segment: u32,
+        first_keyframe: u64,
+        scale: f64,
+    ) -> Option<(usize, usize)> {
+        let pivot = self
+            .keyframes
+            .range(first_keyframe..)
+            .find(|(_, (s, _))| *s == segment)
+            .map(|(_, (_, pose))| pose.position)?;
+        let mut keyframes = 0;
+        for (_, (s, pose)) in self.keyframes.range_mut(first_keyframe..) {
+            if *s == segment {
+                pose.position = pivot + (pose.position - pivot) * scale;
+                keyframes += 1;
+            }
+        }
+        let seen_after: HashSet<u64> = self
+            .observations
+            .range((first_keyframe, 0)..)
+            .map(|((_, track), _)| *track)
+            .collect();
+        let seen_before: HashSet<u64> = self
+            .observations
+            .range(..(first_keyframe, 0))
+            .map(|((_, track), _)| *track)
+            .filter(|track| seen_after.contains(track))
+            .collect();
+        let mut points = 0;
+        for track in seen_after.difference(&seen_before) {
+            if let Some((s, x)) = self.points.get_mut(track) {
+                if *s == segment {
+                    *x = pivot + (*x - pivot) * scale;
+                    points += 1;
+                }
+            }
+        }
+        Some((keyframes, points))
     }
 }
 

@@ -19,7 +19,7 @@ pub mod state;
 pub mod tally;
 
 use crate::point_reassociation::ReassociationOptions;
-use crate::{KeyframeFeatureSource, WindowInput, WindowOutcome};
+use crate::{KeyframeFeatureSource, TurnScaleStepOptions, WindowInput, WindowOutcome};
 use background_refinement::BackgroundRefiner;
 use egoslam_geometry::PinholeRadtan;
 use egoslam_messages::internal::v1 as internal;
@@ -208,8 +208,24 @@ impl MergerSession {
         }
         // A refinement started earlier is folded in before this window when due (see
         // `BackgroundRefiner::fold`; at the end of the stream a running one is waited for).
-        self.refiner
+        let folded = self
+            .refiner
             .fold(&mut self.state.map, w.end_of_stream, &mut self.tally);
+        if folded {
+            for step in self
+                .state
+                .map
+                .mend_turn_scale_steps_again(&TurnScaleStepOptions::default())
+            {
+                tracing::info!(
+                    after_keyframe = step.after_keyframe,
+                    pace_ratio = step.pace_ratio,
+                    keyframes = step.keyframes,
+                    "a mended step of the scale mended again after the refinement"
+                );
+                self.tally.count("mended_turn_steps_again", 1);
+            }
+        }
         // Culling waits while a refinement runs, and a window may start the next one: here,
         // right after a fold, it gets its turn. Keyframes older than this window's first
         // are in no later window.
@@ -303,6 +319,24 @@ impl MergerSession {
                     self.tally.count("rescaled_stretches", 1);
                 }
             }
+        }
+        let refiner = &self.refiner;
+        let mended = self.tally.time("mend_turn_scale_step", || {
+            self.state
+                .map
+                .mend_turn_scale_step(&TurnScaleStepOptions::default(), |k| {
+                    !refiner.holds_keyframes_from(k)
+                })
+        });
+        if let Some(step) = mended {
+            tracing::info!(
+                after_keyframe = step.after_keyframe,
+                pace_ratio = step.pace_ratio,
+                keyframes = step.keyframes,
+                points = step.points,
+                "a step of the scale in a turn mended by the walking pace"
+            );
+            self.tally.count("mended_turn_steps", 1);
         }
         if let (Some(camera), Some(first)) = (window_camera(w), w.keyframe_ids.first()) {
             let map = &mut self.state.map;
