@@ -23,10 +23,13 @@ use egoslam_solver::bundle_adjustment::{
 };
 use egoslam_solver::triangulation::CameraPose;
 use egoslam_solver::unobserved_keyframes::{
-    place_unobserved_centres, restore_unobserved_rotations, UnobservedKeyframeOptions,
+    restore_unobserved_rotations, UnobservedKeyframeOptions,
 };
 use nalgebra::{UnitQuaternion, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
+use tail_centres::{median_observation_distance, place_tail_centres};
+
+mod tail_centres;
 
 /// Options of a refinement.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -175,60 +178,6 @@ impl RefinementJob {
         }
         Some(RefinementOutcome { job: self, result })
     }
-}
-
-/// A tail keyframe's refined centre is replaced when it departs from the placed one by
-/// more than this fraction of the median distance from the cameras to the points they see
-/// (0.1). The final stop of a rendered 900-frame walk had its keyframes 20-25 % of that
-/// off. Where the refined centres were the better, they departed less: by 0.5 % at the
-/// rendered fisheye walk's stop (placed, its ATE went 0.011 -> 0.018 m), and by up to 6 %
-/// on the fast head shake of tests/head_shake.rs, whose orientation went 2.0 -> 6.4 deg
-/// when those were placed at 5 %.
-const MAX_TAIL_DEPARTURE: f64 = 0.1;
-
-/// Places the centres of the keyframes after the job's last well-observed one from the
-/// motion before them, as a window's unobserved keyframes are placed
-/// (`egoslam_solver::unobserved_keyframes::place_unobserved_centres`), where the
-/// adjustment moved them away ([`MAX_TAIL_DEPARTURE`]); returns how many. Nothing holds
-/// such keyframes (the stop at a stream's end, whose windows are rotation-only, sees no
-/// point): on that walk two keyframes of the final stop went 0.3-0.6 m off, and the
-/// keyframes added while the refinement ran were carried by them 1 m off.
-fn place_tail_centres(
-    poses: &mut [CameraPose],
-    timestamps: &[f64],
-    inliers: &[usize],
-    depth: Option<f64>,
-    options: &UnobservedKeyframeOptions,
-) -> usize {
-    let (Some(last), Some(depth)) = (
-        inliers.iter().rposition(|&n| n >= options.min_observations),
-        depth,
-    ) else {
-        return 0;
-    };
-    let mut placed = poses.to_vec();
-    place_unobserved_centres(&mut placed, timestamps, inliers, options);
-    let mut count = 0;
-    for k in last + 1..poses.len() {
-        if (poses[k].centre - placed[k].centre).norm() > MAX_TAIL_DEPARTURE * depth {
-            poses[k].centre = placed[k].centre;
-            count += 1;
-        }
-    }
-    count
-}
-
-/// The median distance from the cameras to the points they observe.
-fn median_observation_distance(
-    poses: &[CameraPose],
-    points: &[Vector3<f64>],
-    observations: &[Observation],
-) -> Option<f64> {
-    let distances: Vec<f64> = observations
-        .iter()
-        .filter_map(|o| Some((points.get(o.point)? - poses.get(o.camera)?.centre).norm()))
-        .collect();
-    crate::median(distances)
 }
 
 impl MapBuilder {
