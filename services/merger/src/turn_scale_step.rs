@@ -16,9 +16,9 @@
 //! for such a jump; it is mended (the keyframes after it, and the points only they see,
 //! scaled about it) only where everything says it is the solve and not the wearer: the
 //! pace is steady on both sides (a walker's steps vary by a few per cent, a hand-held
-//! camera's by 30-50 %), few points link the two sides (the turn), and the jump is larger
-//! than the pace's wander but smaller than a break the loop closure or the pace join
-//! handle.
+//! camera's by 30-50 %), the head turns sharply there (where few points link the two
+//! sides), and the jump is larger than the pace's wander but smaller than a break the loop
+//! closure or the pace join handle.
 //!
 //! The map's background refinement (global bundle adjustment) can pull a mended step
 //! back: on that walk, whose whole-walk adjustment started from the truth settles at
@@ -95,6 +95,11 @@ pub struct MendedStep {
     pub points: usize,
 }
 
+/// Mended steps remembered for mending again, the newest (32: a background refinement
+/// adjusts the newest 1500 keyframes, a minute or two of walking, with a sharp corner every
+/// 10-25 s on the rendered walks; the state stays bounded on an all-day run).
+const MAX_REMEMBERED_STEPS: usize = 32;
+
 /// A keyframe step at walking pace: start time, end time, pace (map units per second).
 type Step = (f64, f64, f64);
 
@@ -109,17 +114,16 @@ impl MapBuilder {
         may_touch: impl Fn(u64) -> bool,
     ) -> Option<MendedStep> {
         let segment = self.current_segment?;
-        let newest = self
+        let (newest_id, newest) = self
             .keyframes
-            .values()
+            .iter()
             .rev()
-            .find(|(s, _)| *s == segment)?
-            .1
-            .timestamp;
+            .find(|(_, (s, _))| *s == segment)
+            .map(|(id, (_, p))| (*id, p.timestamp))?;
         // Two pace windows on each side of the newest candidate, which lies a pace window
         // and `settle_s` before the newest keyframe.
         let since = newest - 3.0 * options.pace_window_s - options.settle_s;
-        let keyframes = self.well_seen_keyframes(segment, since..=newest);
+        let keyframes = self.well_seen_keyframes(segment, newest_id, since..=newest);
         let steps = walking_steps(&keyframes, self.walking_floor(segment)?);
         let first = keyframes.first()?.1.timestamp;
         let latest = newest - options.pace_window_s - options.settle_s;
@@ -156,6 +160,9 @@ impl MapBuilder {
         }
         let (keyframes, points) = self.scale_stretch(segment, after_keyframe, 1.0 / ratio)?;
         self.mended_steps.push((segment, after_keyframe));
+        if self.mended_steps.len() > MAX_REMEMBERED_STEPS {
+            self.mended_steps.remove(0);
+        }
         Some(MendedStep {
             after_keyframe,
             pace_ratio: ratio,
@@ -171,6 +178,10 @@ impl MapBuilder {
         options: &TurnScaleStepOptions,
     ) -> Vec<MendedStep> {
         let mut mended = Vec::new();
+        // A step whose keyframe left the map (culled, or a map started again) is forgotten.
+        let keyframes = &self.keyframes;
+        self.mended_steps
+            .retain(|(segment, id)| keyframes.get(id).is_some_and(|(s, _)| s == segment));
         for (segment, after_keyframe) in self.mended_steps.clone() {
             let Some((_, pose)) = self.keyframes.get(&after_keyframe).copied() else {
                 continue;
@@ -179,8 +190,11 @@ impl MapBuilder {
                 continue;
             };
             let span = options.pace_window_s;
-            let keyframes =
-                self.well_seen_keyframes(segment, pose.timestamp - span..=pose.timestamp + span);
+            let keyframes = self.well_seen_keyframes(
+                segment,
+                after_keyframe,
+                pose.timestamp - span..=pose.timestamp + span,
+            );
             let steps = walking_steps(&keyframes, floor);
             let Some(ratio) = pace_ratio_at(&steps, pose.timestamp, options) else {
                 continue;
@@ -208,19 +222,29 @@ impl MapBuilder {
     fn well_seen_keyframes(
         &self,
         segment: u32,
+        anchor: u64,
         times: std::ops::RangeInclusive<f64>,
     ) -> Vec<(u64, StampedPose)> {
         let min_observations = SpeedContinuityOptions::default().min_observations;
+        // Keyframe ids follow the frames' time: the range is walked out from the anchor.
+        let well_seen = |(id, (s, p)): (&u64, &(u32, StampedPose))| {
+            (*s == segment && self.observed_points(*id) >= min_observations).then_some((*id, *p))
+        };
         let mut keyframes: Vec<(u64, StampedPose)> = self
             .keyframes
-            .iter()
+            .range(..=anchor)
             .rev()
-            .filter(|(_, (s, p))| *s == segment && p.timestamp <= *times.end())
             .take_while(|(_, (_, p))| p.timestamp >= *times.start())
-            .filter(|(id, _)| self.observed_points(**id) >= min_observations)
-            .map(|(id, (_, p))| (*id, *p))
+            .filter(|(_, (_, p))| p.timestamp <= *times.end())
+            .filter_map(well_seen)
             .collect();
         keyframes.reverse();
+        keyframes.extend(
+            self.keyframes
+                .range(anchor.saturating_add(1)..)
+                .take_while(|(_, (_, p))| p.timestamp <= *times.end())
+                .filter_map(well_seen),
+        );
         keyframes
     }
 
