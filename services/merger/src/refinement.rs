@@ -161,12 +161,12 @@ impl RefinementJob {
             &before,
             &UnobservedKeyframeOptions::default(),
         );
-        let depth = median_observation_distance(&result.poses, &result.points, &self.observations);
+        let points = &result.points;
         let placed = place_tail_centres(
             &mut result.poses,
             &self.timestamps,
             &inliers,
-            depth,
+            |poses| median_observation_distance(poses, points, &self.observations),
             &UnobservedKeyframeOptions::default(),
         );
         if restored + placed > 0 {

@@ -116,19 +116,13 @@ pub fn locate_second_break(
         .filter(|second| second.after_keyframe != first.after_keyframe)
 }
 
-/// The keyframe with the strongest jump of the map's pace in the direction `loop_scale`
-/// asks for, whatever its size (what [`locate_scale_break`] then holds to the loop's
-/// factor; also what a refused loop logs).
-pub fn strongest_pace_jump(
-    keyframes: &[(u64, StampedPose)],
-    loop_scale: f64,
-    options: &ScaleBreakOptions,
-) -> Option<ScaleBreak> {
-    if !(loop_scale.is_finite() && loop_scale > 0.0) || keyframes.len() < 2 * options.min_steps {
-        return None;
-    }
-    // Each step's pace (map units per second), stamped with its end time.
-    let steps: Vec<(f64, f64, f64)> = keyframes
+/// A step between consecutive keyframes: start time, end time, pace (map units per
+/// second).
+pub(crate) type PaceStep = (f64, f64, f64);
+
+/// The steps between consecutive `keyframes` (in time order, map poses) that take time.
+pub(crate) fn pace_steps(keyframes: &[(u64, StampedPose)]) -> Vec<PaceStep> {
+    keyframes
         .windows(2)
         .filter_map(|w| {
             let (a, b) = (&w[0].1, &w[1].1);
@@ -141,29 +135,51 @@ pub fn strongest_pace_jump(
                 )
             })
         })
+        .collect()
+}
+
+/// The paces of the `steps` ending in the `window_s` before `t`, and of those within the
+/// `window_s` after it.
+pub(crate) fn paces_around(steps: &[PaceStep], t: f64, window_s: f64) -> (Vec<f64>, Vec<f64>) {
+    let before = steps
+        .iter()
+        .filter(|s| s.1 <= t && s.1 > t - window_s)
+        .map(|s| s.2)
         .collect();
+    let after = steps
+        .iter()
+        .filter(|s| s.0 >= t && s.1 <= t + window_s)
+        .map(|s| s.2)
+        .collect();
+    (before, after)
+}
+
+/// The keyframe with the strongest jump of the map's pace in the direction `loop_scale`
+/// asks for, whatever its size (what [`locate_scale_break`] then holds to the loop's
+/// factor; also what a refused loop logs).
+pub fn strongest_pace_jump(
+    keyframes: &[(u64, StampedPose)],
+    loop_scale: f64,
+    options: &ScaleBreakOptions,
+) -> Option<ScaleBreak> {
+    if !(loop_scale.is_finite() && loop_scale > 0.0) || keyframes.len() < 2 * options.min_steps {
+        return None;
+    }
+    // Each step's pace (map units per second), stamped with its end time.
+    let steps = pace_steps(keyframes);
     // The typical pace of the steps that moved: a map that keeps mostly the keyframes of
     // turns in place (a long walk's culling leaves those) has more steps of no length than
     // of walking, and a typical pace of zero would let those in, whose ratio is 0 / 0.
     let paces: Vec<f64> = steps.iter().map(|s| s.2).filter(|p| *p > 0.0).collect();
     let typical = median(paces)?;
-    let moving = |s: &&(f64, f64, f64)| s.2 > 0.0 && s.2 >= options.min_pace_fraction * typical;
+    let moving: Vec<PaceStep> = steps
+        .into_iter()
+        .filter(|s| s.2 > 0.0 && s.2 >= options.min_pace_fraction * typical)
+        .collect();
     let wanted = -loop_scale.ln();
     let mut best: Option<(f64, ScaleBreak)> = None;
     for (id, pose) in keyframes {
-        let t = pose.timestamp;
-        let before: Vec<f64> = steps
-            .iter()
-            .filter(|s| s.1 <= t && s.1 > t - options.pace_window_s)
-            .filter(moving)
-            .map(|s| s.2)
-            .collect();
-        let after: Vec<f64> = steps
-            .iter()
-            .filter(|s| s.0 >= t && s.1 <= t + options.pace_window_s)
-            .filter(moving)
-            .map(|s| s.2)
-            .collect();
+        let (before, after) = paces_around(&moving, pose.timestamp, options.pace_window_s);
         if before.len() < options.min_steps || after.len() < options.min_steps {
             continue;
         }

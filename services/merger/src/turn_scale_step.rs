@@ -28,6 +28,7 @@
 //! still jumps there.
 
 use crate::map::MapBuilder;
+use crate::scale_break::{pace_steps, paces_around, PaceStep};
 use crate::speed_continuity::SpeedContinuityOptions;
 use egoslam_geometry::StampedPose;
 
@@ -99,9 +100,6 @@ pub struct MendedStep {
 /// adjusts the newest 1500 keyframes, a minute or two of walking, with a sharp corner every
 /// 10-25 s on the rendered walks; the state stays bounded on an all-day run).
 const MAX_REMEMBERED_STEPS: usize = 32;
-
-/// A keyframe step at walking pace: start time, end time, pace (map units per second).
-type Step = (f64, f64, f64);
 
 impl MapBuilder {
     /// Finds a pace jump inside the current segment's newest keyframes (see the module)
@@ -257,36 +255,17 @@ impl MapBuilder {
 }
 
 /// The steps between consecutive `keyframes` at `floor` per second or faster.
-fn walking_steps(keyframes: &[(u64, StampedPose)], floor: f64) -> Vec<Step> {
-    keyframes
-        .windows(2)
-        .filter_map(|w| {
-            let (a, b) = (&w[0].1, &w[1].1);
-            let dt = b.timestamp - a.timestamp;
-            let pace = (b.position - a.position).norm() / dt;
-            (dt > 0.0 && pace.is_finite() && pace >= floor).then_some((
-                a.timestamp,
-                b.timestamp,
-                pace,
-            ))
-        })
+fn walking_steps(keyframes: &[(u64, StampedPose)], floor: f64) -> Vec<PaceStep> {
+    pace_steps(keyframes)
+        .into_iter()
+        .filter(|s| s.2.is_finite() && s.2 >= floor)
         .collect()
 }
 
 /// The median pace of the steps in the pace window after `t` over that of the window
 /// before it; `None` unless both sides have enough steps and are steady.
-fn pace_ratio_at(steps: &[Step], t: f64, options: &TurnScaleStepOptions) -> Option<f64> {
-    let w = options.pace_window_s;
-    let before: Vec<f64> = steps
-        .iter()
-        .filter(|s| s.1 <= t && s.1 > t - w)
-        .map(|s| s.2)
-        .collect();
-    let after: Vec<f64> = steps
-        .iter()
-        .filter(|s| s.0 >= t && s.1 <= t + w)
-        .map(|s| s.2)
-        .collect();
+fn pace_ratio_at(steps: &[PaceStep], t: f64, options: &TurnScaleStepOptions) -> Option<f64> {
+    let (before, after) = paces_around(steps, t, options.pace_window_s);
     if before.len() < options.min_steps || after.len() < options.min_steps {
         return None;
     }
@@ -305,21 +284,16 @@ fn pace_ratio_at(steps: &[Step], t: f64, options: &TurnScaleStepOptions) -> Opti
 /// so the split is the one whose two sides' log paces deviate least from their medians.
 fn step_location(
     keyframes: &[(u64, StampedPose)],
-    steps: &[Step],
+    steps: &[PaceStep],
     found: usize,
     pace_window_s: f64,
 ) -> usize {
     let t = keyframes[found].1.timestamp;
-    let near: Vec<f64> = steps
+    let (times, near): (Vec<f64>, Vec<f64>) = steps
         .iter()
         .filter(|s| s.0 >= t - pace_window_s && s.1 <= t + pace_window_s)
-        .map(|s| s.2.ln())
-        .collect();
-    let times: Vec<f64> = steps
-        .iter()
-        .filter(|s| s.0 >= t - pace_window_s && s.1 <= t + pace_window_s)
-        .map(|s| s.1)
-        .collect();
+        .map(|s| (s.1, s.2.ln()))
+        .unzip();
     let deviation = |v: &[f64]| {
         crate::median(v.to_vec()).map_or(0.0, |m| v.iter().map(|x| (x - m).abs()).sum())
     };

@@ -20,18 +20,23 @@ const MAX_TAIL_DEPARTURE: f64 = 0.1;
 /// adjustment moved them away ([`MAX_TAIL_DEPARTURE`]); returns how many. Nothing holds
 /// such keyframes (the stop at a stream's end, whose windows are rotation-only, sees no
 /// point): on that walk two keyframes of the final stop went 0.3-0.6 m off, and the
-/// keyframes added while the refinement ran were carried by them 1 m off.
+/// keyframes added while the refinement ran were carried by them 1 m off. `depth` gives
+/// the median distance from the cameras to the points they see, from the adjusted poses.
 pub(super) fn place_tail_centres(
     poses: &mut [CameraPose],
     timestamps: &[f64],
     inliers: &[usize],
-    depth: Option<f64>,
+    depth: impl FnOnce(&[CameraPose]) -> Option<f64>,
     options: &UnobservedKeyframeOptions,
 ) -> usize {
-    let (Some(last), Some(depth)) = (
-        inliers.iter().rposition(|&n| n >= options.min_observations),
-        depth,
-    ) else {
+    let Some(last) = inliers.iter().rposition(|&n| n >= options.min_observations) else {
+        return 0;
+    };
+    // Measured only when there is a tail: most jobs end on well-observed keyframes.
+    if last + 1 == poses.len() {
+        return 0;
+    }
+    let Some(depth) = depth(poses) else {
         return 0;
     };
     let mut placed = poses.to_vec();
@@ -84,7 +89,7 @@ mod tests {
         poses[9].centre.y += 1.0; // 25 % of a scene 4 away
         poses[10].centre.y += 0.1; // 2.5 %: kept
         let options = UnobservedKeyframeOptions::default();
-        let placed = place_tail_centres(&mut poses, &times, &inliers, Some(4.0), &options);
+        let placed = place_tail_centres(&mut poses, &times, &inliers, |_| Some(4.0), &options);
         assert_eq!(placed, 1);
         assert!(
             (poses[9].centre - Vector3::new(0.9, 0.0, 0.0)).norm() < 1e-9,
@@ -97,7 +102,7 @@ mod tests {
         inliers[5] = 0;
         poses[5].centre.y += 1.0;
         assert_eq!(
-            place_tail_centres(&mut poses, &times, &inliers, Some(4.0), &options),
+            place_tail_centres(&mut poses, &times, &inliers, |_| Some(4.0), &options),
             0
         );
         assert!((poses[5].centre.y - 1.0).abs() < 1e-12);
